@@ -1,0 +1,1 @@
+"""Hydra configs of slamkit, shipped as the package ``slamkit.conf`` (found after any install)."""

@@ -1,0 +1,45 @@
+"""The core's own components (dataset readers), registered through the ``slamkit`` entry-point group
+exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/``."""
+
+from __future__ import annotations
+
+from slamkit.hookspecs import ComponentSpec, hookimpl
+
+
+@hookimpl
+def slamkit_components() -> list[ComponentSpec]:
+    return [
+        ComponentSpec(
+            "dataset",
+            "synthetic",
+            "slamkit.io.synthetic.dataset.SyntheticDataset",
+            description="slamkit's own rendered world with exact ground truth (the default)",
+        ),
+        ComponentSpec(
+            "dataset",
+            "tum_rgbd",
+            "slamkit.io.tum_rgbd.TumRgbdDataset",
+            description="TUM RGB-D sequence folder (rgb, depth, groundtruth)",
+        ),
+        ComponentSpec(
+            "dataset",
+            "euroc",
+            "slamkit.io.euroc.EurocDataset",
+            description="EuRoC/ASL folder (mav0: cam0, cam1, imu0, ground truth)",
+        ),
+        ComponentSpec(
+            "dataset",
+            "kitti",
+            "slamkit.io.kitti.KittiDataset",
+            description="KITTI odometry (sequences/NN, poses/NN.txt)",
+        ),
+        ComponentSpec(
+            "dataset",
+            "folder",
+            "slamkit.io.folder.ImageFolderDataset",
+            description="a folder of images with a camera from config",
+        ),
+        ComponentSpec(
+            "dataset", "video", "slamkit.io.video.VideoDataset", description="a video file with a camera from config"
+        ),
+    ]

@@ -1,0 +1,101 @@
+"""Command line: ``slamkit run | eval | plugins``.
+
+``slamkit run [OVERRIDES...]`` is a Hydra application (all of Hydra's flags work: ``-m`` for multirun,
+``--cfg job`` to print the config, ``+backend=gtsam``, ...). The other subcommands are plain argparse.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+
+from slamkit import __version__
+from slamkit.errors import SlamkitError
+from slamkit.plugins import ComponentRegistry
+
+
+def _run_hydra_app(hydra_args: Sequence[str]) -> int:
+    import hydra
+
+    from slamkit.app import run_job
+    from slamkit.config import CONFIG_NAME, CONFIG_SEARCH_PATH, prepare_registry
+
+    prepare_registry()
+    app = hydra.main(config_path=CONFIG_SEARCH_PATH, config_name=CONFIG_NAME, version_base="1.3")(run_job)
+    saved_argv = sys.argv
+    sys.argv = ["slamkit", *hydra_args]
+    try:
+        app()
+    except SlamkitError as exc:
+        print(f"slamkit run: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        sys.argv = saved_argv
+    return 0
+
+
+def _plugins_command(args: argparse.Namespace) -> int:
+    registry = ComponentRegistry.discover()
+    rows = [
+        {
+            "kind": c.spec.kind,
+            "name": c.spec.name,
+            "distribution": c.distribution,
+            "plugin": c.plugin,
+            "target": c.spec.target,
+            "description": c.spec.description,
+        }
+        for c in registry.components()
+    ]
+    failures = [{"plugin": f.plugin, "distribution": f.distribution, "reason": f.reason} for f in registry.failures]
+    if args.json:
+        print(json.dumps({"components": rows, "failures": failures}, indent=2))
+    else:
+        headers = ["kind", "name", "distribution", "target"]
+        widths = [max([len(h)] + [len(r[h]) for r in rows]) for h in headers]
+        print("  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True)))
+        print("  ".join("-" * w for w in widths))
+        for r in rows:
+            print("  ".join(r[h].ljust(w) for h, w in zip(headers, widths, strict=True)))
+        if failures:
+            print("\nplugins that failed to load:")
+            for f in registry.failures:
+                print(f"  {f}")
+    return 1 if failures and args.strict else 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="slamkit", description="Feature-based visual SLAM, faithful to ORB-SLAM.")
+    parser.add_argument("--version", action="version", version=f"slamkit {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser(
+        "run",
+        help="run SLAM on a sequence (a Hydra app: slamkit run dataset=euroc dataset.root=PATH +backend=gtsam)",
+        add_help=False,
+    )
+    plugins = sub.add_parser("plugins", help="list every registered component: kind, name, distribution, target")
+    plugins.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    plugins.add_argument("--strict", action="store_true", help="exit 1 when any plugin failed to load")
+    plugins.set_defaults(func=_plugins_command)
+    from slamkit.eval.cli import add_eval_parser
+
+    add_eval_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "run":
+        return _run_hydra_app(argv[1:])
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except SlamkitError as exc:
+        print(f"slamkit {args.command}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

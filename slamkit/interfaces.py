@@ -1,0 +1,248 @@
+"""The seams of slamkit: what a component must provide to be swapped in by config.
+
+Each interface is a ``typing.Protocol`` (runtime-checkable, so the plugin manager can verify that a
+component a plugin returns really is what its kind promises). Components exchange plain data only:
+images and arrays (``slamkit.sensors``, ``slamkit.features``) and optimization problems/results
+(``slamkit.problems``). See docs/conventions.md for frames and units; in short ``T_a_b`` maps points
+from frame b to frame a, poses are float64, pixels float32, metres/radians/seconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.features import Features
+from slamkit.problems import (
+    BundleProblem,
+    BundleResult,
+    EssentialGraphProblem,
+    EssentialGraphResult,
+    PoseOnlyProblem,
+    PoseOnlyResult,
+    Sim3Problem,
+    Sim3Result,
+)
+from slamkit.sensors import FrameData, Trajectory
+
+F64 = NDArray[np.float64]
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """A central camera model (pinhole with radial-tangential distortion, Kannala-Brandt fisheye, ...).
+
+    Pixel coordinates are of the raw (distorted) image unless a name says ``undist``.
+    """
+
+    model: str
+    width: int
+    height: int
+
+    @property
+    def K(self) -> F64:
+        """(3, 3) intrinsic matrix of the ideal pinhole image (fx, fy, cx, cy), px."""
+        ...
+
+    def project(self, xyz_c: F64) -> F64:
+        """xyz_c: (N, 3) m in the camera frame (z forward) -> (N, 2) px in the raw image."""
+        ...
+
+    def unproject(self, uv_px: F64) -> F64:
+        """uv_px: (N, 2) raw-image px -> (N, 3) unit bearing vectors in the camera frame."""
+        ...
+
+    def undistort_points(self, uv_px: F64) -> F64:
+        """uv_px: (N, 2) raw-image px -> (N, 2) px in the ideal pinhole image with the same K."""
+        ...
+
+
+@runtime_checkable
+class Dataset(Protocol):
+    """A sequence of timestamped sensor packets with its calibration and, when known, ground truth.
+
+    camera: the (left) camera. camera_right / T_l_r: the right camera of a stereo pair and the pose of the
+    right camera in the left camera frame (maps right-camera points to left). T_b_c: pose of the (left)
+    camera in the IMU/body frame. ground_truth: camera poses T_w_c over time, or None.
+    """
+
+    name: str
+    camera: Camera
+    camera_right: Camera | None
+    T_l_r: F64 | None
+    T_b_c: F64 | None
+    fps: float
+    ground_truth: Trajectory | None
+
+    def __len__(self) -> int: ...
+
+    def __iter__(self) -> Iterator[FrameData]: ...
+
+
+@runtime_checkable
+class FeatureExtractor(Protocol):
+    """Detects keypoints and computes binary descriptors on a grey image."""
+
+    n_levels: int
+    scale_factor: float
+
+    def extract(self, image: NDArray[np.uint8], camera: Camera | None = None) -> Features:
+        """image: (H, W) uint8 grey. With a camera, ``uv_undist_px`` are undistorted through it."""
+        ...
+
+
+@dataclass(frozen=True)
+class BowDescription:
+    """A bag-of-words description of one image.
+
+    words: word id -> TF-IDF weight (L1-normalised).
+    direct_index: vocabulary node id (at the configured level) -> (k,) indices of the image's features.
+    """
+
+    words: Mapping[int, float]
+    direct_index: Mapping[int, NDArray[np.int64]]
+
+
+@runtime_checkable
+class PlaceRecognizer(Protocol):
+    """A visual vocabulary and keyframe database for relocalization and loop detection (ORB-SLAM III-E)."""
+
+    def transform(self, descriptors: NDArray[np.uint8]) -> BowDescription:
+        """descriptors: (N, D) uint8 -> the image's bag of words and direct index."""
+        ...
+
+    def score(self, a: BowDescription, b: BowDescription) -> float:
+        """Similarity in [0, 1] (L1 score for DBoW2)."""
+        ...
+
+    def add(self, keyframe_id: int, bow: BowDescription) -> None:
+        """Insert a keyframe in the inverted index."""
+        ...
+
+    def remove(self, keyframe_id: int) -> None:
+        """Erase a keyframe from the inverted index (keyframe culling)."""
+        ...
+
+    def query(self, bow: BowDescription, exclude: Sequence[int] = ()) -> list[tuple[int, float]]:
+        """Keyframes sharing at least one word with ``bow`` (not in ``exclude``) with their scores,
+        best first."""
+        ...
+
+
+@dataclass(frozen=True)
+class TwoViewResult:
+    """Outcome of a map initialisation attempt from two views.
+
+    success: False when the initializer refused (``reason`` says why: low parallax, ambiguity, ...).
+    model: "H" (homography) or "F" (fundamental) — which model explained the scene.
+    T_cur_ref: (4, 4) pose of the reference camera in the current camera (maps ref points to cur), with
+        an arbitrary scale (the pipeline rescales the map).
+    xyz_ref: (M, 3) m points in the reference camera frame, one per input match (NaN where not triangulated).
+    triangulated: (M,) bool, which matches gave a good point.
+    """
+
+    success: bool
+    reason: str
+    model: Literal["H", "F", ""] = ""
+    T_cur_ref: F64 | None = None
+    xyz_ref: F64 | None = None
+    triangulated: NDArray[np.bool_] | None = None
+    details: Mapping[str, Any] | None = None
+
+
+@runtime_checkable
+class Initializer(Protocol):
+    """Builds an initial two-view reconstruction from feature matches (ORB-SLAM section IV)."""
+
+    def initialize(
+        self,
+        uv_ref_px: F64,
+        uv_cur_px: F64,
+        K: F64,
+        rng: np.random.Generator,
+    ) -> TwoViewResult:
+        """uv_ref_px, uv_cur_px: (M, 2) undistorted matched keypoints; K: (3, 3)."""
+        ...
+
+
+class AbortToken(Protocol):
+    """Anything with ``is_set()``: threading.Event, multiprocessing.Event, or slamkit's own token."""
+
+    def is_set(self) -> bool: ...
+
+
+@runtime_checkable
+class Optimizer(Protocol):
+    """Every optimization ORB-SLAM performs. Takes plain problems, returns plain results; never the map."""
+
+    name: str
+
+    def optimize_pose(self, problem: PoseOnlyProblem) -> PoseOnlyResult:
+        """Motion-only BA with ORB-SLAM's rounds of chi-square outlier classification."""
+        ...
+
+    def bundle_adjust(self, problem: BundleProblem, abort: AbortToken | None = None) -> BundleResult:
+        """Local/global BA; checks ``abort`` between iterations and returns a valid partial result."""
+        ...
+
+    def optimize_sim3(self, problem: Sim3Problem) -> Sim3Result:
+        """Relative Sim3 from matched points with the bidirectional reprojection error."""
+        ...
+
+    def optimize_essential_graph(self, problem: EssentialGraphProblem) -> EssentialGraphResult:
+        """Pose-graph optimization in Sim3 (or SE3) over the essential graph."""
+        ...
+
+
+@runtime_checkable
+class MapStore(Protocol):
+    """Owns the map's entities (plain data) and hands out ids from its own monotonic counters.
+
+    One readers-writer lock per map: ``read()`` and ``write()`` return context managers. ``epoch`` is bumped
+    by every large correction (loop closure, map merge) so tracking can notice it.
+    """
+
+    @property
+    def epoch(self) -> int: ...
+
+    def read(self) -> AbstractContextManager[None]: ...
+
+    def write(self) -> AbstractContextManager[None]: ...
+
+    def new_keyframe_id(self) -> int: ...
+
+    def new_point_id(self) -> int: ...
+
+    def keyframe_ids(self) -> list[int]: ...
+
+    def point_ids(self) -> list[int]: ...
+
+    def get_keyframe(self, keyframe_id: int) -> Any: ...
+
+    def get_point(self, point_id: int) -> Any: ...
+
+    def add_keyframe(self, keyframe: Any) -> None: ...
+
+    def add_point(self, point: Any) -> None: ...
+
+    def remove_keyframe(self, keyframe_id: int) -> None: ...
+
+    def remove_point(self, point_id: int) -> None: ...
+
+    def bump_epoch(self) -> int: ...
+
+
+#: kind (= Hydra config group) -> the protocol a component of that kind must satisfy.
+KIND_PROTOCOLS: dict[str, type] = {
+    "features": FeatureExtractor,
+    "place": PlaceRecognizer,
+    "initializer": Initializer,
+    "optimizer": Optimizer,
+    "map": MapStore,
+    "dataset": Dataset,
+}

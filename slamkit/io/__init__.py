@@ -1,0 +1,1 @@
+"""Dataset readers and trajectory I/O. Every reader yields ``slamkit.sensors.FrameData``."""

@@ -1,0 +1,196 @@
+"""Optimization problems and results: plain arrays in, plain arrays out.
+
+An Optimizer never sees the map. The pipeline builds one of these problems from a snapshot of the map,
+a backend solves it (possibly in another process: everything here pickles cheaply), and the pipeline
+commits the result. Frames and units: ``T_c_w`` maps world points into the camera (ORB-SLAM's Tcw),
+metres; ``S_c_w`` is the same with a scale (a Sim3 as a 4x4 matrix [[s R, t], [0, 1]]); pixels are px.
+
+Intrinsics arrays hold ``(fx, fy, cx, cy)`` of the ideal (undistorted) pinhole image, px, because every
+observation handed to an optimizer is an undistorted keypoint. Stereo/RGB-D observations add the right
+image's u coordinate ``u_right_px`` (NaN for a monocular observation) and need ``bf`` = baseline * fx (m px).
+
+Paper constants (defaults here) are the ORB-SLAM values; the pipeline passes the configured values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+B = NDArray[np.bool_]
+
+# Chi-square 95% quantiles for 2 and 3 degrees of freedom (ORB-SLAM, Optimizer.cc; paper appendix).
+CHI2_MONO_95 = 5.991
+CHI2_STEREO_95 = 7.815
+
+
+@dataclass
+class PoseOnlyProblem:
+    """Motion-only BA: one camera pose, fixed 3D points (ORB-SLAM PoseOptimization).
+
+    T_c_w_init: (4, 4) initial pose.
+    xyz_w: (N, 3) m, fixed points in the world frame.
+    uv_px: (N, 2) undistorted observations.
+    u_right_px: (N,) right-image u for stereo/RGB-D observations, NaN for monocular ones.
+    level: (N,) int pyramid level of each observation; information = 1 / scale_factor**(2 level).
+    intrinsics: (4,) fx, fy, cx, cy; bf: baseline * fx (m px), needed only for stereo observations.
+    rounds / iterations_per_round: ORB-SLAM runs 4 rounds of 10 LM iterations, reclassifying outliers
+        with the chi-square gates between rounds (outliers of one round may return as inliers).
+    """
+
+    T_c_w_init: F64
+    xyz_w: F64
+    uv_px: F64
+    u_right_px: F64
+    level: I64
+    intrinsics: F64
+    bf: float = 0.0
+    scale_factor: float = 1.2
+    chi2_mono: float = CHI2_MONO_95
+    chi2_stereo: float = CHI2_STEREO_95
+    rounds: int = 4
+    iterations_per_round: int = 10
+
+
+@dataclass
+class PoseOnlyResult:
+    """T_c_w: (4, 4) optimized pose; inliers: (N,) bool; costs are robust costs (sum, px^2 units)."""
+
+    T_c_w: F64
+    inliers: B
+    cost_initial: float
+    cost_final: float
+    iterations: int
+
+
+@dataclass
+class InertialTerms:
+    """Room for ORB-SLAM3's visual-inertial terms (velocities, biases, preintegrated IMU factors).
+
+    Not used yet: backends reject a problem carrying inertial terms they do not support.
+    """
+
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class BundleProblem:
+    """Local or global bundle adjustment (ORB-SLAM LocalBundleAdjustment / GlobalBundleAdjustemnt).
+
+    T_c_w: (K, 4, 4) initial keyframe poses; pose_fixed: (K,) bool.
+    intrinsics: (K, 4) fx, fy, cx, cy per keyframe; bf: (K,) baseline * fx per keyframe (0 for mono).
+    xyz_w: (M, 3) m initial points; point_fixed: (M,) bool.
+    obs_pose: (E,) int index into poses; obs_point: (E,) int index into points.
+    uv_px: (E, 2) undistorted observations; u_right_px: (E,) NaN for monocular; level: (E,) int.
+    iterations_first / iterations_second: ORB-SLAM optimizes 5 iterations, removes observations failing
+        the chi-square gate (or with the point behind the camera), then optimizes 10 more without them.
+    robust: use the Huber kernel (delta = sqrt(chi2)).
+    """
+
+    T_c_w: F64
+    pose_fixed: B
+    intrinsics: F64
+    bf: F64
+    xyz_w: F64
+    point_fixed: B
+    obs_pose: I64
+    obs_point: I64
+    uv_px: F64
+    u_right_px: F64
+    level: I64
+    scale_factor: float = 1.2
+    chi2_mono: float = CHI2_MONO_95
+    chi2_stereo: float = CHI2_STEREO_95
+    iterations_first: int = 5
+    iterations_second: int = 10
+    robust: bool = True
+    inertial: InertialTerms | None = None
+
+
+@dataclass
+class BundleResult:
+    """T_c_w: (K, 4, 4); xyz_w: (M, 3); outlier: (E,) bool; aborted: stopped early by the abort token."""
+
+    T_c_w: F64
+    xyz_w: F64
+    outlier: B
+    cost_initial: float
+    cost_final: float
+    iterations: int
+    aborted: bool = False
+
+
+@dataclass
+class Sim3Problem:
+    """Relative Sim3 between keyframes 1 and 2 from matched points (ORB-SLAM OptimizeSim3, eq. 10-11).
+
+    S_12_init: (4, 4) Sim3 mapping points of camera 2 into camera 1.
+    xyz1_c1: (N, 3) m, the match's point of keyframe 1 in camera 1 (fixed).
+    xyz2_c2: (N, 3) m, the match's point of keyframe 2 in camera 2 (fixed).
+    uv1_px: (N, 2) observation in keyframe 1 of its point; uv2_px: (N, 2) the same in keyframe 2.
+    level1, level2: (N,) pyramid levels; intrinsics1/2: (4,) fx fy cx cy.
+    The error is bidirectional: uv1 vs project_1(S_12 xyz2_c2) and uv2 vs project_2(S_12^-1 xyz1_c1).
+    chi2: ORB-SLAM uses th2 = 10 per direction. fix_scale: stereo/RGB-D (scale observable).
+    """
+
+    S_12_init: F64
+    xyz1_c1: F64
+    xyz2_c2: F64
+    uv1_px: F64
+    uv2_px: F64
+    level1: I64
+    level2: I64
+    intrinsics1: F64
+    intrinsics2: F64
+    scale_factor: float = 1.2
+    chi2: float = 10.0
+    fix_scale: bool = False
+    iterations_first: int = 5
+    iterations_second: int = 10
+
+
+@dataclass
+class Sim3Result:
+    """S_12: (4, 4) optimized Sim3; inliers: (N,) bool."""
+
+    S_12: F64
+    inliers: B
+    cost_initial: float
+    cost_final: float
+    iterations: int
+
+
+@dataclass
+class EssentialGraphProblem:
+    """Pose-graph optimization over the essential graph (ORB-SLAM OptimizeEssentialGraph).
+
+    S_c_w: (K, 4, 4) initial Sim3 poses (world -> camera, with scale); fixed: (K,) bool (the loop keyframe).
+    edge_i, edge_j: (E,) int; S_ij: (E, 4, 4) measured relative transform S_i_j = S_i_w S_j_w^-1 taken from
+        the uncorrected (or loop-corrected) poses. Error: log_Sim3(S_ij S_jw S_iw^-1), identity information
+        (weights (E,) scale it; 1 by default).
+    use_sim3: False for the SE3 variant (stereo/RGB-D): scales are then kept at 1.
+    """
+
+    S_c_w: F64
+    fixed: B
+    edge_i: I64
+    edge_j: I64
+    S_ij: F64
+    weights: F64 | None = None
+    use_sim3: bool = True
+    iterations: int = 20
+
+
+@dataclass
+class EssentialGraphResult:
+    """S_c_w: (K, 4, 4) corrected poses (Sim3 matrices; SE3 when the problem's use_sim3 is False)."""
+
+    S_c_w: F64
+    cost_initial: float
+    cost_final: float
+    iterations: int

@@ -1,0 +1,1 @@
+"""Deliberately broken plugins: each entry point fails in a different way."""
