@@ -1,0 +1,67 @@
+"""After a plain (non-editable) install, `slamkit run` finds its configs from any working directory."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def plain_install(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    target = tmp_path_factory.mktemp("plain_install")
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "--target",
+            str(target),
+            str(REPO_ROOT),
+        ],
+        check=True,
+    )
+    return target
+
+
+def run_installed(target: Path, cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(target), "PYTHONSAFEPATH": "1"}
+    return subprocess.run([sys.executable, "-m", "slamkit", *args], cwd=cwd, env=env, capture_output=True, text=True)
+
+
+def test_plain_install_ships_configs_and_plugins(plain_install: Path, tmp_path: Path) -> None:
+    assert (plain_install / "slamkit" / "conf" / "config.yaml").is_file()
+    assert (plain_install / "slamkit" / "conf" / "pipeline" / "orbslam.yaml").is_file()
+    assert (plain_install / "slamkit_orb" / "plugin.py").is_file()
+    probe = subprocess.run(
+        [sys.executable, "-c", "import slamkit.conf, slamkit_orb; print(slamkit.conf.__file__, slamkit_orb.__file__)"],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(plain_install), "PYTHONSAFEPATH": "1"},
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert all(p.startswith(str(plain_install)) for p in probe.stdout.split())
+
+
+def test_slamkit_run_composes_from_any_directory(plain_install: Path, tmp_path: Path) -> None:
+    result = run_installed(plain_install, tmp_path, "run", "--cfg", "job", "dataset.scene=long_loop")
+    assert result.returncode == 0, result.stderr
+    assert "scene: long_loop" in result.stdout
+    assert "theta_min: 100" in result.stdout
+
+
+def test_slamkit_plugins_lists_builtin_components(plain_install: Path, tmp_path: Path) -> None:
+    result = run_installed(plain_install, tmp_path, "plugins")
+    assert result.returncode == 0, result.stderr
+    for name in ("synthetic", "tum_rgbd", "euroc", "kitti", "folder", "video", "opencv_orb"):
+        assert f" {name} " in result.stdout
