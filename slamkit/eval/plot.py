@@ -1,0 +1,47 @@
+"""Plot an aligned estimate over its ground truth into a PNG (matplotlib Agg canvas, no pyplot state)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from slamkit.errors import ConfigError
+from slamkit.sensors import Trajectory
+
+
+def plot_trajectories(
+    path: str | Path,
+    gt: Trajectory,
+    est_aligned: Trajectory,
+    title: str = "",
+    dpi: int = 120,
+) -> Path:
+    """Write a PNG with two panels, top view (x-y) and side view (x-z), of the camera centres in metres.
+
+    gt: the ground truth (world frame); est_aligned: the estimate already aligned into that world frame
+    (e.g. ``apply_sim3(ate.alignment, est)``). Returns the path written.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise ConfigError(f"plot path {path} must end in .png")
+    fig = Figure(figsize=(12.0, 5.5), dpi=dpi)
+    FigureCanvasAgg(fig)
+    p_gt, p_est = gt.positions_m, est_aligned.positions_m
+    for k, (j, label) in enumerate(((1, "y"), (2, "z"))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        ax.plot(p_gt[:, 0], p_gt[:, j], "-", color="0.35", lw=1.2, label="ground truth")
+        ax.plot(p_est[:, 0], p_est[:, j], ".-", color="tab:blue", lw=1.0, ms=2.5, label="estimate (aligned)")
+        ax.plot(p_est[:1, 0], p_est[:1, j], "o", color="tab:green", ms=5, label="estimate start")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel(f"{label} [m]")
+        ax.set_title(f"x-{label} ({'top' if label == 'y' else 'side'} view)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, lw=0.3)
+        ax.legend(loc="best", fontsize="small")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, format="png")
+    return path
