@@ -14,7 +14,7 @@ def test_default_config_selects_the_synthetic_dataset_and_paper_constants() -> N
     assert cfg.dataset._target_ == "slamkit.io.synthetic.dataset.SyntheticDataset"
     assert cfg.dataset.seed == cfg.seed == 0  # the top-level seed drives the synthetic world
     assert cfg.pipeline.loop_closing.theta_min == 100  # ORB-SLAM III-D
-    assert cfg.pipeline.map.covisibility_min_shared == 15  # ORB-SLAM III-D
+    assert cfg.map.covisibility_min_shared == 15  # ORB-SLAM III-D
     assert cfg.pipeline.local_mapping.keyframe_culling_redundancy == 0.9  # ORB-SLAM VI-E
     assert cfg.runner.kind == "sequential"
 

@@ -1,0 +1,82 @@
+"""Map entities: plain data owned by a MapStore (ORB-SLAM sec. III-C).
+
+Ids come from the store's counters; nothing here counts or locks. Algorithm-specific scratch state lives
+in the algorithms, not on these objects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.features import Features
+from slamkit.interfaces import BowDescription, Camera
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class KeyFrame:
+    """A keyframe (ORB-SLAM III-C).
+
+    T_c_w: (4, 4) pose, world -> camera. features: every ORB feature of the image (undistorted keypoints
+    included). point_ids: (N,) int64, the map point observed by each feature, -1 for none.
+    bow: the bag of words of the features, once a place recognizer has described it.
+    """
+
+    id: int
+    frame_index: int
+    timestamp_s: float
+    T_c_w: F64
+    camera: Camera
+    features: Features
+    point_ids: NDArray[np.int64]
+    bow: BowDescription | None = None
+
+    @property
+    def T_w_c(self) -> F64:
+        """(4, 4) camera -> world."""
+        R, t = self.T_c_w[:3, :3], self.T_c_w[:3, 3]
+        out = np.eye(4)
+        out[:3, :3] = R.T
+        out[:3, 3] = -R.T @ t
+        return out
+
+    @property
+    def center_w(self) -> F64:
+        """(3,) m, the camera centre in the world frame."""
+        R, t = self.T_c_w[:3, :3], self.T_c_w[:3, 3]
+        return np.asarray(-R.T @ t)
+
+    def n_tracked_points(self) -> int:
+        return int(np.count_nonzero(self.point_ids >= 0))
+
+
+@dataclass
+class MapPoint:
+    """A 3D point of the map (ORB-SLAM III-C).
+
+    xyz_w: (3,) m, position in the world. normal_w: (3,) unit mean viewing direction (from the cameras
+    observing it towards the point). descriptor: (32,) uint8, the observation descriptor with the least median
+    Hamming distance to the others. d_min_m / d_max_m: the distances within which ORB's scale invariance lets
+    it be observed. observations: keyframe id -> feature index in that keyframe. ref_kf_id: the keyframe that
+    d_min/d_max refer to. n_visible / n_found: frames that predicted it visible / that matched it (culling
+    statistic of VI-B).
+    """
+
+    id: int
+    xyz_w: F64
+    descriptor: NDArray[np.uint8]
+    ref_kf_id: int
+    first_kf_id: int
+    normal_w: F64 = field(default_factory=lambda: np.zeros(3))
+    d_min_m: float = 0.0
+    d_max_m: float = float("inf")
+    observations: dict[int, int] = field(default_factory=dict)
+    n_visible: int = 1
+    n_found: int = 1
+
+    def found_ratio(self) -> float:
+        return self.n_found / max(self.n_visible, 1)

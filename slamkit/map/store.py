@@ -1,0 +1,166 @@
+"""The default MapStore: the map's entities and graphs in memory, behind one readers-writer lock."""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager
+
+from slamkit.errors import ConfigError
+from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.graphs import CovisibilityGraph, SpanningTree, essential_graph_edges
+from slamkit.map.lock import ReadWriteLock
+
+
+class InMemoryMapStore:
+    """Keyframes, map points, the covisibility graph, the spanning tree and loop edges of one map.
+
+    Callers take ``read()`` / ``write()`` around access from several threads (the sequential runner needs
+    no locking, but taking the lock is cheap). Ids come from the store's own monotonic counters and are
+    never reused. ``epoch`` is bumped by large corrections (loop closure) so tracking notices them.
+
+    covisibility_min_shared: ORB-SLAM III-D, an edge needs at least 15 shared points.
+    """
+
+    def __init__(self, covisibility_min_shared: int = 15) -> None:
+        if covisibility_min_shared < 1:
+            raise ConfigError(f"map.covisibility_min_shared must be >= 1, got {covisibility_min_shared}")
+        self.covisibility_min_shared = int(covisibility_min_shared)
+        self._lock = ReadWriteLock()
+        self._keyframes: dict[int, KeyFrame] = {}
+        self._points: dict[int, MapPoint] = {}
+        self._next_kf_id = 0
+        self._next_point_id = 0
+        self._epoch = 0
+        self.covisibility = CovisibilityGraph()
+        self.spanning_tree = SpanningTree()
+        self.loop_edges: set[tuple[int, int]] = set()
+
+    # ---- locking and epoch -----------------------------------------------------------------
+
+    @property
+    def epoch(self) -> int:
+        return self._epoch
+
+    def bump_epoch(self) -> int:
+        self._epoch += 1
+        return self._epoch
+
+    def read(self) -> AbstractContextManager[None]:
+        return self._lock.read()
+
+    def write(self) -> AbstractContextManager[None]:
+        return self._lock.write()
+
+    # ---- ids ----------------------------------------------------------------------------------
+
+    def new_keyframe_id(self) -> int:
+        self._next_kf_id += 1
+        return self._next_kf_id - 1
+
+    def new_point_id(self) -> int:
+        self._next_point_id += 1
+        return self._next_point_id - 1
+
+    # ---- entities -----------------------------------------------------------------------------
+
+    def keyframe_ids(self) -> list[int]:
+        return sorted(self._keyframes)
+
+    def point_ids(self) -> list[int]:
+        return sorted(self._points)
+
+    def n_keyframes(self) -> int:
+        return len(self._keyframes)
+
+    def n_points(self) -> int:
+        return len(self._points)
+
+    def has_keyframe(self, keyframe_id: int) -> bool:
+        return keyframe_id in self._keyframes
+
+    def has_point(self, point_id: int) -> bool:
+        return point_id in self._points
+
+    def get_keyframe(self, keyframe_id: int) -> KeyFrame:
+        return self._keyframes[keyframe_id]
+
+    def get_point(self, point_id: int) -> MapPoint:
+        return self._points[point_id]
+
+    def add_keyframe(self, keyframe: KeyFrame) -> None:
+        if keyframe.id in self._keyframes:
+            raise ValueError(f"keyframe {keyframe.id} is already in the map")
+        self._keyframes[keyframe.id] = keyframe
+        self.covisibility.add_node(keyframe.id)
+
+    def add_point(self, point: MapPoint) -> None:
+        if point.id in self._points:
+            raise ValueError(f"map point {point.id} is already in the map")
+        self._points[point.id] = point
+
+    def remove_point(self, point_id: int) -> None:
+        """Erase a point and its observations from every keyframe that saw it."""
+        point = self._points.pop(point_id)
+        for kf_id, idx in point.observations.items():
+            kf = self._keyframes.get(kf_id)
+            if kf is not None and kf.point_ids[idx] == point_id:
+                kf.point_ids[idx] = -1
+
+    def remove_keyframe(self, keyframe_id: int) -> None:
+        """Erase a keyframe: its observations, graph edges and spanning-tree node (children re-parented).
+
+        Points left with no observation are erased too.
+        """
+        kf = self._keyframes[keyframe_id]
+        for idx, pid in enumerate(kf.point_ids):
+            if pid < 0:
+                continue
+            point = self._points.get(int(pid))
+            if point is None:
+                continue
+            point.observations.pop(keyframe_id, None)
+            if not point.observations:
+                del self._points[int(pid)]
+            elif point.ref_kf_id == keyframe_id:
+                point.ref_kf_id = min(point.observations)
+            kf.point_ids[idx] = -1
+        self.spanning_tree.remove(keyframe_id, self.covisibility)
+        self.covisibility.remove(keyframe_id)
+        self.loop_edges = {e for e in self.loop_edges if keyframe_id not in e}
+        del self._keyframes[keyframe_id]
+
+    # ---- observations and graphs ----------------------------------------------------------------
+
+    def add_observation(self, point_id: int, keyframe_id: int, feature_index: int) -> None:
+        """Record that feature ``feature_index`` of a keyframe observes a point (both directions)."""
+        self._points[point_id].observations[keyframe_id] = feature_index
+        self._keyframes[keyframe_id].point_ids[feature_index] = point_id
+
+    def shared_point_counts(self, keyframe_id: int) -> dict[int, int]:
+        """Other keyframe id -> number of map points it shares with ``keyframe_id``."""
+        counts: dict[int, int] = {}
+        for pid in self._keyframes[keyframe_id].point_ids:
+            if pid < 0:
+                continue
+            point = self._points.get(int(pid))
+            if point is None:
+                continue
+            for other in point.observations:
+                if other != keyframe_id:
+                    counts[other] = counts.get(other, 0) + 1
+        return counts
+
+    def update_connections(self, keyframe_id: int) -> None:
+        """Recompute a keyframe's covisibility edges; a keyframe entering the spanning tree gets as parent
+        the keyframe it shares most points with (III-D)."""
+        shared = self.shared_point_counts(keyframe_id)
+        self.covisibility.update_connections(keyframe_id, shared, self.covisibility_min_shared)
+        if keyframe_id not in self.spanning_tree:
+            neighbors = self.covisibility.neighbors(keyframe_id)
+            self.spanning_tree.add(keyframe_id, neighbors[0] if neighbors else None)
+
+    def add_loop_edge(self, a: int, b: int) -> None:
+        self.loop_edges.add((min(a, b), max(a, b)))
+
+    def essential_graph(self, theta_min: int) -> list[tuple[int, int]]:
+        """Essential-graph edges (III-D) with the given covisibility threshold (ORB-SLAM: 100)."""
+        return essential_graph_edges(self.covisibility, self.spanning_tree, self.loop_edges, theta_min)
