@@ -1,0 +1,254 @@
+"""Descriptor matching primitives of ORB-SLAM's ORBmatcher, vectorised with numba (nogil: they release the
+GIL so tracking and local mapping run side by side in the threaded runtime).
+
+- ``hamming_matrix``: all-pairs Hamming distance of 256-bit descriptors.
+- ``FeatureGrid`` + ``search_windows``: for each query (a predicted pixel position with a radius and a
+  range of pyramid levels), the best and second-best descriptor among the features inside the window —
+  the core of SearchByProjection and SearchForInitialization.
+- ``resolve_one_to_one`` and ``rotation_consistent``: ORB-SLAM's post-filters (each feature matched once,
+  the keeper being the closest; the rotation-consistency histogram).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+U8 = NDArray[np.uint8]
+I64 = NDArray[np.int64]
+F64 = NDArray[np.float64]
+
+#: popcount of every byte value.
+_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.int32)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _row_distance(a64: NDArray[np.uint64], i: int, b64: NDArray[np.uint64], j: int) -> int:  # pragma: no cover
+    """Hamming distance between row i of a64 and row j of b64 (descriptors viewed as 64-bit words)."""
+    d = 0
+    for k in range(a64.shape[1]):
+        x = a64[i, k] ^ b64[j, k]
+        # SWAR popcount of a 64-bit word
+        x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+        x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+        x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+        d += int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
+    return d
+
+
+@numba.njit(cache=True, nogil=True)
+def _hamming_matrix(a: U8, b: U8) -> NDArray[np.int32]:  # pragma: no cover - numba
+    a64 = a.view(np.uint64)
+    b64 = b.view(np.uint64)
+    out = np.empty((a64.shape[0], b64.shape[0]), np.int32)
+    for i in range(a64.shape[0]):
+        for j in range(b64.shape[0]):
+            out[i, j] = _row_distance(a64, i, b64, j)
+    return out
+
+
+def _as_words(desc: U8) -> U8:
+    """Contiguous (N, D) uint8 with D a multiple of 8 (viewable as uint64 words)."""
+    desc = np.ascontiguousarray(desc, dtype=np.uint8)
+    if desc.ndim != 2 or desc.shape[1] % 8:
+        raise ValueError(f"descriptors must be (N, D) uint8 with D a multiple of 8, got {desc.shape}")
+    return desc
+
+
+def hamming_matrix(a: U8, b: U8) -> NDArray[np.int32]:
+    """a: (N, D), b: (M, D) uint8 binary descriptors -> (N, M) int32 Hamming distances (bits)."""
+    a, b = _as_words(a), _as_words(b)
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"descriptor lengths differ: {a.shape[1]} vs {b.shape[1]} bytes")
+    return _hamming_matrix(a, b)
+
+
+def hamming_rows(a: U8, b: U8) -> NDArray[np.int32]:
+    """Row-wise distances: a, b (N, D) uint8 -> (N,) int32."""
+    x = np.bitwise_xor(_as_words(a), _as_words(b))
+    return _POPCOUNT8[x].sum(axis=1).astype(np.int32)
+
+
+@dataclass(frozen=True)
+class FeatureGrid:
+    """Keypoints bucketed in a grid of cells (ORB-SLAM's 64x48 frame grid) for window queries.
+
+    cell_start / cell_end: (n_rows * n_cols,) ranges into ``order`` (feature indices sorted by cell).
+    """
+
+    uv_px: F64
+    level: NDArray[np.int32]
+    cell_px: float
+    n_cols: int
+    n_rows: int
+    order: I64
+    cell_start: I64
+    cell_end: I64
+
+    @staticmethod
+    def build(
+        uv_px: NDArray[np.floating], level: NDArray[np.integer], width: int, height: int, cell_px: float = 10.0
+    ) -> FeatureGrid:
+        """uv_px: (N, 2) keypoint positions (undistorted), level: (N,) pyramid levels."""
+        uv = np.asarray(uv_px, np.float64).reshape(-1, 2)
+        n_cols = max(1, int(np.ceil(width / cell_px)))
+        n_rows = max(1, int(np.ceil(height / cell_px)))
+        col = np.clip((uv[:, 0] // cell_px).astype(np.int64), 0, n_cols - 1)
+        row = np.clip((uv[:, 1] // cell_px).astype(np.int64), 0, n_rows - 1)
+        cell = row * n_cols + col
+        order = np.argsort(cell, kind="stable")
+        counts = np.bincount(cell, minlength=n_rows * n_cols)
+        end = np.cumsum(counts)
+        start = end - counts
+        return FeatureGrid(
+            uv,
+            np.asarray(level, np.int32),
+            float(cell_px),
+            n_cols,
+            n_rows,
+            order.astype(np.int64),
+            start.astype(np.int64),
+            end.astype(np.int64),
+        )
+
+
+@numba.njit(cache=True, nogil=True)
+def _search_windows(
+    q_uv: F64,
+    q_radius: F64,
+    q_min_level: NDArray[np.int32],
+    q_max_level: NDArray[np.int32],
+    q_desc: U8,
+    t_uv: F64,
+    t_level: NDArray[np.int32],
+    t_desc: U8,
+    order: I64,
+    cell_start: I64,
+    cell_end: I64,
+    cell_px: float,
+    n_cols: int,
+    n_rows: int,
+) -> tuple[I64, NDArray[np.int32], NDArray[np.int32]]:  # pragma: no cover - numba
+    nq = q_uv.shape[0]
+    qd = q_desc.view(np.uint64)
+    td = t_desc.view(np.uint64)
+    best_idx = np.full(nq, -1, np.int64)
+    best = np.full(nq, 1 << 30, np.int32)
+    second = np.full(nq, 1 << 30, np.int32)
+    for i in range(nq):
+        u, v, r = q_uv[i, 0], q_uv[i, 1], q_radius[i]
+        c0 = max(0, int(np.floor((u - r) / cell_px)))
+        c1 = min(n_cols - 1, int(np.floor((u + r) / cell_px)))
+        r0 = max(0, int(np.floor((v - r) / cell_px)))
+        r1 = min(n_rows - 1, int(np.floor((v + r) / cell_px)))
+        if c0 > c1 or r0 > r1:
+            continue
+        for row in range(r0, r1 + 1):
+            for col in range(c0, c1 + 1):
+                cell = row * n_cols + col
+                for s in range(cell_start[cell], cell_end[cell]):
+                    j = order[s]
+                    lv = t_level[j]
+                    if lv < q_min_level[i] or lv > q_max_level[i]:
+                        continue
+                    du = t_uv[j, 0] - u
+                    dv = t_uv[j, 1] - v
+                    if du * du + dv * dv > r * r:
+                        continue
+                    d = _row_distance(qd, i, td, j)
+                    if d < best[i]:
+                        second[i] = best[i]
+                        best[i] = d
+                        best_idx[i] = j
+                    elif d < second[i]:
+                        second[i] = d
+    return best_idx, best, second
+
+
+@dataclass(frozen=True)
+class WindowMatches:
+    """For each query: the best feature inside its window (-1 if none) and the two smallest distances."""
+
+    best_index: I64
+    best_distance: NDArray[np.int32]
+    second_distance: NDArray[np.int32]
+
+    def accepted(self, max_distance: int, ratio: float | None) -> NDArray[np.bool_]:
+        """(Q,) bool: a match within ``max_distance`` bits and, when ``ratio`` is given, passing the
+        nearest/second-nearest ratio test (second = inf when the window held a single candidate)."""
+        ok = (self.best_index >= 0) & (self.best_distance <= max_distance)
+        if ratio is not None:
+            ok &= self.best_distance < ratio * self.second_distance.astype(np.float64)
+        return ok
+
+
+def search_windows(
+    grid: FeatureGrid,
+    train_desc: U8,
+    query_uv_px: F64,
+    query_desc: U8,
+    radius_px: F64 | float,
+    min_level: NDArray[np.integer] | int = 0,
+    max_level: NDArray[np.integer] | int = 1 << 20,
+) -> WindowMatches:
+    """Best descriptor match for each query within a circular window of the grid's features.
+
+    query_uv_px: (Q, 2) predicted positions; radius_px: scalar or (Q,); min/max_level: scalar or (Q,)
+    inclusive range of pyramid levels allowed for the candidates; query_desc: (Q, D).
+    """
+    q = np.ascontiguousarray(query_uv_px, np.float64).reshape(-1, 2)
+    nq = q.shape[0]
+    radius = np.broadcast_to(np.asarray(radius_px, np.float64), (nq,)).copy()
+    lo = np.broadcast_to(np.asarray(min_level, np.int32), (nq,)).copy()
+    hi = np.broadcast_to(np.asarray(max_level, np.int32), (nq,)).copy()
+    idx, best, second = _search_windows(
+        q,
+        radius,
+        lo,
+        hi,
+        _as_words(query_desc),
+        grid.uv_px,
+        grid.level,
+        _as_words(train_desc),
+        grid.order,
+        grid.cell_start,
+        grid.cell_end,
+        grid.cell_px,
+        grid.n_cols,
+        grid.n_rows,
+    )
+    return WindowMatches(idx, best, second)
+
+
+def resolve_one_to_one(query_idx: I64, train_idx: I64, distance: NDArray[np.integer]) -> NDArray[np.bool_]:
+    """Keep, for each train feature claimed by several queries, only the closest claim (ties: lowest query).
+
+    Returns a (K,) mask over the given candidate matches.
+    """
+    k = query_idx.shape[0]
+    keep = np.zeros(k, bool)
+    if k == 0:
+        return keep
+    order = np.lexsort((query_idx, distance, train_idx))
+    first = np.ones(k, bool)
+    first[1:] = train_idx[order][1:] != train_idx[order][:-1]
+    keep[order[first]] = True
+    return keep
+
+
+def rotation_consistent(angle_diff_deg: F64, n_bins: int = 30) -> NDArray[np.bool_]:
+    """ORB-SLAM's rotation-consistency check: histogram the keypoint orientation differences of the matches
+    (``n_bins`` bins over 360 deg, ORB-SLAM HISTO_LENGTH = 30) and keep matches in the three fullest bins,
+    the second and third only when they hold more than 10% of the fullest (ComputeThreeMaxima)."""
+    n = angle_diff_deg.shape[0]
+    if n == 0:
+        return np.zeros(0, bool)
+    bins = (np.mod(angle_diff_deg, 360.0) * (n_bins / 360.0)).astype(np.int64) % n_bins
+    counts = np.bincount(bins, minlength=n_bins)
+    ranked = np.argsort(-counts, kind="stable")
+    top = counts[ranked[0]]
+    keep_bins = [ranked[0]] + [b for b in ranked[1:3] if counts[b] > 0.1 * top]
+    return np.isin(bins, keep_bins)

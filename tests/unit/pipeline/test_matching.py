@@ -1,0 +1,83 @@
+"""Matching primitives against brute-force references."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamkit.pipeline.matching import (
+    FeatureGrid,
+    hamming_matrix,
+    hamming_rows,
+    resolve_one_to_one,
+    rotation_consistent,
+    search_windows,
+)
+
+
+def brute_hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.unpackbits(a[:, None, :] ^ b[None, :, :], axis=2).sum(axis=2)
+
+
+def test_hamming_matrix_and_rows_match_bit_counting() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 256, (57, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (43, 32), dtype=np.uint8)
+    ref = brute_hamming(a, b)
+    np.testing.assert_array_equal(hamming_matrix(a, b), ref)
+    np.testing.assert_array_equal(hamming_rows(a[:43], b), ref[np.arange(43), np.arange(43)])
+    assert hamming_matrix(a, a).diagonal().max() == 0
+
+
+def test_search_windows_equals_brute_force_with_radius_and_levels() -> None:
+    rng = np.random.default_rng(2)
+    n_train, n_query = 800, 300
+    t_uv = rng.uniform([0, 0], [640, 480], (n_train, 2))
+    t_level = rng.integers(0, 8, n_train).astype(np.int32)
+    t_desc = rng.integers(0, 256, (n_train, 32), dtype=np.uint8)
+    q_uv = rng.uniform([-20, -20], [660, 500], (n_query, 2))
+    q_desc = rng.integers(0, 256, (n_query, 32), dtype=np.uint8)
+    radius = rng.uniform(5, 60, n_query)
+    lo = rng.integers(0, 4, n_query)
+    hi = lo + rng.integers(0, 4, n_query)
+    grid = FeatureGrid.build(t_uv, t_level, 640, 480, cell_px=16.0)
+    got = search_windows(grid, t_desc, q_uv, q_desc, radius, lo, hi)
+    dist = brute_hamming(q_desc, t_desc)
+    inside = (np.linalg.norm(q_uv[:, None] - t_uv[None], axis=2) <= radius[:, None]) & (
+        (t_level[None] >= lo[:, None]) & (t_level[None] <= hi[:, None])
+    )
+    for i in range(n_query):
+        cand = np.flatnonzero(inside[i])
+        if cand.size == 0:
+            assert got.best_index[i] == -1
+            continue
+        d = np.sort(dist[i, cand])
+        assert got.best_distance[i] == d[0]
+        assert dist[i, got.best_index[i]] == d[0] and got.best_index[i] in cand
+        if cand.size > 1:
+            assert got.second_distance[i] == d[1]
+
+
+def test_accepted_applies_threshold_and_ratio() -> None:
+    rng = np.random.default_rng(3)
+    t_desc = rng.integers(0, 256, (2, 32), dtype=np.uint8)
+    q_desc = t_desc.copy()
+    q_desc[1] = t_desc[0]  # query 1 sits on train 1's position but looks like train 0
+    grid = FeatureGrid.build(np.array([[100.0, 100.0], [300.0, 300.0]]), np.zeros(2, np.int32), 640, 480)
+    m = search_windows(grid, t_desc, np.array([[101.0, 100.0], [300.0, 301.0]]), q_desc, 5.0)
+    assert list(m.best_index) == [0, 1] and m.best_distance[0] == 0
+    assert list(m.accepted(max_distance=50, ratio=0.9)) == [True, False]
+
+
+def test_one_to_one_keeps_the_closest_claim() -> None:
+    q = np.array([0, 1, 2, 3])
+    t = np.array([5, 5, 6, 5])
+    d = np.array([40, 10, 30, 10])
+    assert list(resolve_one_to_one(q, t, d)) == [False, True, True, False]
+
+
+def test_rotation_consistency_rejects_odd_orientations() -> None:
+    rng = np.random.default_rng(4)
+    good = rng.normal(20.0, 2.0, 200)  # the image rotated by ~20 deg
+    bad = np.array([150.0, 250.0, 300.0])
+    keep = rotation_consistent(np.concatenate([good, bad]))
+    assert keep[:200].mean() > 0.95 and not keep[200:].any()
