@@ -1,0 +1,121 @@
+"""Typed views of the ``pipeline`` config group (conf/pipeline/orbslam.yaml documents each value and where
+it comes from in the paper). Unknown or missing keys are errors naming the key."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from slamkit.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def from_mapping(cls: type[T], node: Mapping[str, Any], prefix: str) -> T:
+    """Build a config dataclass from a mapping; ConfigError names unknown/missing keys as ``prefix.key``."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(node) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"unknown config key(s) {', '.join(prefix + '.' + k for k in unknown)}; "
+            f"expected some of: {', '.join(sorted(fields))}"
+        )
+    missing = [n for n, f in fields.items() if n not in node and f.default is dataclasses.MISSING]
+    if missing:
+        raise ConfigError(f"missing config key(s) {', '.join(prefix + '.' + k for k in missing)}")
+    values = {}
+    for name, value in node.items():
+        default = fields[name].default
+        if isinstance(default, bool) and not isinstance(value, bool):
+            raise ConfigError(f"{prefix}.{name}: expected true or false, got {value!r}")
+        if isinstance(default, int | float) and not isinstance(default, bool):
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ConfigError(f"{prefix}.{name}: expected a number, got {value!r}")
+            if value < 0:
+                raise ConfigError(f"{prefix}.{name}: expected a non-negative number, got {value!r}")
+            value = type(default)(value)
+        values[name] = value
+    return cls(**values)
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    motion_model_search_radius_px: float = 15.0
+    min_motion_model_matches: int = 20
+    min_reference_kf_matches: int = 15
+    min_inliers_after_pose_opt: int = 10
+    reference_kf_ratio: float = 0.7
+    local_map_min_view_cos: float = 0.5
+    local_map_search_radius_px: float = 1.0
+    local_map_search_radius_relocalized_px: float = 5.0
+    local_map_ratio: float = 0.8
+    local_map_covisible_keyframes: int = 80
+    min_local_map_inliers: int = 30
+    min_local_map_inliers_after_reloc: int = 50
+    keyframe_min_frames_since_reloc: int = 20
+    keyframe_max_frames_idle: int = 20
+    keyframe_min_tracked_points: int = 50
+    keyframe_max_ref_ratio: float = 0.9
+    descriptor_threshold_high: int = 100
+    descriptor_threshold_low: int = 50
+    rotation_histogram_bins: int = 30
+    init_min_features: int = 100
+    init_min_matches: int = 100
+    init_search_radius_px: float = 100.0
+    init_match_ratio: float = 0.9
+    init_min_map_points: int = 100
+
+
+@dataclass(frozen=True)
+class LocalMappingConfig:
+    point_min_found_ratio: float = 0.25
+    point_min_observations: int = 3
+    point_culling_window_kfs: int = 3
+    triangulation_neighbors: int = 20
+    triangulation_ratio: float = 0.6
+    min_parallax_cos: float = 0.9998
+    chi2_mono: float = 5.991
+    scale_consistency_factor: float = 1.5
+    fuse_neighbors: int = 20
+    fuse_second_neighbors: int = 5
+    fuse_search_radius_px: float = 3.0
+    local_ba: bool = True
+    keyframe_culling: bool = True
+    keyframe_culling_redundancy: float = 0.9
+    keyframe_culling_min_observers: int = 3
+    min_baseline_depth_ratio: float = 0.01
+
+
+@dataclass(frozen=True)
+class LoopClosingConfig:
+    enabled: bool = True
+    theta_min: int = 100
+    candidate_min_covisible_weight: int = 30
+    consistency_detections: int = 3
+    sim3_ransac_min_inliers: int = 20
+    sim3_ransac_max_iterations: int = 300
+    sim3_ransac_probability: float = 0.99
+    min_inliers_after_sim3_opt: int = 20
+    min_loop_matches: int = 40
+    global_ba: bool = False
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    tracking: TrackingConfig
+    local_mapping: LocalMappingConfig
+    loop_closing: LoopClosingConfig
+
+    @staticmethod
+    def from_node(node: Mapping[str, Any]) -> PipelineConfig:
+        """node: the composed ``pipeline`` group (a plain mapping)."""
+        unknown = sorted(set(node) - {"tracking", "local_mapping", "loop_closing"})
+        if unknown:
+            raise ConfigError(f"unknown config section(s) {', '.join('pipeline.' + k for k in unknown)}")
+        return PipelineConfig(
+            from_mapping(TrackingConfig, node.get("tracking", {}), "pipeline.tracking"),
+            from_mapping(LocalMappingConfig, node.get("local_mapping", {}), "pipeline.local_mapping"),
+            from_mapping(LoopClosingConfig, node.get("loop_closing", {}), "pipeline.loop_closing"),
+        )

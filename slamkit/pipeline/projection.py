@@ -1,0 +1,148 @@
+"""Guided matching by projection (ORB-SLAM ORBmatcher::SearchByProjection and the local-map frustum test).
+
+All positions are in the undistorted pinhole image (``Features.uv_undist_px``, camera ``K``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.features import Features
+from slamkit.pipeline.frame import ImageBounds
+from slamkit.pipeline.map_points import predict_level
+from slamkit.pipeline.matching import (
+    FeatureGrid,
+    WindowMatches,
+    resolve_one_to_one,
+    rotation_consistent,
+    search_windows,
+)
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+def project_pinhole(T_c_w: F64, xyz_w: F64, K: F64) -> tuple[F64, F64]:
+    """xyz_w: (N, 3) m -> (uv (N, 2) px in the ideal pinhole image, z (N,) m depth in the camera)."""
+    xyz_c = xyz_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+    z = xyz_c[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * xyz_c[:, 0] / z + K[0, 2]
+        v = K[1, 1] * xyz_c[:, 1] / z + K[1, 2]
+    return np.stack([u, v], axis=1), z
+
+
+@dataclass(frozen=True)
+class ProjectionMatches:
+    """Accepted matches: query rows (into the candidate arrays) and the feature indices they matched."""
+
+    query: I64
+    feature: I64
+    distance: NDArray[np.int32]
+
+    def __len__(self) -> int:
+        return int(self.query.shape[0])
+
+
+def _free_grid(
+    features: Features, taken: NDArray[np.bool_], bounds: ImageBounds, cell_px: float
+) -> tuple[FeatureGrid, I64]:
+    free = np.flatnonzero(~taken)
+    grid = FeatureGrid.build(
+        features.uv_undist_px[free],
+        features.level[free],
+        int(np.ceil(bounds.max_u)),
+        int(np.ceil(bounds.max_v)),
+        cell_px,
+    )
+    return grid, free
+
+
+def match_projected(
+    features: Features,
+    taken: NDArray[np.bool_],
+    bounds: ImageBounds,
+    uv_px: F64,
+    descriptors: NDArray[np.uint8],
+    radius_px: F64,
+    min_level: I64,
+    max_level: I64,
+    max_distance: int,
+    ratio: float | None,
+    query_angle_deg: F64 | None,
+    rotation_bins: int,
+    cell_px: float = 10.0,
+) -> ProjectionMatches:
+    """Match projected points (uv_px (Q, 2), descriptors (Q, D)) to the frame's features not ``taken``.
+
+    Window radius and level range per query; Hamming threshold; optional ratio test; when the queries carry
+    keypoint angles (matching frame to frame), ORB-SLAM's rotation-consistency check; each feature once.
+    """
+    if uv_px.shape[0] == 0 or len(features) == 0:
+        empty = np.zeros(0, np.int64)
+        return ProjectionMatches(empty, empty, np.zeros(0, np.int32))
+    grid, free = _free_grid(features, taken, bounds, cell_px)
+    m: WindowMatches = search_windows(
+        grid, features.descriptors[free], uv_px, descriptors, radius_px, min_level, max_level
+    )
+    ok = m.accepted(max_distance, ratio)
+    q = np.flatnonzero(ok)
+    f = free[m.best_index[q]]
+    d = m.best_distance[q]
+    keep = resolve_one_to_one(q, f, d)
+    q, f, d = q[keep], f[keep], d[keep]
+    if query_angle_deg is not None and q.size:
+        rot = rotation_consistent(query_angle_deg[q] - features.angle_deg[f].astype(np.float64), rotation_bins)
+        q, f, d = q[rot], f[rot], d[rot]
+    return ProjectionMatches(q.astype(np.int64), f.astype(np.int64), d)
+
+
+@dataclass(frozen=True)
+class FrustumTest:
+    """The local-map visibility test of ORB-SLAM V-D for a set of map points seen from a camera pose.
+
+    visible: (Q,) bool, passes the five filters' geometric part (in image, depth > 0, distance in the
+    scale-invariance range, viewing angle); uv_px, predicted_level, view_cos for each point.
+    """
+
+    visible: NDArray[np.bool_]
+    uv_px: F64
+    predicted_level: I64
+    view_cos: F64
+
+
+def frustum_test(
+    T_c_w: F64,
+    K: F64,
+    bounds: ImageBounds,
+    xyz_w: F64,
+    normal_w: F64,
+    d_min_m: F64,
+    d_max_m: F64,
+    min_view_cos: float,
+    scale_factor: float,
+    n_levels: int,
+) -> FrustumTest:
+    """ORB-SLAM Frame::isInFrustum for many points: (1) projects inside the image with positive depth,
+    (3) distance within [0.8 d_min, 1.2 d_max], (2) viewing angle v.n >= min_view_cos (cos 60 deg),
+    (4) predicted pyramid level from the distance. Filter (5), the descriptor match, is ``match_projected``."""
+    uv, z = project_pinhole(T_c_w, xyz_w, K)
+    center = -T_c_w[:3, :3].T @ T_c_w[:3, 3]
+    ray = xyz_w - center
+    dist = np.linalg.norm(ray, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        view_cos = np.einsum("ij,ij->i", ray, normal_w) / dist
+    ok = (z > 0) & np.all(np.isfinite(uv), axis=1)
+    ok &= bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
+    ok &= (dist >= 0.8 * d_min_m) & (dist <= 1.2 * d_max_m)
+    ok &= view_cos >= min_view_cos
+    level = predict_level(d_max_m, dist, scale_factor, n_levels)
+    return FrustumTest(ok, uv, level, view_cos)
+
+
+def radius_by_viewing_cos(view_cos: F64) -> F64:
+    """ORB-SLAM's search radius factor: 2.5 when the point is seen almost head-on (cos > 0.998), else 4."""
+    return np.where(view_cos > 0.998, 2.5, 4.0)
