@@ -36,7 +36,7 @@ def slamkit_components() -> list[ComponentSpec]:
         ComponentSpec(
             "dataset",
             "folder",
-            "slamkit.io.folder.ImageFolderDataset",
+            "slamkit.io.folder.FolderDataset",
             description="a folder of images with a camera from config",
         ),
         ComponentSpec(
