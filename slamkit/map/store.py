@@ -135,6 +135,19 @@ class InMemoryMapStore:
         self._points[point_id].observations[keyframe_id] = feature_index
         self._keyframes[keyframe_id].point_ids[feature_index] = point_id
 
+    def remove_observation(self, point_id: int, keyframe_id: int) -> None:
+        """Forget that a keyframe observes a point; a point left with fewer than two observations is erased
+        (ORB-SLAM MapPoint::EraseObservation sets it bad)."""
+        point = self._points[point_id]
+        idx = point.observations.pop(keyframe_id, None)
+        kf = self._keyframes.get(keyframe_id)
+        if idx is not None and kf is not None and kf.point_ids[idx] == point_id:
+            kf.point_ids[idx] = -1
+        if len(point.observations) < 2:
+            self.remove_point(point_id)
+        elif point.ref_kf_id == keyframe_id:
+            point.ref_kf_id = min(point.observations)
+
     def shared_point_counts(self, keyframe_id: int) -> dict[int, int]:
         """Other keyframe id -> number of map points it shares with ``keyframe_id``."""
         counts: dict[int, int] = {}

@@ -1,0 +1,443 @@
+"""Tracking (ORB-SLAM sec. V): ORB extraction, initial pose from the constant-velocity motion model (or the
+reference keyframe), motion-only BA, tracking of the local map, and the new-keyframe decision.
+
+``Tracker.step(frame_data)`` handles one frame and returns a ``TrackingOutcome``; new keyframes it decides
+to create are handed to local mapping by the runner (it does not insert them in the map itself).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.geometry.se3 import invert_T
+from slamkit.interfaces import Camera, FeatureExtractor, Initializer, Optimizer
+from slamkit.map.entities import KeyFrame
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.bundle import intrinsics_of
+from slamkit.pipeline.config import TrackingConfig
+from slamkit.pipeline.frame import Frame, ImageBounds
+from slamkit.pipeline.initialization import MonocularInitialization, create_initial_map, new_keyframe
+from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
+from slamkit.pipeline.projection import frustum_test, match_projected, project_pinhole, radius_by_viewing_cos
+from slamkit.problems import PoseOnlyProblem
+from slamkit.sensors import FrameData
+
+log = logging.getLogger("slamkit.tracking")
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: Keyframes of the local map K2 taken from each K1 keyframe's covisibility neighbours (ORB-SLAM code: 10).
+_K2_NEIGHBORS_PER_KF = 10
+#: A map this small is reset when tracking is lost (ORB-SLAM: "Track lost soon after initialisation").
+_RESET_IF_LOST_WITH_KEYFRAMES = 5
+
+
+class TrackingState(StrEnum):
+    NOT_INITIALIZED = "not_initialized"
+    OK = "ok"
+    LOST = "lost"
+
+
+@dataclass
+class TrackingOutcome:
+    """What tracking did with one frame.
+
+    T_c_w: (4, 4) estimated pose (None when not tracked). inliers: map points matched after the last pose
+    optimization. new_keyframes: keyframes to hand to local mapping (``already_in_map`` for the two made by
+    initialisation). timings_ms: per stage.
+    """
+
+    frame_index: int
+    timestamp_s: float
+    state: TrackingState
+    T_c_w: F64 | None
+    n_features: int
+    inliers: int
+    method: str
+    new_keyframes: list[KeyFrame] = field(default_factory=list)
+    already_in_map: bool = False
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    message: str = ""
+
+
+class Tracker:
+    """The tracking thread's logic, one frame at a time (deterministic given the rng)."""
+
+    def __init__(
+        self,
+        cfg: TrackingConfig,
+        extractor: FeatureExtractor,
+        initializer: Initializer,
+        optimizer: Optimizer,
+        store: InMemoryMapStore,
+        rng: np.random.Generator,
+    ) -> None:
+        self.cfg = cfg
+        self.extractor = extractor
+        self.optimizer = optimizer
+        self.store = store
+        self.state = TrackingState.NOT_INITIALIZED
+        self.init = MonocularInitialization(cfg, initializer, rng)
+        self.last_frame: Frame | None = None
+        self.velocity: F64 | None = None  # T_cur_last of the last two tracked frames
+        self.reference_kf_id: int | None = None
+        self.last_kf_frame_index = -(10**9)
+        self.last_reloc_frame_index = -(10**9)
+        self._bounds: dict[int, ImageBounds] = {}
+
+    # ---- public ------------------------------------------------------------------------------
+
+    def step(self, data: FrameData, camera: Camera, mapping_idle: bool = True) -> TrackingOutcome:
+        """Track one frame. camera: the dataset's (left) camera."""
+        t0 = time.perf_counter()
+        features = self.extractor.extract(data.image, camera)
+        t1 = time.perf_counter()
+        frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
+        timings = {"extract_ms": (t1 - t0) * 1e3}
+        if self.state == TrackingState.NOT_INITIALIZED:
+            outcome = self._initialize(frame)
+        else:
+            outcome = self._track(frame, timings, mapping_idle)
+        timings["track_ms"] = (time.perf_counter() - t0) * 1e3
+        outcome.timings_ms.update(timings)
+        return outcome
+
+    def reset(self) -> None:
+        """Forget the map and start initialising again."""
+        with self.store.write():
+            for kf_id in self.store.keyframe_ids():
+                self.store.remove_keyframe(kf_id)
+        self.state = TrackingState.NOT_INITIALIZED
+        self.init.reset()
+        self.last_frame = None
+        self.velocity = None
+        self.reference_kf_id = None
+
+    # ---- initialisation ------------------------------------------------------------------------
+
+    def _initialize(self, frame: Frame) -> TrackingOutcome:
+        attempt, matches = self.init.attempt(frame)
+        outcome = TrackingOutcome(
+            frame.index,
+            frame.timestamp_s,
+            TrackingState.NOT_INITIALIZED,
+            None,
+            len(frame.features),
+            0,
+            "initialize",
+            message=attempt.reason,
+        )
+        if matches is None or attempt.result is None:
+            return outcome
+        ref = self.init.reference
+        assert ref is not None
+        made = create_initial_map(
+            self.store, self.optimizer, ref, frame, matches[0], matches[1], attempt.result, self.cfg
+        )
+        if isinstance(made, str):
+            self.init.reset()
+            outcome.message = made
+            return outcome
+        kf_ini, kf_cur = made
+        frame.T_c_w = kf_cur.T_c_w.copy()
+        frame.point_ids = kf_cur.point_ids.copy()
+        frame.ref_kf_id = kf_cur.id
+        self.reference_kf_id = kf_cur.id
+        self.last_kf_frame_index = frame.index
+        self.last_frame = frame
+        self.velocity = None
+        self.state = TrackingState.OK
+        self.init.reset()
+        outcome.state = TrackingState.OK
+        outcome.T_c_w = frame.T_c_w.copy()
+        outcome.inliers = kf_cur.n_tracked_points()
+        outcome.new_keyframes = [kf_ini, kf_cur]
+        outcome.already_in_map = True
+        outcome.message = f"initialised ({attempt.result.model}, {attempt.matches} matches)"
+        return outcome
+
+    # ---- tracking --------------------------------------------------------------------------------
+
+    def _track(self, frame: Frame, timings: dict[str, float], mapping_idle: bool) -> TrackingOutcome:
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        with self.store.read():
+            method = "lost"
+            ok = False
+            if self.state == TrackingState.OK and self.last_frame is not None:
+                if self.velocity is not None:
+                    ok = self._track_motion_model(frame)
+                    method = "motion_model"
+                if not ok:
+                    ok = self._track_reference_keyframe(frame)
+                    method = "reference_keyframe"
+            t1 = time.perf_counter()
+            inliers = 0
+            if ok:
+                inliers = self._track_local_map(frame)
+                recent_reloc = frame.index < self.last_reloc_frame_index + cfg.keyframe_min_frames_since_reloc
+                needed = cfg.min_local_map_inliers_after_reloc if recent_reloc else cfg.min_local_map_inliers
+                ok = inliers >= needed
+            t2 = time.perf_counter()
+        timings["initial_pose_ms"] = (t1 - t0) * 1e3
+        timings["local_map_ms"] = (t2 - t1) * 1e3
+        if not ok:
+            return self._lost(frame, method)
+        assert frame.T_c_w is not None and self.last_frame is not None and self.last_frame.T_c_w is not None
+        self.velocity = frame.T_c_w @ invert_T(self.last_frame.T_c_w)
+        frame.point_ids[frame.outlier] = -1
+        frame.outlier[:] = False
+        frame.ref_kf_id = self.reference_kf_id
+        outcome = TrackingOutcome(
+            frame.index, frame.timestamp_s, TrackingState.OK, frame.T_c_w.copy(), len(frame.features), inliers, method
+        )
+        if self._need_new_keyframe(frame, inliers, mapping_idle):
+            kf = new_keyframe(self.store, frame)
+            kf.point_ids = frame.point_ids.copy()
+            outcome.new_keyframes = [kf]
+            self.reference_kf_id = kf.id
+            frame.ref_kf_id = kf.id
+            self.last_kf_frame_index = frame.index
+        self.last_frame = frame
+        return outcome
+
+    def _lost(self, frame: Frame, method: str) -> TrackingOutcome:
+        self.state = TrackingState.LOST
+        self.velocity = None
+        msg = f"tracking lost at frame {frame.index} ({method})"
+        if self.store.n_keyframes() <= _RESET_IF_LOST_WITH_KEYFRAMES:
+            msg += f"; the map has {self.store.n_keyframes()} keyframes: reset and initialise again"
+            self.reset()
+        log.info(msg)
+        return TrackingOutcome(
+            frame.index, frame.timestamp_s, self.state, None, len(frame.features), 0, method, message=msg
+        )
+
+    def _bounds_of(self, camera: Camera) -> ImageBounds:
+        key = id(camera)
+        if key not in self._bounds:
+            self._bounds[key] = ImageBounds.of(camera)
+        return self._bounds[key]
+
+    def _valid_point_ids(self, point_ids: I64) -> NDArray[np.bool_]:
+        return np.array([p >= 0 and self.store.has_point(int(p)) for p in point_ids], bool)
+
+    def _optimize_pose(self, frame: Frame, T_init: F64) -> int:
+        """Motion-only BA on the frame's matches; marks outliers; returns the inlier count."""
+        idx = np.flatnonzero(frame.point_ids >= 0)
+        frame.outlier[:] = False
+        if idx.size < 3:
+            return 0
+        xyz = np.stack([self.store.get_point(int(p)).xyz_w for p in frame.point_ids[idx]])
+        feats = frame.features
+        problem = PoseOnlyProblem(
+            T_c_w_init=T_init,
+            xyz_w=xyz,
+            uv_px=feats.uv_undist_px[idx].astype(np.float64),
+            u_right_px=np.full(idx.size, np.nan),
+            level=feats.level[idx].astype(np.int64),
+            intrinsics=intrinsics_of(frame.camera.K),
+            scale_factor=feats.scale_factor,
+        )
+        result = self.optimizer.optimize_pose(problem)
+        frame.T_c_w = result.T_c_w
+        frame.outlier[idx] = ~result.inliers
+        return int(result.inliers.sum())
+
+    def _discard_outliers(self, frame: Frame) -> int:
+        frame.point_ids[frame.outlier] = -1
+        frame.outlier[:] = False
+        return int(np.count_nonzero(frame.point_ids >= 0))
+
+    def _track_motion_model(self, frame: Frame) -> bool:
+        """V-B: predict the pose with constant velocity, search the last frame's points around their
+        projection (radius th * scale of their level, wider when too few), optimize the pose."""
+        cfg = self.cfg
+        last = self.last_frame
+        assert last is not None and last.T_c_w is not None and self.velocity is not None
+        T_pred = self.velocity @ last.T_c_w
+        valid = np.flatnonzero(self._valid_point_ids(last.point_ids) & ~last.outlier)
+        if valid.size == 0:
+            return False
+        pids = last.point_ids[valid]
+        xyz = np.stack([self.store.get_point(int(p)).xyz_w for p in pids])
+        desc = np.stack([self.store.get_point(int(p)).descriptor for p in pids])
+        uv, z = project_pinhole(T_pred, xyz, frame.camera.K)
+        inside = (z > 0) & np.all(np.isfinite(uv), axis=1)
+        inside &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
+        q = np.flatnonzero(inside)
+        last_level = last.features.level[valid[q]].astype(np.int64)
+        scale = np.power(frame.features.scale_factor, last_level)
+        for th in (cfg.motion_model_search_radius_px, 2.0 * cfg.motion_model_search_radius_px):
+            frame.point_ids[:] = -1
+            m = match_projected(
+                frame.features,
+                np.zeros(len(frame.features), bool),
+                frame.bounds,
+                uv[q],
+                desc[q],
+                th * scale,
+                last_level - 1,
+                last_level + 1,
+                cfg.descriptor_threshold_high,
+                None,
+                last.features.angle_deg[valid[q]].astype(np.float64),
+                cfg.rotation_histogram_bins,
+            )
+            frame.point_ids[m.feature] = pids[q[m.query]]
+            if len(m) >= cfg.min_motion_model_matches:
+                break
+        if np.count_nonzero(frame.point_ids >= 0) < cfg.min_motion_model_matches:
+            return False
+        self._optimize_pose(frame, T_pred)
+        return self._discard_outliers(frame) >= cfg.min_inliers_after_pose_opt
+
+    def _track_reference_keyframe(self, frame: Frame) -> bool:
+        """V-B fallback: match the reference keyframe's map points by descriptor (nearest/second ratio 0.7,
+        rotation consistency) and optimize from the last pose. ORB-SLAM restricts the candidates with the
+        bag of words; without a place recognizer all features are candidates."""
+        cfg = self.cfg
+        if self.reference_kf_id is None or not self.store.has_keyframe(self.reference_kf_id):
+            return False
+        kf = self.store.get_keyframe(self.reference_kf_id)
+        feats_kf = np.flatnonzero(self._valid_point_ids(kf.point_ids))
+        if feats_kf.size == 0 or len(frame.features) == 0:
+            return False
+        dist = hamming_matrix(kf.features.descriptors[feats_kf], frame.features.descriptors)
+        order = np.argsort(dist, axis=1, kind="stable")
+        best = order[:, 0]
+        rows = np.arange(feats_kf.size)
+        d1 = dist[rows, best]
+        d2 = dist[rows, order[:, 1]] if dist.shape[1] > 1 else np.full(feats_kf.size, 1 << 30)
+        ok = (d1 <= cfg.descriptor_threshold_low) & (d1 < cfg.reference_kf_ratio * d2)
+        q = np.flatnonzero(ok)
+        keep = resolve_one_to_one(q, best[q], d1[q])
+        q = q[keep]
+        angle_diff = kf.features.angle_deg[feats_kf[q]].astype(np.float64) - frame.features.angle_deg[best[q]]
+        q = q[rotation_consistent(angle_diff, cfg.rotation_histogram_bins)]
+        frame.point_ids[:] = -1
+        frame.point_ids[best[q]] = kf.point_ids[feats_kf[q]]
+        if q.size < cfg.min_reference_kf_matches:
+            return False
+        assert self.last_frame is not None and self.last_frame.T_c_w is not None
+        self._optimize_pose(frame, self.last_frame.T_c_w)
+        return self._discard_outliers(frame) >= cfg.min_inliers_after_pose_opt
+
+    def _local_keyframes(self, frame: Frame) -> list[int]:
+        """V-D: K1 (keyframes sharing points with the frame), then K2 (their best covisible neighbours,
+        spanning-tree children and parent), at most ``local_map_covisible_keyframes``; sets K_ref."""
+        counts: dict[int, int] = {}
+        for pid in frame.point_ids[frame.point_ids >= 0]:
+            for kf_id in self.store.get_point(int(pid)).observations:
+                counts[kf_id] = counts.get(kf_id, 0) + 1
+        if not counts:
+            return []
+        k1 = sorted(counts, key=lambda k: (-counts[k], k))
+        self.reference_kf_id = k1[0]
+        limit = self.cfg.local_map_covisible_keyframes
+        local = list(k1[:limit])
+        seen = set(local)
+        tree = self.store.spanning_tree
+        for kf_id in list(local):
+            if len(local) >= limit:
+                break
+            extra = self.store.covisibility.best_neighbors(kf_id, _K2_NEIGHBORS_PER_KF)
+            extra += sorted(tree.children.get(kf_id, set()))
+            parent = tree.parent.get(kf_id)
+            if parent is not None:
+                extra.append(parent)
+            for other in extra:
+                if other not in seen and len(local) < limit and self.store.has_keyframe(other):
+                    local.append(other)
+                    seen.add(other)
+        return local
+
+    def _track_local_map(self, frame: Frame) -> int:
+        """V-D: project the local map's points with the five filters, match, optimize the pose again."""
+        cfg = self.cfg
+        frame.point_ids[~self._valid_point_ids(frame.point_ids)] = -1
+        local_kfs = self._local_keyframes(frame)
+        matched = set(int(p) for p in frame.point_ids[frame.point_ids >= 0])
+        for pid in matched:
+            self.store.get_point(pid).n_visible += 1
+        candidates = sorted(
+            {int(p) for k in local_kfs for p in self.store.get_keyframe(k).point_ids if p >= 0} - matched
+        )
+        if candidates:
+            points = [self.store.get_point(p) for p in candidates]
+            xyz = np.stack([p.xyz_w for p in points])
+            feats = frame.features
+            assert frame.T_c_w is not None
+            test = frustum_test(
+                frame.T_c_w,
+                frame.camera.K,
+                frame.bounds,
+                xyz,
+                np.stack([p.normal_w for p in points]),
+                np.array([p.d_min_m for p in points]),
+                np.array([p.d_max_m for p in points]),
+                cfg.local_map_min_view_cos,
+                feats.scale_factor,
+                feats.n_levels,
+            )
+            q = np.flatnonzero(test.visible)
+            for i in q:
+                points[i].n_visible += 1
+            recent = frame.index < self.last_reloc_frame_index + 2
+            th = cfg.local_map_search_radius_relocalized_px if recent else cfg.local_map_search_radius_px
+            level = test.predicted_level[q]
+            radius = th * radius_by_viewing_cos(test.view_cos[q]) * np.power(feats.scale_factor, level)
+            m = match_projected(
+                feats,
+                frame.point_ids >= 0,
+                frame.bounds,
+                test.uv_px[q],
+                np.stack([points[i].descriptor for i in q]) if q.size else np.zeros((0, 32), np.uint8),
+                radius,
+                level - 1,
+                level,
+                cfg.descriptor_threshold_high,
+                cfg.local_map_ratio,
+                None,
+                cfg.rotation_histogram_bins,
+            )
+            cand = np.array(candidates, np.int64)
+            frame.point_ids[m.feature] = cand[q[m.query]]
+        assert frame.T_c_w is not None
+        self._optimize_pose(frame, frame.T_c_w)
+        inliers = 0
+        for i in np.flatnonzero((frame.point_ids >= 0) & ~frame.outlier):
+            point = self.store.get_point(int(frame.point_ids[i]))
+            point.n_found += 1
+            if point.observations:
+                inliers += 1
+        return inliers
+
+    def _need_new_keyframe(self, frame: Frame, inliers: int, mapping_idle: bool) -> bool:
+        """The four conditions of V-E."""
+        cfg = self.cfg
+        n_kfs = self.store.n_keyframes()
+        if (
+            frame.index < self.last_reloc_frame_index + cfg.keyframe_min_frames_since_reloc
+            and n_kfs > cfg.keyframe_min_frames_since_reloc
+        ):
+            return False  # condition 1
+        idle_or_late = mapping_idle or frame.index >= self.last_kf_frame_index + cfg.keyframe_max_frames_idle
+        if not idle_or_late:
+            return False  # condition 2
+        if inliers < cfg.keyframe_min_tracked_points:
+            return False  # condition 3
+        if self.reference_kf_id is None or not self.store.has_keyframe(self.reference_kf_id):
+            return True
+        ref = self.store.get_keyframe(self.reference_kf_id)
+        min_obs = 2 if n_kfs <= 2 else 3
+        ref_points = [int(p) for p in ref.point_ids if p >= 0 and self.store.has_point(int(p))]
+        n_ref = sum(1 for p in ref_points if len(self.store.get_point(p).observations) >= min_obs)
+        return inliers < cfg.keyframe_max_ref_ratio * n_ref  # condition 4
