@@ -1,23 +1,34 @@
-"""The job behind ``slamkit run``: build the configured components and run SLAM on the dataset."""
+"""The job behind ``slamkit run``: build the configured components, run SLAM on the dataset, write the run
+directory (trajectory.tum, keyframes.tum, metrics.json, config.yaml, trajectory.png)."""
 
 from __future__ import annotations
 
+import json
 import logging
+import time
+import traceback
+from pathlib import Path
+from typing import Any
 
-from omegaconf import DictConfig
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
 from slamkit.errors import SlamkitError
+from slamkit.interfaces import Dataset
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.config import PipelineConfig
+from slamkit.pipeline.local_mapping import LocalMapper
+from slamkit.pipeline.tracking import Tracker, TrackingState
 from slamkit.plugins import ComponentRegistry
+from slamkit.runtime.sequential import RunLog, SequentialRunner
+from slamkit.sensors import Trajectory
 
 log = logging.getLogger("slamkit")
 
 
-def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, object]:
-    """Instantiate every configured component group (dataset, features, ...) through the registry.
-
-    Returns kind -> object. Each is checked against its interface; errors name the plugin or config key.
-    """
-    built: dict[str, object] = {}
+def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, Any]:
+    """Instantiate every configured component group through the registry (checked against its interface)."""
+    built: dict[str, Any] = {}
     for kind in ("dataset", "features", "place", "initializer", "optimizer", "map"):
         node = cfg.get(kind)
         if node is not None and "_target_" in node:
@@ -25,16 +36,148 @@ def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, 
     return built
 
 
-def run_job(cfg: DictConfig) -> None:
+def _output_dir() -> Path:
+    from hydra.core.hydra_config import HydraConfig
+
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
+def path_length_m(traj: Trajectory) -> float:
+    """Sum of the distances between consecutive camera centres, m."""
+    if len(traj) < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(traj.positions_m, axis=0), axis=1).sum())
+
+
+def _percentile(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None
+
+
+def run_metrics(
+    run: RunLog, store: InMemoryMapStore, frames: Trajectory, keyframes: Trajectory, dataset: Dataset
+) -> dict[str, Any]:
+    """metrics.json of a run: counts, timings, and accuracy against the ground truth when there is one."""
+    track_ms = [o.timings_ms["track_ms"] for o in run.tracking if "track_ms" in o.timings_ms]
+    extract_ms = [o.timings_ms["extract_ms"] for o in run.tracking if "extract_ms" in o.timings_ms]
+    mapping_ms = [sum(m.timings_ms.values()) for m in run.mapping]
+    ba_ms = [m.timings_ms.get("local_ba_ms", 0.0) for m in run.mapping]
+    states = [o.state for o in run.tracking]
+    init_frame = next((o.frame_index for o in run.tracking if o.method == "initialize" and o.state == "ok"), None)
+    metrics: dict[str, Any] = {
+        "dataset": getattr(dataset, "name", "?"),
+        "frames": len(run.tracking),
+        "frames_tracked": int(sum(s == TrackingState.OK for s in states)),
+        "frames_lost": int(sum(s == TrackingState.LOST for s in states)),
+        "frames_in_trajectory": len(frames),
+        "initialized_at_frame": init_frame,
+        "resets": run.resets,
+        "keyframes": store.n_keyframes(),
+        "map_points": store.n_points(),
+        "tracking_ms_median": _percentile(track_ms, 50),
+        "tracking_ms_p95": _percentile(track_ms, 95),
+        "extract_ms_median": _percentile(extract_ms, 50),
+        "local_mapping_ms_median": _percentile(mapping_ms, 50),
+        "local_ba_ms_median": _percentile(ba_ms, 50),
+        "wall_s": run.wall_s,
+    }
+    gt = dataset.ground_truth
+    if gt is not None and run.tracking:
+        # the ground truth over the frames this run processed (max_frames/skip may cut the sequence)
+        t0, t1 = run.tracking[0].timestamp_s, run.tracking[-1].timestamp_s
+        span = (gt.t_s >= t0 - 1e-6) & (gt.t_s <= t1 + 1e-6)
+        gt = Trajectory(gt.t_s[span], gt.T_w_c[span])
+    if gt is not None and len(gt) >= 2:
+        metrics["path_length_m"] = path_length_m(gt)
+        metrics["path_length_source"] = "ground_truth"
+        from slamkit.errors import EvaluationError
+        from slamkit.eval.metrics import compute_ate
+
+        for name, traj in (("", frames), ("kf_", keyframes)):
+            try:
+                ate = compute_ate(gt, traj, align="sim3", max_diff_s=0.01)
+            except (EvaluationError, SlamkitError) as exc:
+                metrics[f"{name}ate_error"] = str(exc)
+                continue
+            metrics[f"{name}ate_rmse_m"] = ate.rmse_m
+            metrics[f"{name}ate_matched_poses"] = ate.matched_poses
+            metrics[f"{name}ate_rmse_pct_of_path"] = 100.0 * ate.rmse_m / max(metrics["path_length_m"], 1e-12)
+        metrics["ate_align"] = "sim3"
+    else:
+        metrics["path_length_m"] = path_length_m(frames)
+        metrics["path_length_source"] = "estimate (no ground truth; arbitrary scale for monocular)"
+    return metrics
+
+
+def write_outputs(
+    out_dir: Path, cfg: DictConfig, runner: SequentialRunner, dataset: Dataset, status: str, error: str | None
+) -> dict[str, Any]:
+    """Write what the run has (also after a failure) and return the metrics."""
+    from slamkit.eval.trajectory_io import write_trajectory
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames = runner.recorder.frames(runner.store)
+    keyframes = runner.recorder.keyframes(runner.store)
+    write_trajectory(out_dir / "trajectory.tum", frames, "tum")
+    write_trajectory(out_dir / "keyframes.tum", keyframes, "tum")
+    (out_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    metrics = run_metrics(runner.log, runner.store, frames, keyframes, dataset)
+    metrics["status"] = status
+    metrics["seed"] = int(cfg.seed)
+    if error:
+        metrics["error"] = error
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float) + "\n")
+    gt = dataset.ground_truth
+    if len(frames) >= 3:
+        try:
+            from slamkit.eval.metrics import compute_ate
+            from slamkit.eval.plot import plot_trajectories
+
+            if gt is not None and len(gt) >= 3:
+                ate = compute_ate(gt, frames, align="sim3")
+                plot_trajectories(
+                    out_dir / "trajectory.png",
+                    ate.gt_matched,
+                    ate.est_aligned,
+                    f"{metrics['dataset']}: ATE {ate.rmse_m:.4f} m (sim3)",
+                )
+            else:
+                plot_trajectories(out_dir / "trajectory.png", None, frames, str(metrics["dataset"]))
+        except SlamkitError as exc:
+            log.warning("no trajectory plot: %s", exc)
+    return metrics
+
+
+def run_job(cfg: DictConfig) -> dict[str, Any]:
     """Hydra task function of ``slamkit run``."""
     registry = ComponentRegistry.discover()
     for failure in registry.failures:
         log.warning("%s", failure)
     components = build_components(cfg, registry)
-    dataset = components["dataset"]
-    log.info("dataset %s: %d frames", getattr(dataset, "name", "?"), len(dataset))  # type: ignore[arg-type]
-    # The tracking / local-mapping / loop-closing pipeline is built in the monocular ORB-SLAM issue.
-    raise SlamkitError(
-        "the SLAM pipeline is not part of this build yet: `slamkit run` composes the config and builds the "
-        "dataset and components (use `slamkit run --cfg job` to print the config)"
+    dataset: Dataset = components["dataset"]
+    pipeline = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline, resolve=True))  # type: ignore[arg-type]
+    store: InMemoryMapStore = components["map"]
+    rng = np.random.default_rng(int(cfg.seed))
+    tracker = Tracker(
+        pipeline.tracking, components["features"], components["initializer"], components["optimizer"], store, rng
     )
+    mapper = LocalMapper(pipeline.local_mapping, store, components["optimizer"])
+    runner = SequentialRunner(tracker, mapper, store, progress=bool(cfg.runner.get("progress", True)))
+    out_dir = _output_dir()
+    log.info("dataset %s: %d frames -> %s", getattr(dataset, "name", "?"), len(dataset), out_dir)
+    start = time.perf_counter()
+    try:
+        runner.run(dataset, dataset.camera)
+    except BaseException as exc:
+        error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+        write_outputs(out_dir, cfg, runner, dataset, "failed", error)
+        raise
+    metrics = write_outputs(out_dir, cfg, runner, dataset, "ok", None)
+    log.info(
+        "done in %.1f s: %s",
+        time.perf_counter() - start,
+        json.dumps(
+            {k: metrics.get(k) for k in ("frames_tracked", "keyframes", "map_points", "ate_rmse_m", "kf_ate_rmse_m")}
+        ),
+    )
+    print(f"results in {out_dir}")
+    return metrics

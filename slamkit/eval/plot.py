@@ -13,7 +13,7 @@ from slamkit.sensors import Trajectory
 
 def plot_trajectories(
     path: str | Path,
-    gt: Trajectory,
+    gt: Trajectory | None,
     est_aligned: Trajectory,
     title: str = "",
     dpi: int = 120,
@@ -21,18 +21,21 @@ def plot_trajectories(
     """Write a PNG with two panels, top view (x-y) and side view (x-z), of the camera centres in metres.
 
     gt: the ground truth (world frame); est_aligned: the estimate already aligned into that world frame
-    (e.g. ``apply_sim3(ate.alignment, est)``). Returns the path written.
+    (e.g. ``apply_sim3(ate.alignment, est)``). Without ground truth only the estimate is drawn.
+    Returns the path written.
     """
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ConfigError(f"plot path {path} must end in .png")
     fig = Figure(figsize=(12.0, 5.5), dpi=dpi)
     FigureCanvasAgg(fig)
-    p_gt, p_est = gt.positions_m, est_aligned.positions_m
+    p_est = est_aligned.positions_m
     for k, (j, label) in enumerate(((1, "y"), (2, "z"))):
         ax = fig.add_subplot(1, 2, k + 1)
-        ax.plot(p_gt[:, 0], p_gt[:, j], "-", color="0.35", lw=1.2, label="ground truth")
-        ax.plot(p_est[:, 0], p_est[:, j], ".-", color="tab:blue", lw=1.0, ms=2.5, label="estimate (aligned)")
+        if gt is not None:
+            ax.plot(gt.positions_m[:, 0], gt.positions_m[:, j], "-", color="0.35", lw=1.2, label="ground truth")
+        est_label = "estimate (aligned)" if gt is not None else "estimate"
+        ax.plot(p_est[:, 0], p_est[:, j], ".-", color="tab:blue", lw=1.0, ms=2.5, label=est_label)
         ax.plot(p_est[:1, 0], p_est[:1, j], "o", color="tab:green", ms=5, label="estimate start")
         ax.set_xlabel("x [m]")
         ax.set_ylabel(f"{label} [m]")

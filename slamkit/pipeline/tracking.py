@@ -15,7 +15,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.geometry.se3 import invert_T
+from slamkit.geometry.se3 import SE3, invert_T
 from slamkit.interfaces import Camera, FeatureExtractor, Initializer, Optimizer
 from slamkit.map.entities import KeyFrame
 from slamkit.map.store import InMemoryMapStore
@@ -191,7 +191,8 @@ class Tracker:
         if not ok:
             return self._lost(frame, method)
         assert frame.T_c_w is not None and self.last_frame is not None and self.last_frame.T_c_w is not None
-        self.velocity = frame.T_c_w @ invert_T(self.last_frame.T_c_w)
+        # re-orthonormalised: products of poses drift off SO(3) and optimizers reject them
+        self.velocity = SE3.from_matrix(frame.T_c_w @ invert_T(self.last_frame.T_c_w), orthonormalize=True).matrix()
         frame.point_ids[frame.outlier] = -1
         frame.outlier[:] = False
         frame.ref_kf_id = self.reference_kf_id
@@ -262,7 +263,7 @@ class Tracker:
         cfg = self.cfg
         last = self.last_frame
         assert last is not None and last.T_c_w is not None and self.velocity is not None
-        T_pred = self.velocity @ last.T_c_w
+        T_pred = SE3.from_matrix(self.velocity @ last.T_c_w, orthonormalize=True).matrix()
         valid = np.flatnonzero(self._valid_point_ids(last.point_ids) & ~last.outlier)
         if valid.size == 0:
             return False

@@ -1,0 +1,79 @@
+"""Recording the camera trajectory as ORB-SLAM does: each tracked frame's pose relative to its reference
+keyframe, so the final trajectory follows every later correction of the keyframes (BA, loop closing)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.geometry.se3 import invert_T
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.local_mapping import CulledKeyFrame
+from slamkit.sensors import Trajectory
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class _Record:
+    frame_index: int
+    timestamp_s: float
+    ref_kf_id: int
+    T_c_r: F64
+
+
+class TrajectoryRecorder:
+    """Collects tracked frames; ``frames(store)`` resolves them against the keyframes' current poses."""
+
+    def __init__(self) -> None:
+        self._records: list[_Record] = []
+        self._culled: dict[int, CulledKeyFrame] = {}
+
+    def __len__(self) -> int:
+        return len(self._records)
+
+    def clear(self) -> None:
+        """Forget everything (the map was reset: earlier poses live in a map that no longer exists)."""
+        self._records.clear()
+        self._culled.clear()
+
+    def record(self, frame_index: int, timestamp_s: float, T_c_w: F64, ref_kf_id: int, T_ref_w: F64) -> None:
+        self._records.append(_Record(frame_index, timestamp_s, ref_kf_id, T_c_w @ invert_T(T_ref_w)))
+
+    def on_culled(self, culled: CulledKeyFrame) -> None:
+        self._culled[culled.kf_id] = culled
+
+    def _keyframe_pose(self, store: InMemoryMapStore, kf_id: int, depth: int = 0) -> F64 | None:
+        """Current T_c_w of a keyframe, following culled keyframes to their parents."""
+        if store.has_keyframe(kf_id):
+            return store.get_keyframe(kf_id).T_c_w
+        culled = self._culled.get(kf_id)
+        if culled is None:
+            return None
+        if culled.parent_id is None or depth > 10_000:
+            return culled.T_c_w
+        parent = self._keyframe_pose(store, culled.parent_id, depth + 1)
+        return culled.T_c_w if parent is None else culled.T_kf_parent @ parent
+
+    def frames(self, store: InMemoryMapStore) -> Trajectory:
+        """Every recorded frame's pose T_w_c (frames whose keyframe cannot be resolved are left out)."""
+        t, poses = [], []
+        for rec in self._records:
+            T_r_w = self._keyframe_pose(store, rec.ref_kf_id)
+            if T_r_w is None:
+                continue
+            t.append(rec.timestamp_s)
+            poses.append(invert_T(rec.T_c_r @ T_r_w))
+        if not poses:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.array(t), np.stack(poses))
+
+    @staticmethod
+    def keyframes(store: InMemoryMapStore) -> Trajectory:
+        """The map's keyframes, T_w_c in time order."""
+        kfs = sorted((store.get_keyframe(k) for k in store.keyframe_ids()), key=lambda k: k.timestamp_s)
+        if not kfs:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.array([k.timestamp_s for k in kfs]), np.stack([k.T_w_c for k in kfs]))
