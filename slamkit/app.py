@@ -147,9 +147,10 @@ def write_outputs(
     return metrics
 
 
-def run_job(cfg: DictConfig) -> dict[str, Any]:
-    """Hydra task function of ``slamkit run``."""
-    registry = ComponentRegistry.discover()
+def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> tuple[SequentialRunner, Dataset]:
+    """Build the dataset, the components and the runner a composed config describes (no Hydra runtime
+    needed: tests and notebooks call this with ``slamkit.config.compose_config(...)``)."""
+    registry = registry or ComponentRegistry.discover()
     for failure in registry.failures:
         log.warning("%s", failure)
     components = build_components(cfg, registry)
@@ -157,11 +158,30 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
     pipeline = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline, resolve=True))  # type: ignore[arg-type]
     store: InMemoryMapStore = components["map"]
     rng = np.random.default_rng(int(cfg.seed))
+    init_extractor = None
+    factor = pipeline.tracking.init_feature_factor
+    if factor != 1 and "n_features" in cfg.features:
+        node = OmegaConf.to_container(cfg.features, resolve=True)
+        assert isinstance(node, dict)
+        node["n_features"] = round(node["n_features"] * factor)
+        init_extractor = registry.instantiate("features", node)
     tracker = Tracker(
-        pipeline.tracking, components["features"], components["initializer"], components["optimizer"], store, rng
+        pipeline.tracking,
+        components["features"],
+        components["initializer"],
+        components["optimizer"],
+        store,
+        rng,
+        init_extractor,
     )
     mapper = LocalMapper(pipeline.local_mapping, store, components["optimizer"])
     runner = SequentialRunner(tracker, mapper, store, progress=bool(cfg.runner.get("progress", True)))
+    return runner, dataset
+
+
+def run_job(cfg: DictConfig) -> dict[str, Any]:
+    """Hydra task function of ``slamkit run``."""
+    runner, dataset = build_runner(cfg)
     out_dir = _output_dir()
     log.info("dataset %s: %d frames -> %s", getattr(dataset, "name", "?"), len(dataset), out_dir)
     start = time.perf_counter()

@@ -61,6 +61,7 @@ class TrackingConfig:
     descriptor_threshold_high: int = 100
     descriptor_threshold_low: int = 50
     rotation_histogram_bins: int = 30
+    init_feature_factor: float = 2.0
     init_min_features: int = 100
     init_min_matches: int = 100
     init_search_radius_px: float = 100.0

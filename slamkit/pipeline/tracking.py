@@ -78,9 +78,12 @@ class Tracker:
         optimizer: Optimizer,
         store: InMemoryMapStore,
         rng: np.random.Generator,
+        init_extractor: FeatureExtractor | None = None,
     ) -> None:
         self.cfg = cfg
         self.extractor = extractor
+        # ORB-SLAM extracts twice the features on frames used for monocular initialisation
+        self.init_extractor = init_extractor or extractor
         self.optimizer = optimizer
         self.store = store
         self.state = TrackingState.NOT_INITIALIZED
@@ -97,14 +100,12 @@ class Tracker:
     def step(self, data: FrameData, camera: Camera, mapping_idle: bool = True) -> TrackingOutcome:
         """Track one frame. camera: the dataset's (left) camera."""
         t0 = time.perf_counter()
-        features = self.extractor.extract(data.image, camera)
+        initializing = self.state == TrackingState.NOT_INITIALIZED
+        features = (self.init_extractor if initializing else self.extractor).extract(data.image, camera)
         t1 = time.perf_counter()
         frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
         timings = {"extract_ms": (t1 - t0) * 1e3}
-        if self.state == TrackingState.NOT_INITIALIZED:
-            outcome = self._initialize(frame)
-        else:
-            outcome = self._track(frame, timings, mapping_idle)
+        outcome = self._initialize(frame) if initializing else self._track(frame, timings, mapping_idle)
         timings["track_ms"] = (time.perf_counter() - t0) * 1e3
         outcome.timings_ms.update(timings)
         return outcome
