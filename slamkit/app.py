@@ -161,9 +161,8 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     init_extractor = None
     factor = pipeline.tracking.init_feature_factor
     if factor != 1 and "n_features" in cfg.features:
-        node = OmegaConf.to_container(cfg.features, resolve=True)
-        assert isinstance(node, dict)
-        node["n_features"] = round(node["n_features"] * factor)
+        node = {str(k): v for k, v in cfg.features.items()}
+        node["n_features"] = round(int(node["n_features"]) * factor)
         init_extractor = registry.instantiate("features", node)
     tracker = Tracker(
         pipeline.tracking,
