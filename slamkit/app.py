@@ -29,10 +29,14 @@ log = logging.getLogger("slamkit")
 def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, Any]:
     """Instantiate every configured component group through the registry (checked against its interface)."""
     built: dict[str, Any] = {}
+    from slamkit.optim.factory import build_optimizer
+
     for kind in ("dataset", "features", "place", "initializer", "optimizer", "map"):
         node = cfg.get(kind)
-        if node is not None and "_target_" in node:
-            built[kind] = registry.instantiate(kind, node)
+        if node is None or "_target_" not in node:
+            continue
+        # the optimizer may run in a worker process (optimizer.worker=process): the factory decides
+        built[kind] = build_optimizer(node, registry) if kind == "optimizer" else registry.instantiate(kind, node)
     return built
 
 

@@ -82,6 +82,15 @@ def build_parser() -> argparse.ArgumentParser:
     from slamkit.eval.cli import add_eval_parser
 
     add_eval_parser(sub)
+    bench = sub.add_parser("bench", help="benchmarks: `slamkit bench optimizer [--json FILE]`")
+    bench_sub = bench.add_subparsers(dest="bench_command", required=True)
+    from slamkit.bench.optimizer import add_bench_optimizer_arguments, run_bench_optimizer
+
+    bench_opt = bench_sub.add_parser(
+        "optimizer", help="local BA and essential graph on every optimizer backend: wall time and final cost"
+    )
+    add_bench_optimizer_arguments(bench_opt)
+    bench_opt.set_defaults(func=run_bench_optimizer)
     return parser
 
 

@@ -1,0 +1,487 @@
+"""GtsamOptimizer: the four ORB-SLAM optimizations with GTSAM factors and Levenberg-Marquardt.
+
+- Motion-only BA: GenericProjectionFactorCal3_S2 / GenericStereoFactor3D on one Pose3, points held by tight priors;
+  ORB-SLAM's rounds (4 x 10 iterations, each restarting from the initial pose) with chi-square classification
+  between rounds (outliers of one round may come back).
+- Bundle adjustment: projection/stereo factors, Huber with sigma = scale_factor^level; iterations_first, then the
+  outlier pass (chi2 gate or negative depth, vectorised in numpy), then iterations_second without them. The abort
+  token is checked between LM iterations (we drive ``optimizer.iterate()`` ourselves).
+- Relative Sim3: one vectorised CustomFactor over all matches (slamkit_gtsam.sim3_factor).
+- Essential graph: BetweenFactorSimilarity3 (or BetweenFactorPose3 in the SE3 variant) on the inverse poses, whose
+  error is exactly log(S_ij S_jw S_iw^-1).
+
+Fixed variables are held by priors of sigma ``fixed_sigma`` and returned exactly as given. Mono observations are
+inserted per (keyframe, level) with gtsam.utilities.insertProjectionFactors (a C++ loop), so the only Python loop
+over observations is over stereo ones. Keys are small integers (points 0..M-1, poses M..M+K-1) because that
+utility takes keys as doubles.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.errors import ConfigError
+from slamkit.interfaces import AbortToken
+from slamkit.optim.costs import bundle_chi2, bundle_cost, pose_chi2, pose_cost, sim3_chi2, sim3_cost
+from slamkit.optim.validation import (
+    validate_bundle_problem,
+    validate_essential_graph_problem,
+    validate_pose_problem,
+    validate_sim3_problem,
+)
+from slamkit.problems import (
+    BundleProblem,
+    BundleResult,
+    EssentialGraphProblem,
+    EssentialGraphResult,
+    PoseOnlyProblem,
+    PoseOnlyResult,
+    Sim3Problem,
+    Sim3Result,
+)
+from slamkit_gtsam.convert import (
+    S_from_similarity3,
+    invert_rigid,
+    pose3_from_T,
+    poses_from_extract,
+    similarity3_from_S,
+)
+from slamkit_gtsam.sim3_factor import Sim3MatchesResidual, make_sim3_factor
+
+F64 = NDArray[np.float64]
+B = NDArray[np.bool_]
+I64 = NDArray[np.int64]
+
+_ORDERINGS = ("COLAMD", "METIS", "NATURAL")
+_MIN_POSE_EDGES = 10  # ORB-SLAM PoseOptimization stops its rounds when fewer edges remain
+
+
+@dataclass
+class _LmRun:
+    values: gtsam.Values
+    iterations: int
+    aborted: bool
+
+
+class GtsamOptimizer:
+    """slamkit's Optimizer on GTSAM. Config: Levenberg-Marquardt settings (see slamkit_gtsam.plugin)."""
+
+    name = "gtsam"
+
+    @staticmethod
+    def reference_bundle_adjust(problem: BundleProblem) -> BundleResult:
+        """The same BA as a bare GTSAM script (no slamkit machinery): the benchmark's ``gtsam_bare`` row."""
+        return reference_bundle_adjust(problem)
+
+    def __init__(
+        self,
+        lambda_initial: float = 1e-5,
+        lambda_factor: float = 10.0,
+        lambda_upper_bound: float = 1e5,
+        relative_error_tol: float = 1e-5,
+        absolute_error_tol: float = 0.0,
+        fixed_sigma: float = 1e-8,
+        ordering: str = "COLAMD",
+    ) -> None:
+        for key, value in (
+            ("lambda_initial", lambda_initial),
+            ("lambda_factor", lambda_factor),
+            ("lambda_upper_bound", lambda_upper_bound),
+            ("fixed_sigma", fixed_sigma),
+        ):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"optimizer.{key} = {value!r}: expected a finite number > 0")
+        for key, value in (("relative_error_tol", relative_error_tol), ("absolute_error_tol", absolute_error_tol)):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ConfigError(f"optimizer.{key} = {value!r}: expected a finite number >= 0")
+        if ordering not in _ORDERINGS:
+            raise ConfigError(f"optimizer.ordering = {ordering!r}: expected one of {', '.join(_ORDERINGS)}")
+        self.lambda_initial = float(lambda_initial)
+        self.lambda_factor = float(lambda_factor)
+        self.lambda_upper_bound = float(lambda_upper_bound)
+        self.relative_error_tol = float(relative_error_tol)
+        self.absolute_error_tol = float(absolute_error_tol)
+        self.fixed_sigma = float(fixed_sigma)
+        self.ordering = ordering
+
+    # ---- LM driver ----------------------------------------------------------------------------------
+
+    def _params(self) -> gtsam.LevenbergMarquardtParams:
+        params = gtsam.LevenbergMarquardtParams()
+        params.setlambdaInitial(self.lambda_initial)
+        params.setlambdaFactor(self.lambda_factor)
+        params.setlambdaUpperBound(self.lambda_upper_bound)
+        params.setRelativeErrorTol(self.relative_error_tol)
+        params.setAbsoluteErrorTol(self.absolute_error_tol)
+        params.setOrderingType(self.ordering)
+        return params
+
+    def _run(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int, abort: AbortToken | None = None
+    ) -> _LmRun:
+        """Up to ``iterations`` LM iterations, checking ``abort`` before each and stopping at convergence
+        (GTSAM's own test: relative or absolute decrease below tolerance, or no decrease)."""
+        if iterations <= 0 or graph.size() == 0:
+            return _LmRun(values, 0, bool(abort is not None and abort.is_set()))
+        params = self._params()
+        params.setMaxIterations(iterations)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        previous = opt.error()
+        done = 0
+        while done < iterations:
+            if abort is not None and abort.is_set():
+                return _LmRun(opt.values(), done, True)
+            opt.iterate()
+            done += 1
+            current = opt.error()
+            decrease = previous - current
+            if decrease <= 0.0 or decrease < self.absolute_error_tol or decrease < self.relative_error_tol * previous:
+                break
+            previous = current
+        return _LmRun(opt.values(), done, False)
+
+    # ---- noise models -------------------------------------------------------------------------------
+
+    @staticmethod
+    def _models(dim: int, levels: int, scale_factor: float, delta2: float, robust: bool) -> list[gtsam.noiseModel.Base]:
+        """Isotropic models of sigma = scale_factor^level (px), Huber-wrapped (delta = sqrt(chi2 gate)) if robust."""
+        out: list[gtsam.noiseModel.Base] = []
+        for level in range(levels):
+            base = gtsam.noiseModel.Isotropic.Sigma(dim, scale_factor**level)
+            if robust:
+                huber = gtsam.noiseModel.mEstimator.Huber.Create(math.sqrt(delta2))
+                out.append(gtsam.noiseModel.Robust.Create(huber, base))
+            else:
+                out.append(base)
+        return out
+
+    # ---- reprojection graphs ------------------------------------------------------------------------
+
+    def _reprojection_graph(
+        self,
+        active: B,
+        pose_of_obs: I64,
+        point_key_of_obs: I64,
+        uv: F64,
+        u_right: F64,
+        level: I64,
+        intrinsics: F64,
+        bf: F64,
+        pose_key0: int,
+        scale_factor: float,
+        chi2_mono: float,
+        chi2_stereo: float,
+        robust: bool,
+    ) -> gtsam.NonlinearFactorGraph:
+        """Projection (mono) and stereo factors of the active observations.
+
+        pose_of_obs: (E,) pose index (key pose_key0 + index); point_key_of_obs: (E,) point keys; intrinsics (P, 4)
+        and bf (P,) per pose.
+        """
+        graph = gtsam.NonlinearFactorGraph()
+        levels = int(level.max()) + 1 if len(level) else 1
+        mono_models = self._models(2, levels, scale_factor, chi2_mono, robust)
+        stereo_models = self._models(3, levels, scale_factor, chi2_stereo, robust)
+        stereo = np.isfinite(u_right)
+        mono = active & ~stereo
+        cal: dict[int, gtsam.Cal3_S2] = {}
+        # Group mono observations by (pose, level) and insert each group in one C++ call.
+        idx = np.flatnonzero(mono)
+        if len(idx):
+            group = pose_of_obs[idx] * levels + level[idx]
+            order = np.argsort(group, kind="stable")
+            idx = idx[order]
+            group = group[order]
+            bounds = np.flatnonzero(np.r_[True, group[1:] != group[:-1], True])
+            for a, b in itertools.pairwise(bounds):
+                sel = idx[a:b]
+                pose = int(pose_of_obs[sel[0]])
+                K = cal.get(pose)
+                if K is None:
+                    fx, fy, cx, cy = intrinsics[pose]
+                    K = cal[pose] = gtsam.Cal3_S2(fx, fy, 0.0, cx, cy)
+                gtsam.utilities.insertProjectionFactors(
+                    graph,
+                    pose_key0 + pose,
+                    point_key_of_obs[sel].astype(np.float64),
+                    np.ascontiguousarray(uv[sel].T),
+                    mono_models[int(level[sel[0]])],
+                    K,
+                )
+        cal_stereo: dict[int, gtsam.Cal3_S2Stereo] = {}
+        for e in np.flatnonzero(active & stereo):
+            pose = int(pose_of_obs[e])
+            Ks = cal_stereo.get(pose)
+            if Ks is None:
+                fx, fy, cx, cy = intrinsics[pose]
+                Ks = cal_stereo[pose] = gtsam.Cal3_S2Stereo(fx, fy, 0.0, cx, cy, float(bf[pose]) / fx)
+            graph.add(
+                gtsam.GenericStereoFactor3D(
+                    gtsam.StereoPoint2(uv[e, 0], u_right[e], uv[e, 1]),
+                    stereo_models[int(level[e])],
+                    pose_key0 + pose,
+                    int(point_key_of_obs[e]),
+                    Ks,
+                )
+            )
+        return graph
+
+    # ---- motion-only BA -----------------------------------------------------------------------------
+
+    def optimize_pose(self, problem: PoseOnlyProblem) -> PoseOnlyResult:
+        """ORB-SLAM PoseOptimization: ``rounds`` rounds of ``iterations_per_round`` LM iterations."""
+        validate_pose_problem(problem)
+        n = len(problem.xyz_w)
+        pose_key = n
+        point_noise = gtsam.noiseModel.Isotropic.Sigma(3, self.fixed_sigma)
+        base_values = gtsam.Values()
+        base_values.insert(pose_key, pose3_from_T(invert_rigid(problem.T_c_w_init)))
+        points = gtsam.NonlinearFactorGraph()
+        for j in range(n):
+            base_values.insert(j, problem.xyz_w[j])
+            points.add(gtsam.PriorFactorPoint3(j, problem.xyz_w[j], point_noise))
+        gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
+        inlier = np.ones(n, dtype=bool)
+        T_c_w = problem.T_c_w_init.copy()
+        iterations = 0
+        for _ in range(problem.rounds):
+            if inlier.sum() < _MIN_POSE_EDGES and iterations > 0:
+                break
+            graph = self._reprojection_graph(
+                inlier,
+                np.zeros(n, dtype=np.int64),
+                np.arange(n, dtype=np.int64),
+                problem.uv_px,
+                problem.u_right_px,
+                problem.level,
+                problem.intrinsics[None, :],
+                np.array([problem.bf]),
+                pose_key,
+                problem.scale_factor,
+                problem.chi2_mono,
+                problem.chi2_stereo,
+                robust=True,
+            )
+            graph.push_back(points)
+            # Each round restarts from the initial pose (ORB-SLAM resets the vertex estimate per round).
+            run = self._run(graph, gtsam.Values(base_values), problem.iterations_per_round)
+            iterations += run.iterations
+            T_c_w = invert_rigid(run.values.atPose3(pose_key).matrix())
+            inlier = pose_chi2(problem, T_c_w) <= gates
+        return PoseOnlyResult(
+            T_c_w=T_c_w,
+            inliers=inlier,
+            cost_initial=pose_cost(problem, problem.T_c_w_init),
+            cost_final=pose_cost(problem, T_c_w, inlier),
+            iterations=iterations,
+        )
+
+    # ---- bundle adjustment --------------------------------------------------------------------------
+
+    def bundle_adjust(self, problem: BundleProblem, abort: AbortToken | None = None) -> BundleResult:
+        """ORB-SLAM local/global BA: iterations_first, outlier pass, iterations_second; stops at ``abort``."""
+        validate_bundle_problem(problem, backend="gtsam")
+        K, M = len(problem.T_c_w), len(problem.xyz_w)
+        pose_key0 = M
+        values = gtsam.Values()
+        T_w_c = invert_rigid(problem.T_c_w)
+        for k in range(K):
+            values.insert(pose_key0 + k, pose3_from_T(T_w_c[k]))
+        for j in range(M):
+            values.insert(j, problem.xyz_w[j])
+        priors = gtsam.NonlinearFactorGraph()
+        pose_noise = gtsam.noiseModel.Isotropic.Sigma(6, self.fixed_sigma)
+        point_noise = gtsam.noiseModel.Isotropic.Sigma(3, self.fixed_sigma)
+        for kf in np.flatnonzero(problem.pose_fixed):
+            priors.add(gtsam.PriorFactorPose3(pose_key0 + int(kf), pose3_from_T(T_w_c[kf]), pose_noise))
+        for pt in np.flatnonzero(problem.point_fixed):
+            priors.add(gtsam.PriorFactorPoint3(int(pt), problem.xyz_w[pt], point_noise))
+
+        def graph_of(active: B) -> gtsam.NonlinearFactorGraph:
+            g = self._reprojection_graph(
+                active,
+                problem.obs_pose,
+                problem.obs_point,
+                problem.uv_px,
+                problem.u_right_px,
+                problem.level,
+                problem.intrinsics,
+                problem.bf,
+                pose_key0,
+                problem.scale_factor,
+                problem.chi2_mono,
+                problem.chi2_stereo,
+                problem.robust,
+            )
+            g.push_back(priors)
+            return g
+
+        E = len(problem.obs_pose)
+        gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
+        run = self._run(graph_of(np.ones(E, dtype=bool)), values, problem.iterations_first, abort)
+        iterations = run.iterations
+        T_c_w, xyz_w = self._extract(run.values)
+        if not run.aborted and problem.iterations_second > 0:
+            active = bundle_chi2(problem, T_c_w, xyz_w) <= gates
+            # Points left without an active observation keep their estimate and leave the problem.
+            observed = np.bincount(problem.obs_point[active], minlength=M) > 0
+            stage2 = gtsam.Values()
+            for pt in np.flatnonzero(observed | problem.point_fixed):
+                stage2.insert(int(pt), xyz_w[pt])
+            for k in range(K):
+                stage2.insert(pose_key0 + k, pose3_from_T(invert_rigid(T_c_w[k])))
+            active &= observed[problem.obs_point]
+            run = self._run(graph_of(active), stage2, problem.iterations_second, abort)
+            iterations += run.iterations
+            T2, xyz2 = self._extract(run.values)
+            T_c_w = T2
+            xyz_w[observed | problem.point_fixed] = xyz2
+        # Fixed variables are returned exactly as given (the priors move them by ~fixed_sigma).
+        T_c_w[problem.pose_fixed] = problem.T_c_w[problem.pose_fixed]
+        xyz_w[problem.point_fixed] = problem.xyz_w[problem.point_fixed]
+        outlier = ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)
+        return BundleResult(
+            T_c_w=T_c_w,
+            xyz_w=xyz_w,
+            outlier=outlier,
+            cost_initial=bundle_cost(problem, problem.T_c_w, problem.xyz_w),
+            cost_final=bundle_cost(problem, T_c_w, xyz_w, ~outlier),
+            iterations=iterations,
+            aborted=run.aborted,
+        )
+
+    @staticmethod
+    def _extract(values: gtsam.Values) -> tuple[F64, F64]:
+        """(K, 4, 4) T_c_w and the (m, 3) points present in ``values``, in key order."""
+        T_w_c = poses_from_extract(np.asarray(gtsam.utilities.extractPose3(values)))
+        xyz = np.asarray(gtsam.utilities.extractPoint3(values), dtype=np.float64).reshape(-1, 3)
+        return invert_rigid(T_w_c), xyz.copy()
+
+    # ---- relative Sim3 ------------------------------------------------------------------------------
+
+    def optimize_sim3(self, problem: Sim3Problem) -> Sim3Result:
+        """ORB-SLAM OptimizeSim3: iterations_first, drop matches failing the gate in either direction, then
+        iterations_second more (iterations_first again when none was dropped, as ORB-SLAM does)."""
+        validate_sim3_problem(problem)
+        inv_s1 = problem.scale_factor ** -problem.level1.astype(np.float64)
+        inv_s2 = problem.scale_factor ** -problem.level2.astype(np.float64)
+
+        def solve(sel: B, S: F64, iterations: int) -> tuple[F64, int]:
+            residual = Sim3MatchesResidual(
+                problem.xyz1_c1[sel],
+                problem.xyz2_c2[sel],
+                problem.uv1_px[sel],
+                problem.uv2_px[sel],
+                inv_s1[sel],
+                inv_s2[sel],
+                problem.intrinsics1,
+                problem.intrinsics2,
+                problem.chi2,
+                problem.fix_scale,
+            )
+            graph = gtsam.NonlinearFactorGraph()
+            graph.add(make_sim3_factor(0, residual))
+            values = gtsam.Values()
+            values.insert(0, similarity3_from_S(S))
+            run = self._run(graph, values, iterations)
+            return S_from_similarity3(run.values.atSimilarity3(0)), run.iterations
+
+        n = len(problem.xyz1_c1)
+        keep = np.ones(n, dtype=bool)
+        S, iterations = solve(keep, problem.S_12_init, problem.iterations_first)
+        e1, e2 = sim3_chi2(problem, S)
+        keep = (e1 <= problem.chi2) & (e2 <= problem.chi2)
+        more = problem.iterations_second if not keep.all() else problem.iterations_first
+        if keep.sum() >= 3:
+            S, more_done = solve(keep, S, more)
+            iterations += more_done
+        e1, e2 = sim3_chi2(problem, S)
+        inliers = keep & (e1 <= problem.chi2) & (e2 <= problem.chi2)
+        if problem.fix_scale:
+            S[:3, :3] /= np.cbrt(np.linalg.det(S[:3, :3]))  # exactly scale 1 (LM kept it; remove rounding)
+        return Sim3Result(
+            S_12=S,
+            inliers=inliers,
+            cost_initial=sim3_cost(problem, problem.S_12_init),
+            cost_final=sim3_cost(problem, S, inliers),
+            iterations=iterations,
+        )
+
+    # ---- essential graph ----------------------------------------------------------------------------
+
+    def optimize_essential_graph(self, problem: EssentialGraphProblem) -> EssentialGraphResult:
+        """Pose graph over the inverse poses X_k = S_w_k: BetweenFactor(X_j, X_i, S_ij^-1) has error
+        Log(S_ij S_jw S_iw^-1), ORB-SLAM's EdgeSim3 error; identity information scaled by the weights."""
+        validate_essential_graph_problem(problem)
+        Kn = len(problem.S_c_w)
+        E = len(problem.edge_i)
+        sim3 = problem.use_sim3
+        dim = 7 if sim3 else 6
+        S_w_c = np.linalg.inv(problem.S_c_w)
+        meas_inv = np.linalg.inv(problem.S_ij)
+        weights = np.ones(E) if problem.weights is None else np.asarray(problem.weights, dtype=np.float64)
+        models: dict[float, gtsam.noiseModel.Base] = {}
+        between = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if sim3:
+            for k in range(Kn):
+                values.insert(k, similarity3_from_S(S_w_c[k]))
+        else:
+            for k in range(Kn):
+                values.insert(k, pose3_from_T(S_w_c[k]))
+        for e in range(E):
+            w = float(weights[e])
+            model = models.get(w)
+            if model is None:
+                model = models[w] = gtsam.noiseModel.Isotropic.Sigma(dim, 1.0 / math.sqrt(w))
+            i, j = int(problem.edge_i[e]), int(problem.edge_j[e])
+            if sim3:
+                between.add(gtsam.BetweenFactorSimilarity3(j, i, similarity3_from_S(meas_inv[e]), model))
+            else:
+                between.add(gtsam.BetweenFactorPose3(j, i, pose3_from_T(meas_inv[e]), model))
+        graph = gtsam.NonlinearFactorGraph(between)
+        prior_model = gtsam.noiseModel.Isotropic.Sigma(dim, self.fixed_sigma)
+        for kf in np.flatnonzero(problem.fixed):
+            if sim3:
+                graph.add(gtsam.PriorFactorSimilarity3(int(kf), similarity3_from_S(S_w_c[kf]), prior_model))
+            else:
+                graph.add(gtsam.PriorFactorPose3(int(kf), pose3_from_T(S_w_c[kf]), prior_model))
+        cost_initial = 2.0 * between.error(values)
+        run = self._run(graph, values, problem.iterations)
+        out: F64 = np.empty((Kn, 4, 4))
+        if sim3:
+            for k in range(Kn):
+                out[k] = S_from_similarity3(run.values.atSimilarity3(k))
+            out = np.asarray(np.linalg.inv(out), dtype=np.float64)
+        else:
+            out = invert_rigid(poses_from_extract(np.asarray(gtsam.utilities.extractPose3(run.values))))
+        out[problem.fixed] = problem.S_c_w[problem.fixed]
+        return EssentialGraphResult(
+            S_c_w=out,
+            cost_initial=cost_initial,
+            cost_final=2.0 * between.error(run.values),
+            iterations=run.iterations,
+        )
+
+
+def reference_bundle_adjust(problem: BundleProblem) -> BundleResult:
+    """The bare GTSAM script (slamkit_gtsam.bare) on ``problem``, as a BundleResult (for benchmarks)."""
+    from slamkit_gtsam.bare import bare_bundle_adjust
+
+    T_c_w, xyz_w, iterations = bare_bundle_adjust(problem)
+    gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
+    outlier = ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)
+    return BundleResult(
+        T_c_w=T_c_w,
+        xyz_w=xyz_w,
+        outlier=outlier,
+        cost_initial=bundle_cost(problem, problem.T_c_w, problem.xyz_w),
+        cost_final=bundle_cost(problem, T_c_w, xyz_w, ~outlier),
+        iterations=iterations,
+    )

@@ -1,0 +1,32 @@
+"""Entry point of the slamkit_gtsam plugin: declares the GTSAM optimizer and its default config node.
+
+Paper constants (chi-square gates and Huber deltas sqrt(5.991) / sqrt(7.815), the 4 x 10 iterations of motion-only
+BA, 5 + 10 of local BA, 20 of the essential graph) travel with each problem (slamkit.problems, filled by the
+pipeline from its config); this node holds the solver's own settings.
+"""
+
+from __future__ import annotations
+
+from slamkit.hookspecs import ComponentSpec, hookimpl
+
+
+@hookimpl
+def slamkit_components() -> list[ComponentSpec]:
+    return [
+        ComponentSpec(
+            kind="optimizer",
+            name="gtsam",
+            target="slamkit_gtsam.backend.GtsamOptimizer",
+            config={
+                "worker": "inline",  # inline | process: run the backend in a worker process (slamkit.optim.worker)
+                "lambda_initial": 1e-5,  # LM initial damping (GTSAM default; g2o/ORB-SLAM start lower, 1e-16 in EG)
+                "lambda_factor": 10.0,  # LM damping multiplier on a rejected step (GTSAM default)
+                "lambda_upper_bound": 1e5,  # LM gives up an iteration beyond this damping (GTSAM default)
+                "relative_error_tol": 1e-5,  # stop early when the cost decreases less than this, relatively (GTSAM)
+                "absolute_error_tol": 0.0,  # ... or absolutely (0: pose-graph costs are tiny; GTSAM uses 1e-5)
+                "fixed_sigma": 1e-8,  # prior sigma holding fixed variables (their output is the exact input)
+                "ordering": "COLAMD",  # elimination ordering: COLAMD | METIS | NATURAL
+            },
+            description="GTSAM 4 (projection/stereo factors, Similarity3 pose graph, Levenberg-Marquardt)",
+        )
+    ]

@@ -1,0 +1,293 @@
+"""numba kernels of the bundle-adjustment hot path (nogil: a BA in a thread leaves the GIL to the others).
+
+One pass over the observations builds the Gauss-Newton blocks (the same Jacobians as slamkit_scipy.reprojection,
+which the tests check against finite differences), and one pass over the points forms the reduced camera
+system of the Schur complement, so no (E, 6, 6)-sized temporaries are allocated per iteration.
+Layout: poses enter as all K rotations/translations; c (E,) / p (E,) map each observation to its free pose /
+free point index or -1; residual rows are (u, v, u_right) with the third row unused for monocular observations.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+B = NDArray[np.bool_]
+
+
+@numba.njit(cache=True, nogil=True)
+def ba_linearize(
+    R: F64,
+    t: F64,
+    X: F64,
+    obs_pose: I64,
+    obs_point: I64,
+    c: I64,
+    p: I64,
+    uvr: F64,
+    stereo: B,
+    intr: F64,
+    bf: F64,
+    info: F64,
+    delta: F64,
+    robust: bool,
+    nc: int,
+    npt: int,
+) -> tuple[F64, F64, F64, F64, F64, float]:  # pragma: no cover - compiled
+    """-> U (nc, 6, 6), V (npt, 3, 3), W (E, 6, 3) (zero unless both ends free), gc (nc, 6), gp (npt, 3),
+    robust cost. Blocks are J^T w J and J^T w r with w = info * rho'(chi2) (IRLS Huber when ``robust``)."""
+    E = obs_pose.shape[0]
+    U = np.zeros((nc, 6, 6))
+    V = np.zeros((npt, 3, 3))
+    W = np.zeros((E, 6, 3))
+    gc = np.zeros((nc, 6))
+    gp = np.zeros((npt, 3))
+    cost = 0.0
+    A = np.zeros((3, 3))
+    Jc = np.zeros((3, 6))
+    Jp = np.zeros((3, 3))
+    r = np.zeros(3)
+    for e in range(E):
+        k = obs_pose[e]
+        j = obs_point[e]
+        x = R[k, 0, 0] * X[j, 0] + R[k, 0, 1] * X[j, 1] + R[k, 0, 2] * X[j, 2] + t[k, 0]
+        y = R[k, 1, 0] * X[j, 0] + R[k, 1, 1] * X[j, 1] + R[k, 1, 2] * X[j, 2] + t[k, 1]
+        z = R[k, 2, 0] * X[j, 0] + R[k, 2, 1] * X[j, 1] + R[k, 2, 2] * X[j, 2] + t[k, 2]
+        iz = 1.0 / z
+        iz2 = iz * iz
+        fx = intr[e, 0]
+        fy = intr[e, 1]
+        u = fx * x * iz + intr[e, 2]
+        r[0] = u - uvr[e, 0]
+        r[1] = fy * y * iz + intr[e, 3] - uvr[e, 1]
+        rows = 2
+        if stereo[e]:
+            r[2] = u - bf[e] * iz - uvr[e, 2]
+            rows = 3
+        chi2 = 0.0
+        for a in range(rows):
+            chi2 += r[a] * r[a]
+        chi2 *= info[e]
+        d = delta[e]
+        if robust and chi2 > d * d:
+            cost += 2.0 * d * np.sqrt(chi2) - d * d
+            w = info[e] * d / np.sqrt(chi2)
+        else:
+            cost += chi2
+            w = info[e]
+        A[0, 0] = fx * iz
+        A[0, 1] = 0.0
+        A[0, 2] = -fx * x * iz2
+        A[1, 0] = 0.0
+        A[1, 1] = fy * iz
+        A[1, 2] = -fy * y * iz2
+        A[2, 0] = fx * iz
+        A[2, 1] = 0.0
+        A[2, 2] = (bf[e] - fx * x) * iz2
+        ci = c[e]
+        pi = p[e]
+        for a in range(rows):
+            # d r / d omega = cross(p_c, A[a]); d r / d v = A[a]; d r / d X = A[a] R
+            Jc[a, 0] = y * A[a, 2] - z * A[a, 1]
+            Jc[a, 1] = z * A[a, 0] - x * A[a, 2]
+            Jc[a, 2] = x * A[a, 1] - y * A[a, 0]
+            Jc[a, 3] = A[a, 0]
+            Jc[a, 4] = A[a, 1]
+            Jc[a, 5] = A[a, 2]
+            for b in range(3):
+                Jp[a, b] = A[a, 0] * R[k, 0, b] + A[a, 1] * R[k, 1, b] + A[a, 2] * R[k, 2, b]
+        if ci >= 0:
+            for i in range(6):
+                gi = 0.0
+                for a in range(rows):
+                    gi += Jc[a, i] * r[a]
+                gc[ci, i] += w * gi
+                for jj in range(i, 6):
+                    s = 0.0
+                    for a in range(rows):
+                        s += Jc[a, i] * Jc[a, jj]
+                    U[ci, i, jj] += w * s
+        if pi >= 0:
+            for i in range(3):
+                gi = 0.0
+                for a in range(rows):
+                    gi += Jp[a, i] * r[a]
+                gp[pi, i] += w * gi
+                for jj in range(i, 3):
+                    s = 0.0
+                    for a in range(rows):
+                        s += Jp[a, i] * Jp[a, jj]
+                    V[pi, i, jj] += w * s
+        if ci >= 0 and pi >= 0:
+            for i in range(6):
+                for jj in range(3):
+                    s = 0.0
+                    for a in range(rows):
+                        s += Jc[a, i] * Jp[a, jj]
+                    W[e, i, jj] = w * s
+    # Mirror the upper triangles.
+    for q in range(nc):
+        for i in range(6):
+            for jj in range(i):
+                U[q, i, jj] = U[q, jj, i]
+    for q in range(npt):
+        for i in range(3):
+            for jj in range(i):
+                V[q, i, jj] = V[q, jj, i]
+    return U, V, W, gc, gp, cost
+
+
+@numba.njit(cache=True, nogil=True)
+def _inv3(M: F64, out: F64) -> None:  # pragma: no cover - compiled
+    """Closed-form inverse of a 3x3 matrix into ``out`` (inf/NaN when singular: the step is then rejected)."""
+    a, b, c = M[0, 0], M[0, 1], M[0, 2]
+    d, e, f = M[1, 0], M[1, 1], M[1, 2]
+    g, h, i = M[2, 0], M[2, 1], M[2, 2]
+    A = e * i - f * h
+    Bc = -(d * i - f * g)
+    C = d * h - e * g
+    det = a * A + b * Bc + c * C
+    inv = 1.0 / det
+    out[0, 0] = A * inv
+    out[1, 0] = Bc * inv
+    out[2, 0] = C * inv
+    out[0, 1] = -(b * i - c * h) * inv
+    out[1, 1] = (a * i - c * g) * inv
+    out[2, 1] = -(a * h - b * g) * inv
+    out[0, 2] = (b * f - c * e) * inv
+    out[1, 2] = -(a * f - c * d) * inv
+    out[2, 2] = (a * e - b * d) * inv
+
+
+@numba.njit(cache=True, nogil=True)
+def ba_reduced_system(
+    U: F64,
+    V: F64,
+    W: F64,
+    gc: F64,
+    gp: F64,
+    lam: float,
+    c: I64,
+    point_ptr: I64,
+    point_obs: I64,
+) -> tuple[F64, F64, F64]:  # pragma: no cover - compiled
+    """Schur complement with damping lam: -> S (6 nc, 6 nc) = U + lam I - W (V + lam I)^-1 W^T (dense),
+    rhs (6 nc,) = -gc + W (V + lam I)^-1 gp, and Vinv (npt, 3, 3).
+
+    point_obs[point_ptr[q]:point_ptr[q + 1]] lists the observations of free point q whose pose is free.
+    """
+    nc = U.shape[0]
+    npt = V.shape[0]
+    S = np.zeros((6 * nc, 6 * nc))
+    rhs = np.zeros(6 * nc)
+    Vinv = np.zeros((npt, 3, 3))
+    for q in range(nc):
+        for i in range(6):
+            rhs[6 * q + i] = -gc[q, i]
+            for jj in range(6):
+                S[6 * q + i, 6 * q + jj] = U[q, i, jj]
+            S[6 * q + i, 6 * q + i] += lam
+    Vd = np.zeros((3, 3))
+    Y = np.zeros((64, 6, 3))
+    for q in range(npt):
+        for i in range(3):
+            for jj in range(3):
+                Vd[i, jj] = V[q, i, jj]
+            Vd[i, i] += lam
+        _inv3(Vd, Vinv[q])
+        start = point_ptr[q]
+        n = point_ptr[q + 1] - start
+        if n == 0:
+            continue
+        if Y.shape[0] < n:
+            Y = np.zeros((n, 6, 3))
+        for a in range(n):
+            e = point_obs[start + a]
+            for i in range(6):
+                for jj in range(3):
+                    Y[a, i, jj] = (
+                        W[e, i, 0] * Vinv[q, 0, jj] + W[e, i, 1] * Vinv[q, 1, jj] + W[e, i, 2] * Vinv[q, 2, jj]
+                    )
+            ca = c[e]
+            for i in range(6):
+                rhs[6 * ca + i] += Y[a, i, 0] * gp[q, 0] + Y[a, i, 1] * gp[q, 1] + Y[a, i, 2] * gp[q, 2]
+        # Y_b W_a^T = (Y_a W_b^T)^T (V^-1 is symmetric): compute each pair once and mirror it.
+        for a in range(n):
+            ca = c[point_obs[start + a]]
+            for b in range(a, n):
+                eb = point_obs[start + b]
+                cb = c[eb]
+                for i in range(6):
+                    for jj in range(6):
+                        v = Y[a, i, 0] * W[eb, jj, 0] + Y[a, i, 1] * W[eb, jj, 1] + Y[a, i, 2] * W[eb, jj, 2]
+                        S[6 * ca + i, 6 * cb + jj] -= v
+                        if b != a:
+                            S[6 * cb + jj, 6 * ca + i] -= v
+    return S, rhs, Vinv
+
+
+@numba.njit(cache=True, nogil=True)
+def ba_back_substitute(
+    dc: F64, Vinv: F64, W: F64, gp: F64, c: I64, point_ptr: I64, point_obs: I64
+) -> F64:  # pragma: no cover - compiled
+    """dp (npt, 3) = Vinv_q (-gp_q - sum_e W_e^T dc_(c_e)) over the observations of each free point."""
+    npt = Vinv.shape[0]
+    dp = np.zeros((npt, 3))
+    t = np.zeros(3)
+    for q in range(npt):
+        for i in range(3):
+            t[i] = -gp[q, i]
+        for a in range(point_ptr[q], point_ptr[q + 1]):
+            e = point_obs[a]
+            base = 6 * c[e]
+            for i in range(3):
+                s = 0.0
+                for k in range(6):
+                    s += W[e, k, i] * dc[base + k]
+                t[i] -= s
+        for i in range(3):
+            dp[q, i] = Vinv[q, i, 0] * t[0] + Vinv[q, i, 1] * t[1] + Vinv[q, i, 2] * t[2]
+    return dp
+
+
+@numba.njit(cache=True, nogil=True)
+def ba_cost(
+    R: F64,
+    t: F64,
+    X: F64,
+    obs_pose: I64,
+    obs_point: I64,
+    uvr: F64,
+    stereo: B,
+    intr: F64,
+    bf: F64,
+    info: F64,
+    delta: F64,
+    robust: bool,
+) -> float:  # pragma: no cover - compiled
+    """Sum over observations of rho(chi2) (Huber when ``robust``, else chi2): the cost ba_linearize returns."""
+    cost = 0.0
+    for e in range(obs_pose.shape[0]):
+        k = obs_pose[e]
+        j = obs_point[e]
+        x = R[k, 0, 0] * X[j, 0] + R[k, 0, 1] * X[j, 1] + R[k, 0, 2] * X[j, 2] + t[k, 0]
+        y = R[k, 1, 0] * X[j, 0] + R[k, 1, 1] * X[j, 1] + R[k, 1, 2] * X[j, 2] + t[k, 1]
+        z = R[k, 2, 0] * X[j, 0] + R[k, 2, 1] * X[j, 1] + R[k, 2, 2] * X[j, 2] + t[k, 2]
+        iz = 1.0 / z
+        u = intr[e, 0] * x * iz + intr[e, 2]
+        r0 = u - uvr[e, 0]
+        r1 = intr[e, 1] * y * iz + intr[e, 3] - uvr[e, 1]
+        chi2 = r0 * r0 + r1 * r1
+        if stereo[e]:
+            r2 = u - bf[e] * iz - uvr[e, 2]
+            chi2 += r2 * r2
+        chi2 *= info[e]
+        d = delta[e]
+        if robust and chi2 > d * d:
+            cost += 2.0 * d * np.sqrt(chi2) - d * d
+        else:
+            cost += chi2
+    return cost

@@ -1,0 +1,167 @@
+"""Residuals and robust costs of an estimate, computed the same way whatever backend produced it.
+
+Units: a chi2 is a squared residual whitened by the observation's information (1 / scale_factor^(2 level) for
+reprojection errors), so it is dimensionless and compares with the chi-square gates (5.991 mono, 7.815 stereo).
+The robust cost is g2o's Huber on chi2 (ORB-SLAM's kernel): rho(c) = c for c <= delta^2, else
+2 delta sqrt(c) - delta^2, with delta^2 the problem's chi-square gate. GTSAM's Huber gives exactly half of it
+(its ``graph.error``), so ``cost = 2 * graph.error()``. An observation behind its camera has chi2 = inf.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.geometry.sim3 import Sim3
+from slamkit.problems import BundleProblem, EssentialGraphProblem, PoseOnlyProblem, Sim3Problem
+
+__all__ = [
+    "bundle_chi2",
+    "bundle_cost",
+    "essential_graph_cost",
+    "essential_graph_residuals",
+    "huber_cost",
+    "pose_chi2",
+    "pose_cost",
+    "sim3_chi2",
+    "sim3_cost",
+]
+
+F64 = NDArray[np.float64]
+B = NDArray[np.bool_]
+
+
+def huber_cost(chi2: F64, delta2: F64 | float) -> F64:
+    """Per-residual Huber cost on chi2 (g2o's RobustKernelHuber): c if c <= delta2 else 2 sqrt(delta2 c) - delta2."""
+    c = np.asarray(chi2, dtype=np.float64)
+    d2 = np.broadcast_to(np.asarray(delta2, dtype=np.float64), c.shape)
+    with np.errstate(invalid="ignore"):
+        out: F64 = np.where(c <= d2, c, 2.0 * np.sqrt(d2 * c) - d2)
+    return out
+
+
+def _reprojection_chi2(
+    R: F64, t: F64, xyz: F64, uv: F64, u_right: F64, level: F64, intr: F64, bf: F64, scale_factor: float
+) -> F64:
+    """Per-observation chi2 of mono (u, v) or stereo (u, v, u_r) residuals; inf behind the camera.
+
+    R: (N, 3, 3); t: (N, 3); xyz: (N, 3) world points; intr: (N, 4); bf: (N,).
+    """
+    pc = np.einsum("nij,nj->ni", R, xyz) + t
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_z = 1.0 / z
+        u = intr[:, 0] * pc[:, 0] * inv_z + intr[:, 2]
+        v = intr[:, 1] * pc[:, 1] * inv_z + intr[:, 3]
+        e2 = (uv[:, 0] - u) ** 2 + (uv[:, 1] - v) ** 2
+        stereo = np.isfinite(u_right)
+        ur = u - bf * inv_z
+        e2 = e2 + np.where(stereo, (u_right - ur) ** 2, 0.0)
+    chi2: F64 = e2 / scale_factor ** (2.0 * level)
+    chi2[~(z > 0.0)] = np.inf
+    return chi2
+
+
+def pose_chi2(problem: PoseOnlyProblem, T_c_w: F64) -> F64:
+    """(N,) chi2 of each observation of a motion-only problem at pose T_c_w (4, 4)."""
+    n = len(problem.xyz_w)
+    return _reprojection_chi2(
+        np.broadcast_to(T_c_w[:3, :3], (n, 3, 3)),
+        np.broadcast_to(T_c_w[:3, 3], (n, 3)),
+        problem.xyz_w,
+        problem.uv_px,
+        problem.u_right_px,
+        problem.level.astype(np.float64),
+        np.broadcast_to(problem.intrinsics, (n, 4)),
+        np.full(n, float(problem.bf)),
+        problem.scale_factor,
+    )
+
+
+def _gates(u_right: F64, chi2_mono: float, chi2_stereo: float) -> F64:
+    out: F64 = np.where(np.isfinite(u_right), chi2_stereo, chi2_mono)
+    return out
+
+
+def pose_cost(problem: PoseOnlyProblem, T_c_w: F64, active: B | None = None) -> float:
+    """Huber cost of the (active) observations of a motion-only problem at T_c_w."""
+    chi2 = pose_chi2(problem, T_c_w)
+    rho = huber_cost(chi2, _gates(problem.u_right_px, problem.chi2_mono, problem.chi2_stereo))
+    return float(rho.sum() if active is None else rho[active].sum())
+
+
+def bundle_chi2(problem: BundleProblem, T_c_w: F64, xyz_w: F64) -> F64:
+    """(E,) chi2 of each observation at poses T_c_w (K, 4, 4) and points xyz_w (M, 3)."""
+    T = T_c_w[problem.obs_pose]
+    return _reprojection_chi2(
+        T[:, :3, :3],
+        T[:, :3, 3],
+        xyz_w[problem.obs_point],
+        problem.uv_px,
+        problem.u_right_px,
+        problem.level.astype(np.float64),
+        problem.intrinsics[problem.obs_pose],
+        problem.bf[problem.obs_pose],
+        problem.scale_factor,
+    )
+
+
+def bundle_cost(problem: BundleProblem, T_c_w: F64, xyz_w: F64, active: B | None = None) -> float:
+    """Robust (Huber, or plain when ``problem.robust`` is False) cost of the active observations."""
+    chi2 = bundle_chi2(problem, T_c_w, xyz_w)
+    rho = (
+        huber_cost(chi2, _gates(problem.u_right_px, problem.chi2_mono, problem.chi2_stereo)) if problem.robust else chi2
+    )
+    return float(rho.sum() if active is None else rho[active].sum())
+
+
+def sim3_chi2(problem: Sim3Problem, S_12: F64) -> tuple[F64, F64]:
+    """(N,) chi2 of direction 1 (uv1 vs project_1(S_12 xyz2_c2)) and (N,) of direction 2 (uv2 vs project_2(S_21 xyz1_c1))."""
+    n = len(problem.xyz1_c1)
+    S_21 = np.linalg.inv(S_12)
+    zero_bf = np.zeros(n)
+    nan_ur = np.full(n, np.nan)
+    e1 = _reprojection_chi2(
+        np.broadcast_to(S_12[:3, :3], (n, 3, 3)),
+        np.broadcast_to(S_12[:3, 3], (n, 3)),
+        problem.xyz2_c2,
+        problem.uv1_px,
+        nan_ur,
+        problem.level1.astype(np.float64),
+        np.broadcast_to(problem.intrinsics1, (n, 4)),
+        zero_bf,
+        problem.scale_factor,
+    )
+    e2 = _reprojection_chi2(
+        np.broadcast_to(S_21[:3, :3], (n, 3, 3)),
+        np.broadcast_to(S_21[:3, 3], (n, 3)),
+        problem.xyz1_c1,
+        problem.uv2_px,
+        nan_ur,
+        problem.level2.astype(np.float64),
+        np.broadcast_to(problem.intrinsics2, (n, 4)),
+        zero_bf,
+        problem.scale_factor,
+    )
+    return e1, e2
+
+
+def sim3_cost(problem: Sim3Problem, S_12: F64, active: B | None = None) -> float:
+    """Huber cost (delta^2 = problem.chi2 per direction) of the active matches, both directions summed."""
+    e1, e2 = sim3_chi2(problem, S_12)
+    rho = huber_cost(e1, problem.chi2) + huber_cost(e2, problem.chi2)
+    return float(rho.sum() if active is None else rho[active].sum())
+
+
+def essential_graph_residuals(problem: EssentialGraphProblem, S_c_w: F64) -> F64:
+    """(E, 7) residuals log_Sim3(S_ij S_jw S_iw^-1) = [omega, v, lambda] of each edge at poses S_c_w (K, 4, 4)."""
+    S_iw_inv = np.linalg.inv(S_c_w[problem.edge_i])
+    M = problem.S_ij @ S_c_w[problem.edge_j] @ S_iw_inv
+    return np.stack([Sim3.from_matrix(m).log() for m in M])
+
+
+def essential_graph_cost(problem: EssentialGraphProblem, S_c_w: F64) -> float:
+    """Sum over edges of weight * |residual|^2 (identity information; the lambda term is 0 in the SE3 variant)."""
+    r = essential_graph_residuals(problem, S_c_w)
+    w = np.ones(len(r)) if problem.weights is None else problem.weights
+    return float((w * (r**2).sum(axis=1)).sum())

@@ -1,0 +1,57 @@
+"""slamkit_gtsam specifics: convention conversions at the boundary, config validation, the bare reference script."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gtsam
+import numpy as np
+import pytest
+from slamkit_gtsam.backend import GtsamOptimizer
+from slamkit_gtsam.convert import S_from_similarity3, similarity3_from_S
+
+from slamkit.errors import ConfigError
+from slamkit.geometry.sim3 import Sim3
+from slamkit.geometry.so3 import so3_exp
+from slamkit.optim.costs import essential_graph_residuals
+from slamkit.optim.synthetic import make_bundle_problem, make_essential_graph_problem
+
+
+def test_similarity3_round_trip_and_action() -> None:
+    S = Sim3(1.7, so3_exp(np.array([0.1, -0.2, 0.3])), np.array([0.5, -1.0, 2.0]))
+    g = similarity3_from_S(S.matrix())
+    x = np.array([0.3, 0.2, 1.0])
+    assert np.allclose(np.asarray(g.transformFrom(x)), S.act(x), atol=1e-12)  # same transform, x -> s R x + t
+    assert np.allclose(S_from_similarity3(g), S.matrix(), atol=1e-12)
+    # both tangents are [omega, v, lambda]
+    assert np.allclose(gtsam.Similarity3.Logmap(g), S.log(), atol=1e-10)
+
+
+def test_essential_graph_cost_is_orb_slams_edge_error() -> None:
+    problem, _ = make_essential_graph_problem(np.random.default_rng(3), n_keyframes=40, n_edges=50)
+    result = GtsamOptimizer().optimize_essential_graph(problem)
+    r = essential_graph_residuals(problem, problem.S_c_w)
+    assert result.cost_initial == pytest.approx(float((r**2).sum()), rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"lambda_initial": 0.0}, r"optimizer\.lambda_initial = 0\.0"),
+        ({"relative_error_tol": -1.0}, r"optimizer\.relative_error_tol = -1\.0"),
+        ({"ordering": "AMD"}, r"optimizer\.ordering = 'AMD'"),
+    ],
+)
+def test_bad_config_is_rejected(kwargs: dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        GtsamOptimizer(**kwargs)
+
+
+def test_backend_matches_the_bare_script() -> None:
+    problem, _ = make_bundle_problem(np.random.default_rng(4), n_free=4, n_fixed=3, n_points=300, n_obs=1500)
+    opt = GtsamOptimizer()
+    ours = opt.bundle_adjust(problem)
+    bare = opt.reference_bundle_adjust(problem)
+    assert ours.iterations == bare.iterations
+    assert ours.cost_final == pytest.approx(bare.cost_final, rel=1e-6)
+    assert np.allclose(ours.T_c_w, bare.T_c_w, atol=1e-6)
