@@ -55,4 +55,4 @@ def test_plus_backend_selects_the_optimizer(backend: str) -> None:
 def test_unknown_option_is_a_composition_error_listing_the_options() -> None:
     with pytest.raises(ConfigCompositionException) as err:
         compose_config(["features=sift"])
-    assert "opencv_orb" in str(err.value.__cause__ or err.value)
+    assert "opencv_orb" in str(err.value.__cause__ or err.value) and "orb" in str(err.value.__cause__ or err.value)
