@@ -39,6 +39,8 @@ def snapshot_bundle(
     point_ids: list[int],
     iterations_first: int = 5,
     iterations_second: int = 10,
+    chi2_mono: float = 5.991,
+    chi2_stereo: float = 7.815,
 ) -> BundleSnapshot:
     """Copy what a (local or global) BA needs out of the map: the poses of free and fixed keyframes, the
     points, and every observation of those points by those keyframes (ORB-SLAM LocalBundleAdjustment)."""
@@ -85,6 +87,8 @@ def snapshot_bundle(
         scale_factor=scale_factor,
         iterations_first=iterations_first,
         iterations_second=iterations_second,
+        chi2_mono=chi2_mono,
+        chi2_stereo=chi2_stereo,
     )
     return BundleSnapshot(problem, kf_ids, pids, obs_kf_a, obs_feat_a)
 

@@ -67,6 +67,11 @@ class TrackingConfig:
     init_search_radius_px: float = 100.0
     init_match_ratio: float = 0.9
     init_min_map_points: int = 100
+    init_ba_iterations: int = 20
+    pose_chi2_mono: float = 5.991
+    pose_chi2_stereo: float = 7.815
+    pose_rounds: int = 4
+    pose_iterations_per_round: int = 10
 
 
 @dataclass(frozen=True)
@@ -87,6 +92,10 @@ class LocalMappingConfig:
     keyframe_culling_redundancy: float = 0.9
     keyframe_culling_min_observers: int = 3
     min_baseline_depth_ratio: float = 0.01
+    ba_chi2_mono: float = 5.991
+    ba_chi2_stereo: float = 7.815
+    ba_iterations_first: int = 5
+    ba_iterations_second: int = 10
 
 
 @dataclass(frozen=True)

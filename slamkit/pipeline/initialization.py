@@ -162,7 +162,9 @@ def create_initial_map(
         store.update_connections(kf_ini.id)
         store.update_connections(kf_cur.id)
         # Global BA of the two keyframes (ORB-SLAM: GlobalBundleAdjustemnt(map, 20)); the first keyframe fixed.
-        snap = snapshot_bundle(store, [kf_cur.id], [kf_ini.id], store.point_ids(), 20, 0)
+        snap = snapshot_bundle(
+            store, [kf_cur.id], [kf_ini.id], store.point_ids(), cfg.init_ba_iterations, 0, cfg.pose_chi2_mono
+        )
     ba = optimizer.bundle_adjust(snap.problem)
     with store.write():
         commit_bundle(store, snap, ba)

@@ -378,7 +378,17 @@ class LocalMapper:
                 fixed = [free.pop(free.index(min(free)))]
             if not free or not pids:
                 return 0, False
-            snap = snapshot_bundle(store, free, fixed, pids)
+            cfg = self.cfg
+            snap = snapshot_bundle(
+                store,
+                free,
+                fixed,
+                pids,
+                cfg.ba_iterations_first,
+                cfg.ba_iterations_second,
+                cfg.ba_chi2_mono,
+                cfg.ba_chi2_stereo,
+            )
         result = run_bundle(store, self.optimizer, snap, abort)
         return int(result.outlier.sum()), bool(result.aborted)
 

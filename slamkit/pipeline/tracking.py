@@ -247,6 +247,10 @@ class Tracker:
             level=feats.level[idx].astype(np.int64),
             intrinsics=intrinsics_of(frame.camera.K),
             scale_factor=feats.scale_factor,
+            chi2_mono=self.cfg.pose_chi2_mono,
+            chi2_stereo=self.cfg.pose_chi2_stereo,
+            rounds=self.cfg.pose_rounds,
+            iterations_per_round=self.cfg.pose_iterations_per_round,
         )
         result = self.optimizer.optimize_pose(problem)
         frame.T_c_w = result.T_c_w

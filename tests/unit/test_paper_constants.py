@@ -1,0 +1,69 @@
+"""Each ORB-SLAM constant the issues name is a config value with the paper's default, and overriding it
+reaches the code that uses it."""
+
+from __future__ import annotations
+
+import pytest
+from omegaconf import OmegaConf
+
+from slamkit.config import compose_config
+from slamkit.pipeline.config import PipelineConfig
+from slamkit.plugins import ComponentRegistry
+
+# (config key, paper default, where it comes from)
+PIPELINE_CONSTANTS = [
+    ("pipeline.loop_closing.theta_min", 100, "III-D essential graph"),
+    ("pipeline.local_mapping.keyframe_culling_redundancy", 0.9, "VI-E"),
+    ("pipeline.local_mapping.keyframe_culling_min_observers", 3, "VI-E"),
+    ("pipeline.local_mapping.point_min_found_ratio", 0.25, "VI-B"),
+    ("pipeline.local_mapping.point_min_observations", 3, "VI-B"),
+    ("pipeline.local_mapping.ba_iterations_first", 5, "appendix: local BA"),
+    ("pipeline.local_mapping.ba_iterations_second", 10, "appendix: local BA"),
+    ("pipeline.local_mapping.ba_chi2_mono", 5.991, "appendix"),
+    ("pipeline.tracking.local_map_min_view_cos", 0.5, "V-D: cos 60 deg"),
+    ("pipeline.tracking.keyframe_min_frames_since_reloc", 20, "V-E condition 1"),
+    ("pipeline.tracking.keyframe_max_frames_idle", 20, "V-E condition 2"),
+    ("pipeline.tracking.keyframe_min_tracked_points", 50, "V-E condition 3"),
+    ("pipeline.tracking.keyframe_max_ref_ratio", 0.9, "V-E condition 4"),
+    ("pipeline.tracking.pose_chi2_mono", 5.991, "appendix: motion-only BA"),
+    ("pipeline.tracking.pose_chi2_stereo", 7.815, "appendix: motion-only BA"),
+    ("pipeline.tracking.pose_rounds", 4, "appendix: motion-only BA"),
+    ("pipeline.loop_closing.consistency_detections", 3, "VII-A"),
+    ("pipeline.loop_closing.candidate_min_covisible_weight", 30, "VII-A"),
+]
+COMPONENT_CONSTANTS = [
+    ("map", "covisibility_min_shared", 15, "III-D covisibility graph"),
+    ("initializer", "T_H", 5.991, "IV"),
+    ("initializer", "T_F", 3.841, "IV"),
+    ("initializer", "gamma", 5.991, "IV: Gamma = T_H"),
+    ("initializer", "rh_threshold", 0.45, "IV"),
+    ("initializer", "min_parallax_deg", 1.0, "code"),
+    ("features", "n_features", 1000, "VIII: 640x480"),
+    ("features", "scale_factor", 1.2, "III-A"),
+    ("features", "n_levels", 8, "III-A"),
+    ("features", "ini_fast_threshold", 20, "code iniThFAST"),
+    ("features", "min_fast_threshold", 7, "code minThFAST"),
+]
+
+
+@pytest.mark.parametrize(("key", "default", "source"), PIPELINE_CONSTANTS)
+def test_pipeline_constant_is_configurable(key: str, default: float, source: str) -> None:
+    assert OmegaConf.select(compose_config(), key) == default, f"{key} should default to {default} ({source})"
+    new = default * 2 if isinstance(default, int) else round(default / 2, 4)
+    cfg = compose_config([f"{key}={new}"])
+    typed = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline))  # type: ignore[arg-type]
+    section, name = key.split(".")[1:]
+    assert getattr(getattr(typed, section), name) == new
+
+
+@pytest.mark.parametrize(("group", "name", "default", "source"), COMPONENT_CONSTANTS)
+def test_component_constant_is_configurable(group: str, name: str, default: float, source: str) -> None:
+    registry = ComponentRegistry.discover()
+    assert compose_config()[group][name] == default, f"{group}.{name} should default to {default} ({source})"
+    new = default + 1 if isinstance(default, int) else round(default * 0.9, 4)
+    built = registry.instantiate(group, compose_config([f"{group}.{name}={new}"])[group])
+    assert getattr(built, name) == new
+
+
+def test_kitti_experiment_uses_2000_features() -> None:
+    assert compose_config(["+experiment=kitti07"]).features.n_features == 2000
