@@ -116,7 +116,7 @@ def write_outputs(
     out_dir: Path, cfg: DictConfig, runner: SequentialRunner, dataset: Dataset, status: str, error: str | None
 ) -> dict[str, Any]:
     """Write what the run has (also after a failure) and return the metrics."""
-    from slamkit.eval.trajectory_io import write_trajectory
+    from slamkit.io.trajectory_io import write_trajectory
 
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = runner.recorder.frames(runner.store)

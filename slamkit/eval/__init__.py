@@ -1,6 +1,7 @@
-"""slamkit.eval: trajectory files (TUM/KITTI/EuRoC) and their evaluation (ATE/RPE with evo, plots, CLI).
+"""slamkit.eval: evaluation of trajectories against ground truth (ATE/RPE with evo, plots, CLI).
 
-Modules: ``trajectory_io`` (read/write/detect), ``metrics`` (compute_ate, compute_rpe, apply_sim3), ``plot``
+Trajectory files (TUM/KITTI/EuRoC) are read and written by ``slamkit.io.trajectory_io``.
+Modules: ``metrics`` (compute_ate, compute_rpe, apply_sim3), ``plot``
 (plot_trajectories), ``cli`` (add_eval_parser, run_eval). The names below are imported lazily so that
 ``import slamkit.eval.cli`` (done by every ``slamkit`` command) does not load evo, scipy or matplotlib.
 """
@@ -11,10 +12,6 @@ import importlib
 from typing import Any
 
 _EXPORTS = {
-    "read_trajectory": "trajectory_io",
-    "write_trajectory": "trajectory_io",
-    "detect_format": "trajectory_io",
-    "read_times": "trajectory_io",
     "compute_ate": "metrics",
     "compute_rpe": "metrics",
     "apply_sim3": "metrics",

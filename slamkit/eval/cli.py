@@ -78,7 +78,7 @@ def run_eval(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     # Imported here so that registering the subcommand does not load evo and matplotlib for every command.
     from slamkit.eval.metrics import apply_sim3, compute_ate, compute_rpe
-    from slamkit.eval.trajectory_io import detect_format, read_trajectory
+    from slamkit.io.trajectory_io import detect_format, read_trajectory
 
     gt_path: Path = args.groundtruth
     est_path: Path = args.estimate

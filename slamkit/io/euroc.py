@@ -32,27 +32,23 @@ from slamkit.interfaces import Camera
 from slamkit.io.base import SequenceDataset
 from slamkit.io.calibration import load_settings
 from slamkit.io.cvyaml import CvYaml
+from slamkit.io.ground_truth import poses_at, transform_trajectory
 from slamkit.io.images import load_image
 from slamkit.io.orbslam_settings import StereoRectification
 from slamkit.io.textfiles import (
     StampedFiles,
     check_columns,
     check_increasing,
-    ns_to_s,
-    parse_float,
-    parse_int,
+    float_columns,
+    ns_column,
     read_rows,
     read_stamped_files,
     require_dir,
     require_file,
+    row_lines,
 )
 from slamkit.io.timing import associate_stamps, imu_between
-from slamkit.io.trajectory_files import (
-    poses_at,
-    read_euroc_groundtruth,
-    read_tum_trajectory,
-    transform_trajectory,
-)
+from slamkit.io.trajectory_io import read_euroc_groundtruth, read_tum_trajectory
 from slamkit.sensors import FrameData, ImuSamples
 
 log = logging.getLogger(__name__)
@@ -99,11 +95,9 @@ def read_euroc_imu(path: Path) -> ImuSamples:
     what = "EuRoC IMU 't[ns], w_x, w_y, w_z, a_x, a_y, a_z'"
     rows = read_rows(path, sep=",", what=what)
     check_columns(path, rows, 7, what)
-    ns = np.array([parse_int(path, r, 0, what) for r in rows], dtype=np.int64)
-    vals = np.array([[parse_float(path, r, c, what) for c in range(1, 7)] for r in rows], dtype=np.float64)
-    vals = vals.reshape(len(rows), 6)
-    t_s = ns_to_s(ns)
-    check_increasing(path, t_s, np.array([r.line for r in rows], dtype=np.int64), what="IMU timestamps")
+    t_s = ns_column(path, rows, 0, what)
+    vals = float_columns(path, rows, range(1, 7), what)
+    check_increasing(path, t_s, row_lines(rows), what="IMU timestamps")
     return ImuSamples(t_s, vals[:, 3:6].copy(), vals[:, 0:3].copy())
 
 

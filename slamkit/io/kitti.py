@@ -26,14 +26,12 @@ from slamkit.io.calibration import load_settings
 from slamkit.io.images import image_size, load_image
 from slamkit.io.textfiles import (
     check_columns,
-    check_increasing,
     list_images,
     parse_float,
-    read_numeric_table,
     read_rows,
     require_dir,
 )
-from slamkit.io.trajectory_files import read_kitti_poses
+from slamkit.io.trajectory_io import read_kitti_poses, read_times
 from slamkit.sensors import FrameData
 
 log = logging.getLogger(__name__)
@@ -96,10 +94,9 @@ class KittiDataset(SequenceDataset):
         self.name = f"kitti:{seq}"
         self.stereo = bool(stereo)
 
-        times = read_numeric_table(self.seq_dir / "times.txt", 1, what="KITTI time [s]")
-        t_all = times.values[:, 0]
-        check_increasing(times.path, t_all, times.lines, strict=True, what="KITTI times")
-        self._files = _frame_images(self.seq_dir / "image_0", len(t_all), times.path)
+        times_path = self.seq_dir / "times.txt"
+        t_all = read_times(times_path)
+        self._files = _frame_images(self.seq_dir / "image_0", len(t_all), times_path)
         self._t_s: F64 = t_all[: len(self._files)].copy()
         self._right: list[Path] | None = None
         if self.stereo:
@@ -137,7 +134,7 @@ class KittiDataset(SequenceDataset):
                 self.T_l_r = T_l_r
 
         poses_path = self.root / "poses" / f"{seq}.txt"
-        self.ground_truth = read_kitti_poses(poses_path, t_all) if poses_path.is_file() else None
+        self.ground_truth = read_kitti_poses(poses_path, times_path) if poses_path.is_file() else None
         self._setup_selection(skip, max_frames)
 
     def _n_raw(self) -> int:
@@ -155,7 +152,7 @@ class KittiDataset(SequenceDataset):
         if self._right is not None:
             right = load_image(self._right[raw_index], size, self._calib, keep_color=False).grey
         gt = None
-        if self.ground_truth is not None and raw_index < len(self.ground_truth):
+        if self.ground_truth is not None:  # one pose per time, times cover every image
             gt = self.ground_truth.T_w_c[raw_index].copy()
         return FrameData(
             index=out_index,

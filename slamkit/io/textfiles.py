@@ -41,25 +41,39 @@ def require_file(path: Path, what: str) -> Path:
     return path
 
 
-def read_rows(path: Path, sep: str | None = None, comment: str = "#", what: str = "table") -> list[TextRow]:
-    """Split the data lines of a text table.
-
-    sep: None splits on any whitespace (TUM, KITTI); "," splits CSV fields (EuRoC).
-    Blank lines and lines starting with ``comment`` are skipped. Windows line ends are tolerated.
-    """
+def read_lines(path: Path, what: str = "table") -> list[str]:
+    """All lines of the UTF-8 text file ``path`` (Windows line ends tolerated); DatasetError naming ``what``
+    when the file is missing or unreadable."""
     require_file(path, what)
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: cannot read {what} as UTF-8 text ({exc})") from exc
+
+
+def split_rows(lines: Sequence[str], sep: str | None = None, comment: str = "#") -> list[TextRow]:
+    """The data lines of ``lines`` split into fields; blank lines and lines starting with ``comment`` skipped.
+
+    sep: None splits on any whitespace (TUM, KITTI); "," splits CSV fields (EuRoC).
+    """
     rows: list[TextRow] = []
-    for number, raw in enumerate(text.splitlines(), start=1):
+    for number, raw in enumerate(lines, start=1):
         line = raw.strip()
         if not line or line.startswith(comment):
             continue
         fields = [f.strip() for f in line.split(sep)] if sep is not None else line.split()
         rows.append(TextRow(number, fields))
     return rows
+
+
+def read_rows(path: Path, sep: str | None = None, comment: str = "#", what: str = "table") -> list[TextRow]:
+    """Split the data lines of a text table (see ``split_rows``)."""
+    return split_rows(read_lines(path, what), sep, comment)
+
+
+def row_lines(rows: Sequence[TextRow]) -> I64:
+    """(N,) the 1-based file line of each row."""
+    return np.array([r.line for r in rows], dtype=np.int64)
 
 
 def _column_error(path: Path, row: TextRow, expected: str, what: str) -> DatasetError:
@@ -111,17 +125,27 @@ class NumericTable:
         return int(self.values.shape[0])
 
 
+def float_columns(path: Path, rows: Sequence[TextRow], cols: Sequence[int], what: str) -> F64:
+    """(N, len(cols)) float64: fields ``cols`` of every row, each a finite number (else DatasetError)."""
+    values = np.empty((len(rows), len(cols)), dtype=np.float64)
+    for i, row in enumerate(rows):
+        for j, c in enumerate(cols):
+            values[i, j] = parse_float(path, row, c, what)
+    return values
+
+
+def ns_column(path: Path, rows: Sequence[TextRow], col: int, what: str) -> F64:
+    """(N,) s: field ``col`` of every row as integer nanoseconds (EuRoC stamps), converted with ``ns_to_s``."""
+    return ns_to_s(np.array([parse_int(path, r, col, what) for r in rows], dtype=np.int64))
+
+
 def read_numeric_table(
     path: Path, n_cols: int, sep: str | None = None, what: str = "table", at_least: bool = False
 ) -> NumericTable:
     """Read a table of ``n_cols`` numeric columns (``at_least``: extra columns are ignored)."""
     rows = read_rows(path, sep=sep, what=what)
     check_columns(path, rows, n_cols, what, at_least=at_least)
-    values = np.empty((len(rows), n_cols), dtype=np.float64)
-    for i, row in enumerate(rows):
-        for c in range(n_cols):
-            values[i, c] = parse_float(path, row, c, what)
-    return NumericTable(path, values, np.array([r.line for r in rows], dtype=np.int64))
+    return NumericTable(path, float_columns(path, rows, range(n_cols), what), row_lines(rows))
 
 
 def ns_to_s(ns: I64) -> F64:
@@ -181,11 +205,10 @@ def read_stamped_files(path: Path, base: Path, sep: str | None, ns_stamps: bool,
     rows = read_rows(path, sep=sep, what=what)
     check_columns(path, rows, 2, what)
     if ns_stamps:
-        ns = np.array([parse_int(path, r, 0, what + " time [ns]") for r in rows], dtype=np.int64)
-        t_s = ns_to_s(ns)
+        t_s = ns_column(path, rows, 0, what + " time [ns]")
     else:
-        t_s = np.array([parse_float(path, r, 0, what + " time [s]") for r in rows], dtype=np.float64)
-    lines = np.array([r.line for r in rows], dtype=np.int64)
+        t_s = float_columns(path, rows, [0], what + " time [s]")[:, 0]
+    lines = row_lines(rows)
     check_increasing(path, t_s, lines, strict=True, what=what + " timestamps")
     return StampedFiles(path, t_s, [base / r.fields[1] for r in rows], lines)
 

@@ -26,6 +26,7 @@ from slamkit.errors import CalibrationError, ConfigError, DatasetError
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.io.base import SequenceDataset
 from slamkit.io.calibration import load_settings
+from slamkit.io.ground_truth import poses_at
 from slamkit.io.images import load_depth, load_image
 from slamkit.io.textfiles import (
     StampedFiles,
@@ -36,7 +37,7 @@ from slamkit.io.textfiles import (
     times_from_names,
 )
 from slamkit.io.timing import associate_stamps
-from slamkit.io.trajectory_files import poses_at, read_tum_trajectory
+from slamkit.io.trajectory_io import read_tum_trajectory
 from slamkit.sensors import FrameData
 
 log = logging.getLogger(__name__)

@@ -13,7 +13,7 @@ from matplotlib.image import imread
 
 from slamkit.eval.cli import add_eval_parser, run_eval
 from slamkit.eval.metrics import apply_sim3, compute_ate, compute_rpe
-from slamkit.eval.trajectory_io import write_trajectory
+from slamkit.io.trajectory_io import write_trajectory
 from slamkit.sensors import Trajectory
 
 MakeTrajectory = Callable[..., Trajectory]  # the make_trajectory fixture (conftest.py)
@@ -119,11 +119,15 @@ def test_eval_bad_file_is_one_line_and_exit_2(
     bad.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0\n")
     assert _run([str(gt_path), str(bad), "--format", "tum", "--gt-format", "tum"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"slamkit eval: error: {bad}:2: 7 columns; expected 8 numbers 't x y z qx qy qz qw' (TUM)"]
+    assert err == [
+        f"slamkit eval: error: {bad}:2: expected 8 columns (TUM trajectory 'timestamp tx ty tz qx qy qz qw'), "
+        "got 7: '2.0 0 0 0 0 0 0'"
+    ]
 
     assert _run([str(gt_path), str(tmp_path / "missing.txt")]) == 2
     assert (
-        capsys.readouterr().err.strip() == f"slamkit eval: error: {tmp_path / 'missing.txt'}: trajectory file not found"
+        capsys.readouterr().err.strip()
+        == f"slamkit eval: error: trajectory file: file {tmp_path / 'missing.txt'} does not exist"
     )
 
     # A plot path that is not a PNG is refused before anything is written.

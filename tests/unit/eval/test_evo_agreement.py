@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from slamkit.eval.metrics import compute_ate, compute_rpe
-from slamkit.eval.trajectory_io import read_trajectory
+from slamkit.io.trajectory_io import read_trajectory
 
 pytestmark = pytest.mark.shared_data
 

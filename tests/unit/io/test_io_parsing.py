@@ -1,4 +1,4 @@
-"""Shared parsing helpers: text tables, images, association, IMU windows, trajectory files."""
+"""Shared parsing helpers: text tables, images, association, IMU windows (trajectory files: test_io_trajectory)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from slamkit.errors import CalibrationError, DatasetError
 from slamkit.io.images import load_depth, load_image
@@ -17,8 +16,7 @@ from slamkit.io.textfiles import (
     times_from_names,
 )
 from slamkit.io.timing import associate_stamps, imu_between
-from slamkit.io.trajectory_files import poses_at, read_euroc_groundtruth, read_kitti_poses, read_tum_trajectory
-from slamkit.sensors import ImuSamples, Trajectory
+from slamkit.sensors import ImuSamples
 
 
 def _write(path: Path, text: str) -> Path:
@@ -131,51 +129,3 @@ def test_load_depth_scales_to_metres(tmp_path: Path) -> None:
     cv2.imwrite(str(grey), np.zeros((2, 2, 3), np.uint8))
     with pytest.raises(DatasetError, match=r"depth file .*g\.png .*expected a one-channel 16-bit"):
         load_depth(grey, 5000.0)
-
-
-def test_tum_trajectory_round_trip_and_errors(tmp_path: Path) -> None:
-    q = Rotation.from_euler("z", 90, degrees=True).as_quat()  # x y z w
-    p = _write(
-        tmp_path / "gt.txt", f"# t x y z qx qy qz qw\n1.0 1 2 3 {q[0]} {q[1]} {q[2]} {q[3]}\n2.0 0 0 0 0 0 0 1\n"
-    )
-    traj = read_tum_trajectory(p)
-    np.testing.assert_allclose(traj.T_w_c[0, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
-    np.testing.assert_allclose(traj.positions_m[0], [1, 2, 3])
-    bad = _write(tmp_path / "bad.txt", "1.0 1 2 3 0 0 0 0.5\n")
-    with pytest.raises(DatasetError, match=r"bad\.txt:1: quaternion norm is 0\.5000"):
-        read_tum_trajectory(bad)
-    back = _write(tmp_path / "back.txt", "2.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n")
-    with pytest.raises(DatasetError, match=r"back\.txt:2: trajectory timestamps must be strictly increasing"):
-        read_tum_trajectory(back)
-
-
-def test_euroc_groundtruth_quaternion_is_w_first(tmp_path: Path) -> None:
-    p = _write(tmp_path / "data.csv", "#t,px,py,pz,qw,qx,qy,qz\n1000000000,1,2,3,0.7071068,0,0,0.7071068,9,9\n")
-    traj = read_euroc_groundtruth(p)
-    assert traj.t_s[0] == 1.0
-    np.testing.assert_allclose(traj.T_w_c[0, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-6)
-    short = _write(tmp_path / "short.csv", "1000000000,1,2,3\n")
-    with pytest.raises(DatasetError, match=r"short\.csv:1: expected at least 8 columns"):
-        read_euroc_groundtruth(short)
-
-
-def test_kitti_poses_more_than_times(tmp_path: Path) -> None:
-    row = "1 0 0 0 0 1 0 0 0 0 1 0\n"
-    p = _write(tmp_path / "07.txt", row * 3)
-    with pytest.raises(DatasetError, match=r"07\.txt:3: 3 poses but times\.txt has only 2"):
-        read_kitti_poses(p, np.array([0.0, 0.1]))
-
-
-def test_poses_at_interpolates_and_respects_gaps() -> None:
-    T = np.tile(np.eye(4), (3, 1, 1))
-    T[1, :3, 3] = [1.0, 0.0, 0.0]
-    T[1, :3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
-    T[2, :3, 3] = [5.0, 0.0, 0.0]
-    traj = Trajectory(np.array([0.0, 1.0, 3.0]), T)
-    out = poses_at(traj, np.array([0.25, 1.0, 2.0, -1.0]), max_gap_s=1.5)
-    assert out[0] is not None and out[1] is not None
-    np.testing.assert_allclose(out[0][:3, 3], [0.25, 0, 0])
-    np.testing.assert_allclose(Rotation.from_matrix(out[0][:3, :3]).as_euler("xyz", degrees=True), [0, 0, 22.5])
-    np.testing.assert_array_equal(out[1], T[1])
-    assert out[2] is None  # bracketing samples 2 s apart > 1.5 s
-    assert out[3] is None  # before the first sample
