@@ -70,9 +70,9 @@ def run_metrics(
     metrics: dict[str, Any] = {
         "dataset": getattr(dataset, "name", "?"),
         "frames": len(run.tracking),
-        "frames_tracked": int(sum(s == TrackingState.OK for s in states)),
+        # frames with an estimated pose: tracked frames plus the initialisation's reference frame (keyframe 0)
+        "frames_tracked": len(frames),
         "frames_lost": int(sum(s == TrackingState.LOST for s in states)),
-        "frames_in_trajectory": len(frames),
         "initialized_at_frame": init_frame,
         "resets": run.resets,
         "keyframes": store.n_keyframes(),

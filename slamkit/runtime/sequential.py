@@ -70,6 +70,10 @@ class SequentialRunner:
             self.log.resets += 1
             self.recorder.clear()
         self.log.tracking.append(out)
+        if out.already_in_map and out.new_keyframes:
+            # the initialisation's reference frame became the first keyframe: its pose is estimated too
+            kf_ini = out.new_keyframes[0]
+            self.recorder.record(kf_ini.frame_index, kf_ini.timestamp_s, kf_ini.T_c_w, kf_ini.id, kf_ini.T_c_w)
         for kf in out.new_keyframes:
             mapped = self.mapper.step(kf, already_in_map=out.already_in_map)
             self.log.mapping.append(mapped)
