@@ -101,7 +101,9 @@ def test_pure_rotation_is_refused() -> None:
 
 @pytest.mark.slow
 def test_full_room_sequence() -> None:
-    metrics, _ = run_synthetic()
+    metrics, runner = run_synthetic()
     assert metrics["initialized_at_frame"] < 30
-    assert metrics["frames_tracked"] == metrics["frames"] - metrics["initialized_at_frame"]
+    states = [o.state for o in runner.log.tracking]  # type: ignore[attr-defined]
+    assert all(s == TrackingState.OK for s in states[metrics["initialized_at_frame"] :])
+    assert metrics["frames_tracked"] >= metrics["frames"] - metrics["initialized_at_frame"]
     assert metrics["kf_ate_rmse_pct_of_path"] < 0.5
