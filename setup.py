@@ -15,6 +15,6 @@ setup(
     package_data={
         "slamkit": ["py.typed"],
         "slamkit.conf": ["*.yaml", "*/*.yaml", "*/*/*.yaml"],
-        **{p: ["py.typed", "*.yaml", "conf/*.yaml"] for p in plugins},
+        **{p: ["py.typed", "*.yaml", "conf/*.yaml", "vocabularies/*.skvoc"] for p in plugins},
     },
 )

@@ -91,6 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_bench_optimizer_arguments(bench_opt)
     bench_opt.set_defaults(func=run_bench_optimizer)
+    ComponentRegistry.discover().add_cli_commands(sub)
     return parser
 
 

@@ -57,3 +57,12 @@ class SlamkitHookSpecs:
         ConfigStore under its kind (= config group) and name, so ``<kind>=<name>`` selects it. Two plugins
         may not register the same (kind, name): that is reported as an error naming both.
         """
+
+    @hookspec
+    def slamkit_cli_commands(self, subparsers: Any) -> None:
+        """Add subcommands to the ``slamkit`` command line.
+
+        subparsers: the ``argparse`` sub-parsers object of ``slamkit``; call ``subparsers.add_parser(NAME)`` and
+        ``set_defaults(func=...)`` with a function ``(argparse.Namespace) -> int`` (the exit code). Used by
+        ``slamkit vocab`` (the place recognition plugin).
+        """

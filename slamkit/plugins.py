@@ -120,10 +120,12 @@ class ComponentRegistry:
             self.failures.append(PluginFailure(name, distribution, f"invalid hook implementation: {exc}"))
             return
         impls = [i for i in self._pm.hook.slamkit_components.get_hookimpls() if i.plugin_name == name]
-        if not impls:
+        if not impls and not self._implements_any_hook(name):
             self._pm.unregister(name=name)
             self.failures.append(
-                PluginFailure(name, distribution, "implements no slamkit hook (expected at least slamkit_components)")
+                PluginFailure(
+                    name, distribution, "implements no slamkit hook (slamkit_components, slamkit_cli_commands)"
+                )
             )
             return
         for impl in impls:
@@ -135,6 +137,14 @@ class ComponentRegistry:
                 )
                 continue
             self._add_specs(name, distribution, specs)
+
+    def _implements_any_hook(self, name: str) -> bool:
+        plugin = self._pm.get_plugin(name)
+        return any(caller.get_hookimpls() for caller in self._pm.get_hookcallers(plugin) or [])
+
+    def add_cli_commands(self, subparsers: Any) -> None:
+        """Let every plugin add its subcommands (hook ``slamkit_cli_commands``)."""
+        self._pm.hook.slamkit_cli_commands(subparsers=subparsers)
 
     def _add_specs(self, plugin: str, distribution: str, specs: object) -> None:
         if not isinstance(specs, list | tuple) or not all(isinstance(s, ComponentSpec) for s in specs):

@@ -1,0 +1,167 @@
+"""Correcting the map after a loop is detected (ORB-SLAM sec. VII-C/D, LoopClosing::CorrectLoop and
+Optimizer::OptimizeEssentialGraph): propagate the loop's Sim3 to the current keyframe's neighbourhood,
+correct their points, and optimize the essential graph in Sim3 with the loop keyframe fixed.
+
+Poses are Sim3 here (``slamkit.geometry.sim3.Sim3``, x' = s R x + t); keyframes keep SE3 ``T_c_w``, obtained
+back from a Sim3 as [R, t / s] (scale is absorbed by the map, as in ORB-SLAM).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.geometry.sim3 import Sim3
+from slamkit.interfaces import Optimizer
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.map_points import update_normal_and_depth
+from slamkit.problems import EssentialGraphProblem, EssentialGraphResult
+
+F64 = NDArray[np.float64]
+
+
+def sim3_of_pose(T_c_w: F64) -> Sim3:
+    """The SE3 pose T_c_w as a Sim3 with scale 1."""
+    return Sim3(1.0, T_c_w[:3, :3].copy(), T_c_w[:3, 3].copy())
+
+
+def pose_of_sim3(S_c_w: Sim3) -> F64:
+    """Back to SE3: [R, t / s] (ORB-SLAM: the map absorbs the scale)."""
+    return S_c_w.to_se3()
+
+
+@dataclass
+class LoopCorrection:
+    """Poses of the current keyframe's neighbourhood before (``non_corrected``) and after (``corrected``) the
+    loop's Sim3 is propagated; keyframe id -> S_c_w."""
+
+    non_corrected: dict[int, Sim3]
+    corrected: dict[int, Sim3]
+
+
+def propagate_loop_sim3(store: InMemoryMapStore, current_id: int, S_cw_corrected: Sim3) -> LoopCorrection:
+    """The current keyframe and its covisible neighbours move with it: S_iw' = S_ic S_cw' where S_ic is
+    taken from the poses before correction (ORB-SLAM CorrectLoop)."""
+    current = store.get_keyframe(current_id)
+    T_wc = sim3_of_pose(current.T_c_w).inverse()
+    connected = [current_id, *store.covisibility.neighbors(current_id)]
+    non_corrected: dict[int, Sim3] = {}
+    corrected: dict[int, Sim3] = {}
+    for kf_id in connected:
+        S_iw = sim3_of_pose(store.get_keyframe(kf_id).T_c_w)
+        non_corrected[kf_id] = S_iw
+        corrected[kf_id] = S_cw_corrected if kf_id == current_id else (S_iw @ T_wc) @ S_cw_corrected
+    return LoopCorrection(non_corrected, corrected)
+
+
+def apply_loop_correction(store: InMemoryMapStore, corr: LoopCorrection) -> set[int]:
+    """Move the points seen by the corrected keyframes (each once, by the first keyframe in id order that
+    sees it) and set the keyframes' poses. Returns the ids of the corrected points."""
+    done: set[int] = set()
+    keyframes = {k: store.get_keyframe(k) for k in store.keyframe_ids()}
+    for kf_id in sorted(corr.corrected):
+        S_old, S_new_inv = corr.non_corrected[kf_id], corr.corrected[kf_id].inverse()
+        kf = keyframes[kf_id]
+        for pid in kf.point_ids[kf.point_ids >= 0]:
+            pid = int(pid)
+            if pid in done or not store.has_point(pid):
+                continue
+            point = store.get_point(pid)
+            point.xyz_w = S_new_inv.act(S_old.act(point.xyz_w[None]))[0]
+            done.add(pid)
+    for kf_id, S in corr.corrected.items():
+        keyframes[kf_id].T_c_w = pose_of_sim3(S)
+    for pid in done:
+        update_normal_and_depth(store.get_point(pid), keyframes)
+    return done
+
+
+def essential_graph_problem(
+    store: InMemoryMapStore,
+    loop_kf_id: int,
+    current_id: int,
+    corr: LoopCorrection,
+    loop_connections: dict[int, set[int]],
+    theta_min: int,
+) -> tuple[EssentialGraphProblem, list[int]]:
+    """The essential graph of ORB-SLAM's OptimizeEssentialGraph with the loop keyframe fixed.
+
+    Edges: the new loop connections (those other than current-loop need theta_min shared points), the
+    spanning tree, earlier loop edges, and covisibility edges with at least theta_min shared points. Edge
+    measurements come from the poses before correction; initial values are the corrected poses.
+    """
+    kf_ids = store.keyframe_ids()
+    row = {k: i for i, k in enumerate(kf_ids)}
+    initial = [corr.corrected.get(k, sim3_of_pose(store.get_keyframe(k).T_c_w)) for k in kf_ids]
+    measured = [corr.non_corrected.get(k, initial[row[k]]) for k in kf_ids]
+    edges: dict[tuple[int, int], None] = {}
+
+    def add(i: int, j: int) -> None:
+        if i != j and i in row and j in row:
+            edges.setdefault((min(i, j), max(i, j)), None)
+
+    cov = store.covisibility
+    for i, linked in sorted(loop_connections.items()):
+        for j in sorted(linked):
+            if (i, j) != (current_id, loop_kf_id) and cov.weight(i, j) < theta_min:
+                continue
+            add(i, j)
+    for p, c in store.spanning_tree.edges():
+        add(p, c)
+    for a, b in sorted(store.loop_edges):
+        add(a, b)
+    for a, b, w in cov.edges():
+        if w >= theta_min:
+            add(a, b)
+    pairs = sorted(edges)
+    S_ij = (
+        np.stack([(measured[row[i]] @ measured[row[j]].inverse()).matrix() for i, j in pairs])
+        if pairs
+        else (np.zeros((0, 4, 4)))
+    )
+    problem = EssentialGraphProblem(
+        S_c_w=np.stack([s.matrix() for s in initial]),
+        fixed=np.array([k == loop_kf_id for k in kf_ids]),
+        edge_i=np.array([row[i] for i, _ in pairs], np.int64),
+        edge_j=np.array([row[j] for _, j in pairs], np.int64),
+        S_ij=S_ij,
+    )
+    return problem, kf_ids
+
+
+def apply_essential_graph(
+    store: InMemoryMapStore, problem: EssentialGraphProblem, result: EssentialGraphResult, kf_ids: list[int]
+) -> None:
+    """Set every keyframe's pose from the optimized Sim3 and move each point with its reference keyframe:
+    p' = S_new^-1 S_before p (ORB-SLAM OptimizeEssentialGraph's final step)."""
+    before = {k: Sim3.from_matrix(problem.S_c_w[i]) for i, k in enumerate(kf_ids)}
+    after = {k: Sim3.from_matrix(result.S_c_w[i]) for i, k in enumerate(kf_ids)}
+    for pid in store.point_ids():
+        point = store.get_point(pid)
+        ref = point.ref_kf_id if point.ref_kf_id in after else min(point.observations, default=-1)
+        if ref not in after:
+            continue
+        point.xyz_w = after[ref].inverse().act(before[ref].act(point.xyz_w[None]))[0]
+    for k in kf_ids:
+        store.get_keyframe(k).T_c_w = pose_of_sim3(after[k])
+    keyframes = {k: store.get_keyframe(k) for k in kf_ids}
+    for pid in store.point_ids():
+        update_normal_and_depth(store.get_point(pid), keyframes)
+
+
+def optimize_essential_graph(
+    store: InMemoryMapStore,
+    optimizer: Optimizer,
+    loop_kf_id: int,
+    current_id: int,
+    corr: LoopCorrection,
+    loop_connections: dict[int, set[int]],
+    theta_min: int,
+) -> tuple[EssentialGraphResult, int]:
+    """Build, solve and apply the essential graph; returns the result and the number of edges."""
+    problem, kf_ids = essential_graph_problem(store, loop_kf_id, current_id, corr, loop_connections, theta_min)
+    result = optimizer.optimize_essential_graph(problem)
+    apply_essential_graph(store, problem, result, kf_ids)
+    return result, int(problem.edge_i.shape[0])

@@ -1,0 +1,118 @@
+"""The shipped vocabulary at work: L1 score properties, place recognition on the synthetic long_loop, and
+BoW-guided matching between two views checked against ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+from slamkit_dbow.matching import match_by_bow
+from slamkit_dbow.recognizer import DbowPlaceRecognizer
+from slamkit_dbow.vocabulary import Vocabulary, VocabularyError
+
+from slamkit.features import Features
+from slamkit.interfaces import FeatureExtractor, PlaceRecognizer
+from slamkit.io.synthetic.dataset import SyntheticDataset
+
+
+@pytest.fixture(scope="module")
+def recognizer(builtin_vocab: Vocabulary) -> DbowPlaceRecognizer:
+    return DbowPlaceRecognizer(vocabulary_object=builtin_vocab)
+
+
+@pytest.fixture(scope="module")
+def long_loop() -> SyntheticDataset:
+    """Texture seed 0: never seen in training (the built-in vocabulary uses seeds 1000, 1001)."""
+    return SyntheticDataset(scene="long_loop", seed=0, imu=False)
+
+
+def test_is_a_place_recognizer(recognizer: DbowPlaceRecognizer) -> None:
+    assert isinstance(recognizer, PlaceRecognizer)
+
+
+def test_transform_weights_and_direct_index(recognizer: DbowPlaceRecognizer, orb: FeatureExtractor) -> None:
+    feats = orb.extract(SyntheticDataset(scene="room", seed=0, imu=False)[50].image)
+    bow = recognizer.transform(feats.descriptors)
+    assert sum(bow.words.values()) == pytest.approx(1.0) and min(bow.words.values()) > 0
+    assert len(bow.words) > 500  # 1000 features spread over many of the 10,000 words
+    idx = np.sort(np.concatenate(list(bow.direct_index.values())))
+    assert np.array_equal(idx, np.unique(idx)) and idx.size <= len(feats)  # each feature in one node
+    assert all(recognizer.vocabulary.depth[n] == 2 for n in bow.direct_index)
+    assert recognizer.score(bow, bow) == pytest.approx(1.0)
+    with pytest.raises(VocabularyError, match=r"descriptors must be \(N, 32\) uint8"):
+        recognizer.transform(feats.descriptors[:, :16])
+
+
+def test_unrelated_images_score_near_zero(recognizer: DbowPlaceRecognizer) -> None:
+    rng = np.random.default_rng(0)
+    a = recognizer.transform(rng.integers(0, 256, (1000, 32), dtype=np.uint8))
+    b = recognizer.transform(rng.integers(0, 256, (1000, 32), dtype=np.uint8))
+    # ~900 of the 10,000 words occur in each image, so chance overlap gives a floor of ~0.1 (ORBvoc's
+    # 1M words give ~0.01); a revisited place scores > 0.5 (test below)
+    assert recognizer.score(a, b) < 0.15
+    assert recognizer.score(a, recognizer.transform(np.zeros((0, 32), np.uint8))) == 0.0
+
+
+def _descriptors(ds: SyntheticDataset, orb: FeatureExtractor, frames: list[int]) -> list[NDArray[np.uint8]]:
+    return [orb.extract(ds[i].image).descriptors for i in frames]
+
+
+def test_same_place_scores_far_higher_than_other_places(
+    recognizer: DbowPlaceRecognizer, long_loop: SyntheticDataset, orb: FeatureExtractor
+) -> None:
+    """Keyframes every 3 s around the whole loop; queries revisit places after one loop (110 s later, new
+    image noise): the keyframe of the same place must come first, far above every other place."""
+    fps, period = 30, 110.0
+    kf_frames = list(range(0, int(period * fps), 3 * fps))
+    db = DbowPlaceRecognizer(vocabulary_object=recognizer.vocabulary)
+    for kf, d in enumerate(_descriptors(long_loop, orb, kf_frames)):
+        db.add(kf, db.transform(d))
+    query_frames = [int((period + t) * fps) for t in (0.0, 3.0, 6.0)]
+    for q, d in zip(query_frames, _descriptors(long_loop, orb, query_frames), strict=True):
+        ranked = db.query(db.transform(d))
+        expected = (q - int(period * fps)) // (3 * fps)
+        assert ranked[0][0] == expected
+        assert ranked[0][1] > 0.5 and ranked[0][1] > 3 * ranked[1][1]
+
+
+def test_bow_matching_two_views_agrees_with_ground_truth(
+    recognizer: DbowPlaceRecognizer, orb: FeatureExtractor
+) -> None:
+    ds = SyntheticDataset(scene="room", seed=0, imu=False)
+    f1, f2 = ds[120], ds[132]  # 0.4 s apart
+    k1, k2 = orb.extract(f1.image), orb.extract(f2.image)
+    b1, b2 = recognizer.transform(k1.descriptors), recognizer.transform(k2.descriptors)
+    pairs = match_by_bow(k1, b1, k2, b2, ratio=0.75)
+    assert pairs.shape[1] == 2 and len(pairs) > 100
+    assert np.unique(pairs[:, 0]).size == len(pairs) and np.unique(pairs[:, 1]).size == len(pairs)
+    # ground truth: lift features of view 1 with the exact depth, project them into view 2
+    assert f1.depth_m is not None and f1.T_w_c_gt is not None and f2.T_w_c_gt is not None
+    uv1 = k1.uv_px[pairs[:, 0]].astype(np.float64)
+    z = f1.depth_m[np.round(uv1[:, 1]).astype(int), np.round(uv1[:, 0]).astype(int)]
+    K = ds.camera.K
+    xyz1 = np.linalg.solve(K, np.vstack([uv1.T, np.ones(len(uv1))])).T * z[:, None]
+    T_2_1 = np.linalg.inv(f2.T_w_c_gt) @ f1.T_w_c_gt
+    xyz2 = xyz1 @ T_2_1[:3, :3].T + T_2_1[:3, 3]
+    uv2 = (xyz2 @ K.T)[:, :2] / xyz2[:, 2:3]
+    err = np.linalg.norm(uv2 - k2.uv_px[pairs[:, 1]], axis=1)
+    tolerance = 3.0 * k2.level_scale()[pairs[:, 1]]
+    assert np.mean(err < tolerance) > 0.95
+    # the rotation check and the ratio test only remove matches
+    loose = match_by_bow(k1, b1, k2, b2, ratio=1.0, rotation_bins=None)
+    assert len(loose) >= len(pairs)
+    # masks restrict the features allowed to match
+    mask = np.zeros(len(k1), bool)
+    mask[: len(k1) // 2] = True
+    masked = match_by_bow(k1, b1, k2, b2, mask1=mask)
+    assert len(masked) > 0 and np.all(masked[:, 0] < len(k1) // 2)
+
+
+def test_bow_matching_edge_cases(recognizer: DbowPlaceRecognizer, orb: FeatureExtractor) -> None:
+    feats: Features = orb.extract(SyntheticDataset(scene="room", seed=0, imu=False)[10].image)
+    bow = recognizer.transform(feats.descriptors)
+    same = match_by_bow(feats, bow, feats, bow, rotation_bins=30)
+    assert np.array_equal(same[:, 0], same[:, 1])  # an image matches itself feature for feature
+    empty = recognizer.transform(np.zeros((0, 32), np.uint8))
+    assert match_by_bow(feats, bow, feats, empty).shape == (0, 2)
+    with pytest.raises(VocabularyError, match=r"mask2 must be a \(\d+,\) bool array"):
+        match_by_bow(feats, bow, feats, bow, mask2=np.ones(3, bool))
