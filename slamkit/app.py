@@ -18,6 +18,7 @@ from slamkit.interfaces import Dataset
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import PipelineConfig
 from slamkit.pipeline.local_mapping import LocalMapper
+from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingState
 from slamkit.plugins import ComponentRegistry
 from slamkit.runtime.sequential import RunLog, SequentialRunner
@@ -57,6 +58,33 @@ def _percentile(values: list[float], q: float) -> float | None:
     return float(np.percentile(values, q)) if values else None
 
 
+#: An accepted loop is false when the true camera centres of its two keyframes are further apart than this, or
+#: their optical axes differ by more than FALSE_LOOP_MAX_ANGLE_DEG: they do not see the same place.
+FALSE_LOOP_MAX_DISTANCE_M = 2.0
+FALSE_LOOP_MAX_ANGLE_DEG = 60.0
+
+
+def count_false_loops(run: RunLog, store: InMemoryMapStore, gt: Trajectory | None) -> int | None:
+    """Accepted loops whose two keyframes were not truly at the same place (by the ground truth)."""
+    if gt is None:
+        return None
+    false = 0
+    for loop in run.loops:
+        if loop.loop_kf_id is None:
+            continue
+        stamps = [loop.kf_id, loop.loop_kf_id]
+        times = [store.get_keyframe(k).timestamp_s if store.has_keyframe(k) else None for k in stamps]
+        if None in times:
+            continue
+        idx = [int(np.argmin(np.abs(gt.t_s - t))) for t in times if t is not None]
+        a, b = gt.T_w_c[idx[0]], gt.T_w_c[idx[1]]
+        dist = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+        cos = float(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))
+        if dist > FALSE_LOOP_MAX_DISTANCE_M or np.degrees(np.arccos(cos)) > FALSE_LOOP_MAX_ANGLE_DEG:
+            false += 1
+    return false
+
+
 def run_metrics(
     run: RunLog, store: InMemoryMapStore, frames: Trajectory, keyframes: Trajectory, dataset: Dataset
 ) -> dict[str, Any]:
@@ -83,6 +111,13 @@ def run_metrics(
         "local_mapping_ms_median": _percentile(mapping_ms, 50),
         "local_ba_ms_median": _percentile(ba_ms, 50),
         "wall_s": run.wall_s,
+        "relocalizations": sum(o.method == "relocalization" and o.state == TrackingState.OK for o in run.tracking),
+        "loops_closed": sum(loop.loop_kf_id is not None for loop in run.loops),
+        "loop_closing_ms_median": _percentile([sum(lp.timings_ms.values()) for lp in run.loops], 50),
+        "essential_graph_edges": [lp.essential_graph_edges for lp in run.loops if lp.loop_kf_id is not None],
+        "essential_graph_ms": [
+            lp.timings_ms.get("essential_graph_ms") for lp in run.loops if lp.loop_kf_id is not None
+        ],
     }
     gt = dataset.ground_truth
     if gt is not None and run.tracking:
@@ -106,6 +141,7 @@ def run_metrics(
             metrics[f"{name}ate_matched_poses"] = ate.matched_poses
             metrics[f"{name}ate_rmse_pct_of_path"] = 100.0 * ate.rmse_m / max(metrics["path_length_m"], 1e-12)
         metrics["ate_align"] = "sim3"
+        metrics["loops_false"] = count_false_loops(run, store, dataset.ground_truth)
     else:
         metrics["path_length_m"] = path_length_m(frames)
         metrics["path_length_source"] = "estimate (no ground truth; arbitrary scale for monocular)"
@@ -162,6 +198,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     pipeline = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline, resolve=True))  # type: ignore[arg-type]
     store: InMemoryMapStore = components["map"]
     rng = np.random.default_rng(int(cfg.seed))
+    place = components.get("place")  # None: no relocalization, no loop closing
     init_extractor = None
     factor = pipeline.tracking.init_feature_factor
     if factor != 1 and "n_features" in cfg.features:
@@ -176,9 +213,15 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         store,
         rng,
         init_extractor,
+        place,
     )
-    mapper = LocalMapper(pipeline.local_mapping, store, components["optimizer"])
-    runner = SequentialRunner(tracker, mapper, store, progress=bool(cfg.runner.get("progress", True)))
+    mapper = LocalMapper(pipeline.local_mapping, store, components["optimizer"], place)
+    loop_closer = None
+    if place is not None:
+        loop_closer = LoopCloser(pipeline.loop_closing, store, components["optimizer"], place, rng)
+    runner = SequentialRunner(
+        tracker, mapper, store, progress=bool(cfg.runner.get("progress", True)), loop_closer=loop_closer
+    )
     return runner, dataset
 
 

@@ -9,7 +9,7 @@ from frame b to frame a, poses are float64, pixels float32, metres/radians/secon
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
@@ -108,6 +108,10 @@ class BowDescription:
     direct_index: Mapping[int, NDArray[np.int64]]
 
 
+#: (keyframe id, n) -> its n best covisible keyframes, best first (``store.covisibility.best_neighbors``).
+NeighborsFn = Callable[[int, int], Sequence[int]]
+
+
 @runtime_checkable
 class PlaceRecognizer(Protocol):
     """A visual vocabulary and keyframe database for relocalization and loop detection (ORB-SLAM III-E)."""
@@ -131,6 +135,32 @@ class PlaceRecognizer(Protocol):
     def query(self, bow: BowDescription, exclude: Sequence[int] = ()) -> list[tuple[int, float]]:
         """Keyframes sharing at least one word with ``bow`` (not in ``exclude``) with their scores,
         best first."""
+        ...
+
+    def loop_candidates(
+        self, bow: BowDescription, connected: Collection[int], min_score: float, neighbors: NeighborsFn
+    ) -> list[tuple[int, float]]:
+        """Loop candidates of a keyframe (ORB-SLAM III-E / VII-A): keyframes not in ``connected`` scoring at least
+        ``min_score``, grouped with their covisible ``neighbors`` and kept when their group scores above 75% of
+        the best group. Returns (keyframe id, score), best first."""
+        ...
+
+    def relocalization_candidates(self, bow: BowDescription, neighbors: NeighborsFn) -> list[tuple[int, float]]:
+        """Relocalization candidates of a frame (ORB-SLAM V-C): as loop candidates, without a score floor."""
+        ...
+
+    def match(
+        self,
+        feats1: Features,
+        bow1: BowDescription,
+        feats2: Features,
+        bow2: BowDescription,
+        ratio: float,
+        mask1: NDArray[np.bool_] | None = None,
+        mask2: NDArray[np.bool_] | None = None,
+    ) -> NDArray[np.int64]:
+        """BoW-guided matching: (K, 2) feature index pairs (image 1, image 2) among features sharing a vocabulary
+        node, with the ratio test and rotation consistency; masks restrict the eligible features."""
         ...
 
 

@@ -10,11 +10,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
+from slamkit.features import Features
 from slamkit.interfaces import BowDescription
 from slamkit_dbow.builtin import load_builtin_vocabulary
 from slamkit_dbow.covisibility import NeighborsFn
 from slamkit_dbow.database import KeyframeDatabase
 from slamkit_dbow.files import load_vocabulary
+from slamkit_dbow.matching import match_by_bow
 from slamkit_dbow.vocabulary import Vocabulary
 
 _cache_lock = threading.Lock()
@@ -119,3 +121,16 @@ class DbowPlaceRecognizer:
             return self.database.relocalization_candidates(
                 bow, neighbors, self.min_common_ratio, self.group_min_ratio, self.n_covisible
             )
+
+    def match(
+        self,
+        feats1: Features,
+        bow1: BowDescription,
+        feats2: Features,
+        bow2: BowDescription,
+        ratio: float,
+        mask1: NDArray[np.bool_] | None = None,
+        mask2: NDArray[np.bool_] | None = None,
+    ) -> NDArray[np.int64]:
+        """BoW-guided matching through the direct index (see ``slamkit_dbow.matching.match_by_bow``)."""
+        return match_by_bow(feats1, bow1, feats2, bow2, ratio=ratio, mask1=mask1, mask2=mask2)

@@ -18,15 +18,15 @@ from numpy.typing import NDArray
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.so3 import hat
 from slamkit.geometry.twoview import triangulate_points
-from slamkit.interfaces import AbortToken, Optimizer
+from slamkit.interfaces import AbortToken, Optimizer, PlaceRecognizer
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
-from slamkit.pipeline.frame import ImageBounds
+from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.map_points import compute_distinctive_descriptor, update_normal_and_depth
 from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
-from slamkit.pipeline.projection import frustum_test, match_projected, project_pinhole
+from slamkit.pipeline.projection import project_pinhole
 
 log = logging.getLogger("slamkit.mapping")
 
@@ -71,12 +71,18 @@ def _keyframes(store: InMemoryMapStore, ids: Iterable[int]) -> dict[int, KeyFram
 class LocalMapper:
     """Local mapping logic (deterministic: every loop runs in id order)."""
 
-    def __init__(self, cfg: LocalMappingConfig, store: InMemoryMapStore, optimizer: Optimizer) -> None:
+    def __init__(
+        self,
+        cfg: LocalMappingConfig,
+        store: InMemoryMapStore,
+        optimizer: Optimizer,
+        place: PlaceRecognizer | None = None,
+    ) -> None:
         self.cfg = cfg
         self.store = store
         self.optimizer = optimizer
+        self.place = place  # describes each keyframe with a bag of words (ORB-SLAM ProcessNewKeyFrame)
         self.recent_points: list[int] = []
-        self._bounds: dict[int, ImageBounds] = {}
 
     def step(self, kf: KeyFrame, already_in_map: bool = False, abort: AbortToken | None = None) -> MappingOutcome:
         """Process one new keyframe (VI-A to VI-E)."""
@@ -111,6 +117,8 @@ class LocalMapper:
 
     def _process_new_keyframe(self, kf: KeyFrame, already_in_map: bool) -> None:
         store = self.store
+        if self.place is not None and kf.bow is None:
+            kf.bow = self.place.transform(kf.features.descriptors)
         if not already_in_map:
             store.add_keyframe(kf)
             for idx in np.flatnonzero(kf.point_ids >= 0):
@@ -273,9 +281,9 @@ class LocalMapper:
         fused = 0
         for t_id in targets:
             pids = [int(p) for p in kf.point_ids if p >= 0]
-            fused += self._fuse(store.get_keyframe(t_id), pids)
+            fused += fuse_points(store, store.get_keyframe(t_id), pids, cfg.fuse_search_radius_px)
         candidates = sorted({int(p) for t_id in targets for p in store.get_keyframe(t_id).point_ids if p >= 0})
-        fused += self._fuse(kf, candidates)
+        fused += fuse_points(store, kf, candidates, cfg.fuse_search_radius_px)
         for pid in sorted({int(p) for p in kf.point_ids if p >= 0}):
             if store.has_point(pid):
                 point = store.get_point(pid)
@@ -284,83 +292,6 @@ class LocalMapper:
                 update_normal_and_depth(point, kfs)
         store.update_connections(kf.id)
         return fused
-
-    def _fuse(self, kf: KeyFrame, point_ids: list[int]) -> int:
-        """Project points into ``kf``; a match either merges two points (the one with more observations
-        survives, ORB-SLAM MapPoint::Replace) or adds an observation (ORB-SLAM ORBmatcher::Fuse)."""
-        cfg = self.cfg
-        store = self.store
-        pids = [p for p in point_ids if store.has_point(p) and kf.id not in store.get_point(p).observations]
-        if not pids or len(kf.features) == 0:
-            return 0
-        points = [store.get_point(p) for p in pids]
-        feats = kf.features
-        test = frustum_test(
-            kf.T_c_w,
-            kf.camera.K,
-            self._bounds_of(kf),
-            np.stack([p.xyz_w for p in points]),
-            np.stack([p.normal_w for p in points]),
-            np.array([p.d_min_m for p in points]),
-            np.array([p.d_max_m for p in points]),
-            0.5,
-            feats.scale_factor,
-            feats.n_levels,
-        )
-        q = np.flatnonzero(test.visible)
-        if q.size == 0:
-            return 0
-        level = test.predicted_level[q]
-        radius = cfg.fuse_search_radius_px * np.power(feats.scale_factor, level)
-        m = match_projected(
-            feats,
-            np.zeros(len(feats), bool),
-            self._bounds_of(kf),
-            test.uv_px[q],
-            np.stack([points[i].descriptor for i in q]),
-            radius,
-            level - 1,
-            level,
-            _TH_LOW,
-            None,
-            None,
-            _ROT_BINS,
-        )
-        fused = 0
-        for row, feat in zip(m.query, m.feature, strict=True):
-            point = points[int(q[row])]
-            err2 = float(np.sum((test.uv_px[q[row]] - feats.uv_undist_px[feat]) ** 2))
-            if err2 > 5.99 * feats.level_sigma2()[feat] or not store.has_point(point.id):
-                continue
-            if kf.id in point.observations:
-                continue
-            existing = int(kf.point_ids[feat])
-            if existing >= 0 and store.has_point(existing):
-                if existing == point.id:
-                    continue
-                other = store.get_point(existing)
-                if len(other.observations) > len(point.observations):
-                    self._replace(point, other)
-                else:
-                    self._replace(other, point)
-            else:
-                store.add_observation(point.id, kf.id, int(feat))
-            fused += 1
-        return fused
-
-    def _replace(self, old: MapPoint, new: MapPoint) -> None:
-        """Move every observation of ``old`` to ``new`` (where ``new`` is not already observed) and erase old."""
-        store = self.store
-        for kf_id, feat in sorted(old.observations.items()):
-            store.get_keyframe(kf_id).point_ids[feat] = -1
-            if kf_id not in new.observations:
-                store.add_observation(new.id, kf_id, feat)
-        new.n_visible += old.n_visible
-        new.n_found += old.n_found
-        old.observations.clear()
-        store.remove_point(old.id)
-        kfs = _keyframes(store, new.observations.keys())
-        compute_distinctive_descriptor(new, kfs)
 
     # ---- VI-D (local BA) -----------------------------------------------------------------------------
 
@@ -431,13 +362,9 @@ class LocalMapper:
                 T_kp = k.T_c_w @ invert_T(store.get_keyframe(parent).T_c_w) if parent is not None else np.eye(4)
                 culled.append(CulledKeyFrame(k_id, parent, T_kp, k.T_c_w.copy()))
                 store.remove_keyframe(k_id)
+                if self.place is not None:
+                    self.place.remove(k_id)
         return culled
-
-    def _bounds_of(self, kf: KeyFrame) -> ImageBounds:
-        key = id(kf.camera)
-        if key not in self._bounds:
-            self._bounds[key] = ImageBounds.of(kf.camera)
-        return self._bounds[key]
 
 
 def _median_depth(kf: KeyFrame, store: InMemoryMapStore) -> float:

@@ -12,17 +12,19 @@ import time
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import SE3, invert_T
-from slamkit.interfaces import Camera, FeatureExtractor, Initializer, Optimizer
+from slamkit.interfaces import BowDescription, Camera, FeatureExtractor, Initializer, Optimizer, PlaceRecognizer
 from slamkit.map.entities import KeyFrame
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import intrinsics_of
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
 from slamkit.pipeline.initialization import MonocularInitialization, create_initial_map, new_keyframe
+from slamkit.pipeline.map_points import predict_level
 from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.projection import frustum_test, match_projected, project_pinhole, radius_by_viewing_cos
 from slamkit.problems import PoseOnlyProblem
@@ -35,6 +37,10 @@ I64 = NDArray[np.int64]
 
 #: Keyframes of the local map K2 taken from each K1 keyframe's covisibility neighbours (ORB-SLAM code: 10).
 _K2_NEIGHBORS_PER_KF = 10
+#: ORB-SLAM Relocalization: BoW ratio 0.75, at least 15 BoW matches, PnP needs 10 inliers.
+_RELOC_BOW_RATIO = 0.75
+_RELOC_MIN_BOW_MATCHES = 15
+_RELOC_MIN_PNP_INLIERS = 10
 #: A map this small is reset when tracking is lost (ORB-SLAM: "Track lost soon after initialisation").
 _RESET_IF_LOST_WITH_KEYFRAMES = 5
 
@@ -79,6 +85,7 @@ class Tracker:
         store: InMemoryMapStore,
         rng: np.random.Generator,
         init_extractor: FeatureExtractor | None = None,
+        place: PlaceRecognizer | None = None,
     ) -> None:
         self.cfg = cfg
         self.extractor = extractor
@@ -86,6 +93,8 @@ class Tracker:
         self.init_extractor = init_extractor or extractor
         self.optimizer = optimizer
         self.store = store
+        self.place = place  # bag of words: reference-keyframe matching and relocalization (ORB-SLAM V-B, V-C)
+        self.relocalizations = 0
         self.state = TrackingState.NOT_INITIALIZED
         self.init = MonocularInitialization(cfg, initializer, rng)
         self.last_frame: Frame | None = None
@@ -94,6 +103,8 @@ class Tracker:
         self.last_kf_frame_index = -(10**9)
         self.last_reloc_frame_index = -(10**9)
         self._bounds: dict[int, ImageBounds] = {}
+        self._last_T_l_r: F64 | None = None
+        self._frame_bow: BowDescription | None = None
 
     # ---- public ------------------------------------------------------------------------------
 
@@ -115,6 +126,8 @@ class Tracker:
         with self.store.write():
             for kf_id in self.store.keyframe_ids():
                 self.store.remove_keyframe(kf_id)
+                if self.place is not None:
+                    self.place.remove(kf_id)
         self.state = TrackingState.NOT_INITIALIZED
         self.init.reset()
         self.last_frame = None
@@ -172,7 +185,15 @@ class Tracker:
         with self.store.read():
             method = "lost"
             ok = False
-            if self.state == TrackingState.OK and self.last_frame is not None:
+            self._frame_bow = None
+            if self.state == TrackingState.LOST:
+                method = "relocalization"
+                ok = self._relocalize(frame)
+                if ok:
+                    self.last_reloc_frame_index = frame.index
+                    self.relocalizations += 1
+            elif self.state == TrackingState.OK and self.last_frame is not None:
+                self._update_last_frame()
                 if self.velocity is not None:
                     ok = self._track_motion_model(frame)
                     method = "motion_model"
@@ -191,9 +212,13 @@ class Tracker:
         timings["local_map_ms"] = (t2 - t1) * 1e3
         if not ok:
             return self._lost(frame, method)
-        assert frame.T_c_w is not None and self.last_frame is not None and self.last_frame.T_c_w is not None
-        # re-orthonormalised: products of poses drift off SO(3) and optimizers reject them
-        self.velocity = SE3.from_matrix(frame.T_c_w @ invert_T(self.last_frame.T_c_w), orthonormalize=True).matrix()
+        assert frame.T_c_w is not None
+        if method == "relocalization" or self.last_frame is None or self.last_frame.T_c_w is None:
+            self.velocity = None
+        else:
+            # re-orthonormalised: products of poses drift off SO(3) and optimizers reject them
+            self.velocity = SE3.from_matrix(frame.T_c_w @ invert_T(self.last_frame.T_c_w), orthonormalize=True).matrix()
+        self.state = TrackingState.OK
         frame.point_ids[frame.outlier] = -1
         frame.outlier[:] = False
         frame.ref_kf_id = self.reference_kf_id
@@ -208,7 +233,29 @@ class Tracker:
             frame.ref_kf_id = kf.id
             self.last_kf_frame_index = frame.index
         self.last_frame = frame
+        self._last_T_l_r = self._relative_to_reference(frame)
         return outcome
+
+    def _relative_to_reference(self, frame: Frame) -> F64 | None:
+        ref = frame.ref_kf_id
+        if ref is None or frame.T_c_w is None or not self.store.has_keyframe(ref):
+            return None
+        return frame.T_c_w @ invert_T(self.store.get_keyframe(ref).T_c_w)
+
+    def _update_last_frame(self) -> None:
+        """ORB-SLAM UpdateLastFrame: the last frame's pose follows its reference keyframe, so corrections of
+        the map (local BA, loop closing) reach the motion model's starting point."""
+        last = self.last_frame
+        if last is None or self._last_T_l_r is None or last.ref_kf_id is None:
+            return
+        if self.store.has_keyframe(last.ref_kf_id):
+            last.T_c_w = self._last_T_l_r @ self.store.get_keyframe(last.ref_kf_id).T_c_w
+
+    def _bow_of(self, frame: Frame) -> BowDescription:
+        assert self.place is not None
+        if self._frame_bow is None:
+            self._frame_bow = self.place.transform(frame.features.descriptors)
+        return self._frame_bow
 
     def _lost(self, frame: Frame, method: str) -> TrackingOutcome:
         self.state = TrackingState.LOST
@@ -313,9 +360,21 @@ class Tracker:
         if self.reference_kf_id is None or not self.store.has_keyframe(self.reference_kf_id):
             return False
         kf = self.store.get_keyframe(self.reference_kf_id)
-        feats_kf = np.flatnonzero(self._valid_point_ids(kf.point_ids))
+        valid = self._valid_point_ids(kf.point_ids)
+        feats_kf = np.flatnonzero(valid)
         if feats_kf.size == 0 or len(frame.features) == 0:
             return False
+        if self.place is not None and kf.bow is not None:
+            pairs = self.place.match(
+                kf.features, kf.bow, frame.features, self._bow_of(frame), cfg.reference_kf_ratio, valid, None
+            )
+            frame.point_ids[:] = -1
+            frame.point_ids[pairs[:, 1]] = kf.point_ids[pairs[:, 0]]
+            if pairs.shape[0] < cfg.min_reference_kf_matches:
+                return False
+            assert self.last_frame is not None and self.last_frame.T_c_w is not None
+            self._optimize_pose(frame, self.last_frame.T_c_w)
+            return self._discard_outliers(frame) >= cfg.min_inliers_after_pose_opt
         dist = hamming_matrix(kf.features.descriptors[feats_kf], frame.features.descriptors)
         order = np.argsort(dist, axis=1, kind="stable")
         best = order[:, 0]
@@ -447,3 +506,101 @@ class Tracker:
         ref_points = [int(p) for p in ref.point_ids if p >= 0 and self.store.has_point(int(p))]
         n_ref = sum(1 for p in ref_points if len(self.store.get_point(p).observations) >= min_obs)
         return inliers < cfg.keyframe_max_ref_ratio * n_ref  # condition 4
+
+    # ---- V-C: relocalization ---------------------------------------------------------------------------
+
+    def _relocalize(self, frame: Frame) -> bool:
+        """ORB-SLAM Relocalization: BoW candidates -> BoW matches (>= 15) -> PnP in RANSAC (EPnP) ->
+        motion-only BA -> guided search for more matches -> accepted with at least 50 inliers."""
+        if self.place is None:
+            return False
+        bow = self._bow_of(frame)
+        for kf_id, _ in self.place.relocalization_candidates(bow, self.store.covisibility.best_neighbors):
+            if not self.store.has_keyframe(kf_id):
+                continue
+            kf = self.store.get_keyframe(kf_id)
+            if kf.bow is None:
+                continue
+            valid = self._valid_point_ids(kf.point_ids)
+            pairs = self.place.match(kf.features, kf.bow, frame.features, bow, _RELOC_BOW_RATIO, valid, None)
+            if pairs.shape[0] < _RELOC_MIN_BOW_MATCHES:
+                continue
+            xyz = np.stack([self.store.get_point(int(kf.point_ids[i])).xyz_w for i in pairs[:, 0]])
+            uv = frame.features.uv_undist_px[pairs[:, 1]].astype(np.float64)
+            ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+                xyz,
+                uv,
+                frame.camera.K,
+                None,
+                iterationsCount=300,
+                reprojectionError=float(np.sqrt(5.991)),
+                confidence=0.99,
+                flags=cv2.SOLVEPNP_EPNP,
+            )
+            if not ok or inliers is None or len(inliers) < _RELOC_MIN_PNP_INLIERS:
+                continue
+            T = np.eye(4)
+            T[:3, :3] = cv2.Rodrigues(rvec)[0]
+            T[:3, 3] = tvec.ravel()
+            frame.point_ids[:] = -1
+            sel = pairs[inliers.ravel()]
+            frame.point_ids[sel[:, 1]] = kf.point_ids[sel[:, 0]]
+            self._optimize_pose(frame, T)
+            good = self._discard_outliers(frame)
+            if good < _RELOC_MIN_PNP_INLIERS:
+                continue
+            for radius, max_dist in ((10.0, 100), (3.0, 64)):
+                if good >= self.cfg.min_local_map_inliers_after_reloc:
+                    break
+                added = self._search_keyframe_points(frame, kf, radius, max_dist)
+                if good + added >= self.cfg.min_local_map_inliers_after_reloc:
+                    assert frame.T_c_w is not None
+                    self._optimize_pose(frame, frame.T_c_w)
+                    good = self._discard_outliers(frame)
+            if good >= self.cfg.min_local_map_inliers_after_reloc:
+                self.reference_kf_id = kf_id
+                frame.ref_kf_id = kf_id
+                log.info("relocalized frame %d against keyframe %d with %d inliers", frame.index, kf_id, good)
+                return True
+        frame.point_ids[:] = -1
+        frame.T_c_w = None
+        return False
+
+    def _search_keyframe_points(self, frame: Frame, kf: KeyFrame, radius_px: float, max_distance: int) -> int:
+        """ORB-SLAM SearchByProjection(Frame, KeyFrame): project the keyframe's points not matched yet with the
+        frame's pose and match them around the projection (radius x scale of the predicted level)."""
+        assert frame.T_c_w is not None
+        found = {int(p) for p in frame.point_ids if p >= 0}
+        pids = [int(p) for p in kf.point_ids if p >= 0 and int(p) not in found and self.store.has_point(int(p))]
+        if not pids:
+            return 0
+        points = [self.store.get_point(p) for p in pids]
+        feats = frame.features
+        xyz = np.stack([p.xyz_w for p in points])
+        uv, z = project_pinhole(frame.T_c_w, xyz, frame.camera.K)
+        center = -frame.T_c_w[:3, :3].T @ frame.T_c_w[:3, 3]
+        dist = np.linalg.norm(xyz - center, axis=1)
+        d_min = np.array([p.d_min_m for p in points])
+        d_max = np.array([p.d_max_m for p in points])
+        ok = (z > 0) & np.all(np.isfinite(uv), axis=1) & (dist >= 0.8 * d_min) & (dist <= 1.2 * d_max)
+        ok &= frame.bounds.contains(np.nan_to_num(uv, nan=-1e9))
+        q = np.flatnonzero(ok)
+        if q.size == 0:
+            return 0
+        level = predict_level(d_max[q], dist[q], feats.scale_factor, feats.n_levels)
+        m = match_projected(
+            feats,
+            frame.point_ids >= 0,
+            frame.bounds,
+            uv[q],
+            np.stack([points[i].descriptor for i in q]),
+            radius_px * np.power(feats.scale_factor, level),
+            level - 1,
+            level + 1,
+            max_distance,
+            None,
+            None,
+            self.cfg.rotation_histogram_bins,
+        )
+        frame.point_ids[m.feature] = np.array(pids, np.int64)[q[m.query]]
+        return len(m)

@@ -13,6 +13,7 @@ from tqdm import tqdm
 from slamkit.interfaces import Camera, Dataset
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.local_mapping import LocalMapper, MappingOutcome
+from slamkit.pipeline.loop_closing import LoopCloser, LoopOutcome
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.sensors import FrameData
@@ -26,6 +27,7 @@ class RunLog:
 
     tracking: list[TrackingOutcome] = field(default_factory=list)
     mapping: list[MappingOutcome] = field(default_factory=list)
+    loops: list[LoopOutcome] = field(default_factory=list)
     resets: int = 0
     wall_s: float = 0.0
 
@@ -33,9 +35,17 @@ class RunLog:
 class SequentialRunner:
     """Runs a dataset through tracking and local mapping, one frame at a time."""
 
-    def __init__(self, tracker: Tracker, mapper: LocalMapper, store: InMemoryMapStore, progress: bool = True) -> None:
+    def __init__(
+        self,
+        tracker: Tracker,
+        mapper: LocalMapper,
+        store: InMemoryMapStore,
+        progress: bool = True,
+        loop_closer: LoopCloser | None = None,
+    ) -> None:
         self.tracker = tracker
         self.mapper = mapper
+        self.loop_closer = loop_closer
         self.store = store
         self.recorder = TrajectoryRecorder()
         self.progress = progress
@@ -79,6 +89,8 @@ class SequentialRunner:
             self.log.mapping.append(mapped)
             for culled in mapped.culled_keyframes:
                 self.recorder.on_culled(culled)
+            if self.loop_closer is not None and self.store.has_keyframe(kf.id):
+                self.log.loops.append(self.loop_closer.step(kf))
         if out.state == TrackingState.OK and out.T_c_w is not None:
             ref = self.tracker.reference_kf_id
             if ref is not None and self.store.has_keyframe(ref):

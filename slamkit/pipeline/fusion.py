@@ -1,0 +1,103 @@
+"""Fusing map points into a keyframe (ORB-SLAM ORBmatcher::Fuse and MapPoint::Replace): project points into
+the keyframe; a match either adds an observation or merges two points that are the same 3D point."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.frame import ImageBounds
+from slamkit.pipeline.map_points import compute_distinctive_descriptor
+from slamkit.pipeline.projection import frustum_test, match_projected
+
+#: ORB-SLAM ORBmatcher TH_LOW: max Hamming distance of a fusion match.
+TH_LOW = 50
+#: chi-square 95% with 2 dof: reprojection gate of a fusion match (ORB-SLAM Fuse: 5.99).
+CHI2_FUSE = 5.99
+
+
+def replace_point(store: InMemoryMapStore, old: MapPoint, new: MapPoint) -> None:
+    """Move every observation of ``old`` to ``new`` (where ``new`` is not already observed) and erase old."""
+    for kf_id, feat in sorted(old.observations.items()):
+        store.get_keyframe(kf_id).point_ids[feat] = -1
+        if kf_id not in new.observations:
+            store.add_observation(new.id, kf_id, feat)
+    new.n_visible += old.n_visible
+    new.n_found += old.n_found
+    old.observations.clear()
+    store.remove_point(old.id)
+    keyframes = {k: store.get_keyframe(k) for k in new.observations}
+    compute_distinctive_descriptor(new, keyframes)
+
+
+def fuse_points(
+    store: InMemoryMapStore,
+    kf: KeyFrame,
+    point_ids: list[int],
+    radius_px: float,
+    incoming_wins: bool = False,
+) -> int:
+    """Project ``point_ids`` into ``kf`` and fuse each match (radius_px scaled by the predicted level).
+
+    When the matched feature already has another point, the one with more observations survives (local
+    mapping, ORB-SLAM Fuse), or always the incoming one with ``incoming_wins`` (loop fusion, ORB-SLAM
+    SearchAndFuse). Returns the number of fused matches.
+    """
+    pids = [p for p in point_ids if store.has_point(p) and kf.id not in store.get_point(p).observations]
+    if not pids or len(kf.features) == 0:
+        return 0
+    points = [store.get_point(p) for p in pids]
+    feats = kf.features
+    bounds = ImageBounds.of(kf.camera)
+    test = frustum_test(
+        kf.T_c_w,
+        kf.camera.K,
+        bounds,
+        np.stack([p.xyz_w for p in points]),
+        np.stack([p.normal_w for p in points]),
+        np.array([p.d_min_m for p in points]),
+        np.array([p.d_max_m for p in points]),
+        0.5,
+        feats.scale_factor,
+        feats.n_levels,
+    )
+    q = np.flatnonzero(test.visible)
+    if q.size == 0:
+        return 0
+    level = test.predicted_level[q]
+    radius = radius_px * np.power(feats.scale_factor, level)
+    m = match_projected(
+        feats,
+        np.zeros(len(feats), bool),
+        bounds,
+        test.uv_px[q],
+        np.stack([points[i].descriptor for i in q]),
+        radius,
+        level - 1,
+        level,
+        TH_LOW,
+        None,
+        None,
+        30,
+    )
+    sigma2 = feats.level_sigma2()
+    fused = 0
+    for row, feat in zip(m.query, m.feature, strict=True):
+        point = points[int(q[row])]
+        err2 = float(np.sum((test.uv_px[q[row]] - feats.uv_undist_px[feat]) ** 2))
+        if err2 > CHI2_FUSE * sigma2[feat] or not store.has_point(point.id) or kf.id in point.observations:
+            continue
+        existing = int(kf.point_ids[feat])
+        if existing >= 0 and store.has_point(existing):
+            if existing == point.id:
+                continue
+            other = store.get_point(existing)
+            if not incoming_wins and len(other.observations) > len(point.observations):
+                replace_point(store, point, other)
+            else:
+                replace_point(store, other, point)
+        else:
+            store.add_observation(point.id, kf.id, int(feat))
+        fused += 1
+    return fused

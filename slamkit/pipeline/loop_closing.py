@@ -1,0 +1,342 @@
+"""Loop closing (ORB-SLAM sec. VII): detect loop candidates with the place recognizer, check their
+consistency over three keyframes, compute and optimize the Sim3 between the keyframe and a candidate,
+accept it with enough matches, then correct the loop (Sim3 propagation, loop fusion, essential graph).
+
+``LoopCloser.step(kf)`` runs after local mapping has processed ``kf``; every decision is recorded in a
+``LoopOutcome`` so a user can see why a loop was or was not closed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.geometry.sim3 import Sim3
+from slamkit.geometry.sim3_ransac import ransac_sim3
+from slamkit.interfaces import Optimizer, PlaceRecognizer
+from slamkit.map.entities import KeyFrame
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.bundle import intrinsics_of
+from slamkit.pipeline.config import LoopClosingConfig
+from slamkit.pipeline.frame import ImageBounds
+from slamkit.pipeline.fusion import TH_LOW, fuse_points, replace_point
+from slamkit.pipeline.loop_correction import (
+    apply_loop_correction,
+    optimize_essential_graph,
+    propagate_loop_sim3,
+    sim3_of_pose,
+)
+from slamkit.pipeline.projection import match_projected, project_pinhole
+from slamkit.problems import Sim3Problem
+
+log = logging.getLogger("slamkit.loop")
+
+I64 = NDArray[np.int64]
+
+#: ORB-SLAM: no loop detection within 10 keyframes of the map's creation or of the last loop.
+_MIN_KEYFRAMES_BETWEEN_LOOPS = 10
+#: ORB-SLAM ComputeSim3: BoW matches needed to try a candidate.
+_MIN_BOW_MATCHES = 20
+#: ORB-SLAM: ratio of BoW matching for loop detection.
+_BOW_RATIO = 0.75
+#: ORB-SLAM SearchByProjection(Scw) radius for the final loop check, px.
+_LOOP_SEARCH_RADIUS_PX = 10.0
+#: ORB-SLAM SearchAndFuse radius, px (ORBmatcher::Fuse with th = 4).
+_LOOP_FUSE_RADIUS_PX = 4.0
+
+
+@dataclass
+class LoopOutcome:
+    """What loop closing did with one keyframe."""
+
+    kf_id: int
+    candidates: list[int] = field(default_factory=list)
+    consistent: list[int] = field(default_factory=list)
+    tried: list[dict[str, object]] = field(default_factory=list)
+    loop_kf_id: int | None = None
+    matches: int = 0
+    scale: float = 1.0
+    essential_graph_edges: int = 0
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    reason: str = ""
+
+
+@dataclass
+class _ConsistentGroup:
+    members: set[int]
+    count: int
+
+
+class LoopCloser:
+    """Loop detection and correction over the map (deterministic given the rng)."""
+
+    def __init__(
+        self,
+        cfg: LoopClosingConfig,
+        store: InMemoryMapStore,
+        optimizer: Optimizer,
+        place: PlaceRecognizer,
+        rng: np.random.Generator,
+    ) -> None:
+        self.cfg = cfg
+        self.store = store
+        self.optimizer = optimizer
+        self.place = place
+        self.rng = rng
+        self.last_loop_kf_id = -(10**9)
+        self._groups: list[_ConsistentGroup] = []
+        self.loops: list[LoopOutcome] = []
+
+    def _neighbors(self, kf_id: int, n: int) -> list[int]:
+        return self.store.covisibility.best_neighbors(kf_id, n) if kf_id in self.store.covisibility else []
+
+    def step(self, kf: KeyFrame) -> LoopOutcome:
+        out = LoopOutcome(kf.id)
+        t0 = time.perf_counter()
+        if kf.bow is None or not self.store.has_keyframe(kf.id):
+            out.reason = "keyframe has no bag of words or was culled"
+            return out
+        try:
+            if not self.cfg.enabled:
+                out.reason = "loop closing disabled"
+                return out
+            if kf.id < self.last_loop_kf_id + _MIN_KEYFRAMES_BETWEEN_LOOPS or (
+                self.store.n_keyframes() <= _MIN_KEYFRAMES_BETWEEN_LOOPS
+            ):
+                out.reason = "too close to the map's start or to the last loop"
+                return out
+            out.consistent = self._detect(kf, out)
+            out.timings_ms["detect_ms"] = (time.perf_counter() - t0) * 1e3
+            if not out.consistent:
+                return out
+            t1 = time.perf_counter()
+            found = self._compute_sim3(kf, out)
+            out.timings_ms["sim3_ms"] = (time.perf_counter() - t1) * 1e3
+            if found is None:
+                out.reason = out.reason or "no candidate passed the Sim3 checks"
+                return out
+            loop_kf_id, S_cw, loop_matches = found
+            t2 = time.perf_counter()
+            self._correct(kf, loop_kf_id, S_cw, loop_matches, out)
+            out.timings_ms["correction_ms"] = (time.perf_counter() - t2) * 1e3
+            self.last_loop_kf_id = kf.id
+            self.loops.append(out)
+            log.info(
+                "loop closed: keyframe %d <-> %d, %d matches, scale %.3f, %d essential-graph edges",
+                kf.id,
+                loop_kf_id,
+                out.matches,
+                out.scale,
+                out.essential_graph_edges,
+            )
+            return out
+        finally:
+            if self.store.has_keyframe(kf.id) and kf.bow is not None:
+                self.place.add(kf.id, kf.bow)
+
+    # ---- VII-A: detection ----------------------------------------------------------------------------
+
+    def _detect(self, kf: KeyFrame, out: LoopOutcome) -> list[int]:
+        """Candidates scoring above s_min (the lowest score against covisible neighbours with weight >= 30),
+        kept only when consistent over ``consistency_detections`` consecutive keyframes."""
+        assert kf.bow is not None
+        cfg = self.cfg
+        cov = self.store.covisibility
+        strong = cov.neighbors(kf.id, cfg.candidate_min_covisible_weight) or cov.neighbors(kf.id)
+        scores = [self.place.score(kf.bow, b) for n in strong if (b := self.store.get_keyframe(n).bow) is not None]
+        min_score = min(scores) if scores else 0.0
+        connected = {kf.id, *cov.neighbors(kf.id)}
+        candidates = [
+            k
+            for k, _ in self.place.loop_candidates(kf.bow, connected, min_score, self._neighbors)
+            if self.store.has_keyframe(k)
+        ]
+        out.candidates = candidates
+        if not candidates:
+            self._groups = []
+            out.reason = f"no candidate above s_min = {min_score:.3f}"
+            return []
+        new_groups: list[_ConsistentGroup] = []
+        consistent: list[int] = []
+        for cand in candidates:
+            members = {cand, *cov.neighbors(cand)}
+            counts = [g.count + 1 for g in self._groups if g.members & members]
+            count = max(counts) if counts else 0
+            new_groups.append(_ConsistentGroup(members, count))
+            if count >= cfg.consistency_detections - 1 and cand not in consistent:
+                consistent.append(cand)
+        self._groups = new_groups
+        if not consistent:
+            out.reason = f"{len(candidates)} candidate(s), none consistent over {cfg.consistency_detections} keyframes"
+        return consistent
+
+    # ---- VII-B: Sim3 -----------------------------------------------------------------------------------
+
+    def _points_c(self, kf: KeyFrame, feats: I64) -> NDArray[np.float64]:
+        xyz = np.stack([self.store.get_point(int(kf.point_ids[i])).xyz_w for i in feats])
+        return np.asarray(xyz @ kf.T_c_w[:3, :3].T + kf.T_c_w[:3, 3])
+
+    def _compute_sim3(self, kf: KeyFrame, out: LoopOutcome) -> tuple[int, Sim3, dict[int, int]] | None:
+        """For each consistent candidate: BoW matches, Sim3 RANSAC, Sim3 optimization, then a guided search
+        of the candidate's neighbourhood points; the first candidate with enough matches is the loop."""
+        cfg = self.cfg
+        store = self.store
+        assert kf.bow is not None
+        valid1 = np.array([p >= 0 and store.has_point(int(p)) for p in kf.point_ids], bool)
+        for cand_id in out.consistent:
+            cand = store.get_keyframe(cand_id)
+            info: dict[str, object] = {"candidate": cand_id}
+            out.tried.append(info)
+            if cand.bow is None:
+                info["rejected"] = "no bag of words"
+                continue
+            valid2 = np.array([p >= 0 and store.has_point(int(p)) for p in cand.point_ids], bool)
+            pairs = self.place.match(kf.features, kf.bow, cand.features, cand.bow, _BOW_RATIO, valid1, valid2)
+            info["bow_matches"] = int(pairs.shape[0])
+            if pairs.shape[0] < _MIN_BOW_MATCHES:
+                info["rejected"] = f"{pairs.shape[0]} BoW matches < {_MIN_BOW_MATCHES}"
+                continue
+            i1, i2 = pairs[:, 0], pairs[:, 1]
+            xyz1, xyz2 = self._points_c(kf, i1), self._points_c(cand, i2)
+            uv1 = kf.features.uv_undist_px[i1].astype(np.float64)
+            uv2 = cand.features.uv_undist_px[i2].astype(np.float64)
+            s1, s2 = kf.features.level_sigma2()[i1], cand.features.level_sigma2()[i2]
+            ransac = ransac_sim3(
+                xyz1,
+                xyz2,
+                uv1,
+                uv2,
+                kf.camera.K,
+                cand.camera.K,
+                s1,
+                s2,
+                self.rng,
+                probability=cfg.sim3_ransac_probability,
+                min_inliers=cfg.sim3_ransac_min_inliers,
+                max_iterations=cfg.sim3_ransac_max_iterations,
+            )
+            info["ransac_inliers"] = int(ransac.inliers.sum())
+            if ransac.S_12 is None:
+                info["rejected"] = "Sim3 RANSAC found no hypothesis"
+                continue
+            problem = Sim3Problem(
+                S_12_init=ransac.S_12.matrix(),
+                xyz1_c1=xyz1,
+                xyz2_c2=xyz2,
+                uv1_px=uv1,
+                uv2_px=uv2,
+                level1=kf.features.level[i1].astype(np.int64),
+                level2=cand.features.level[i2].astype(np.int64),
+                intrinsics1=intrinsics_of(kf.camera.K),
+                intrinsics2=intrinsics_of(cand.camera.K),
+                scale_factor=kf.features.scale_factor,
+            )
+            opt = self.optimizer.optimize_sim3(problem)
+            info["optimized_inliers"] = int(opt.inliers.sum())
+            if opt.inliers.sum() < cfg.min_inliers_after_sim3_opt:
+                info["rejected"] = f"{int(opt.inliers.sum())} inliers after Sim3 optimization"
+                continue
+            S_12 = Sim3.from_matrix(opt.S_12)
+            S_cw = S_12 @ sim3_of_pose(cand.T_c_w)
+            matches = {int(a): int(cand.point_ids[b]) for a, b in zip(i1[opt.inliers], i2[opt.inliers], strict=True)}
+            matches.update(self._search_loop_points(kf, cand_id, S_cw, matches))
+            info["loop_matches"] = len(matches)
+            info["scale"] = S_12.s
+            if len(matches) < cfg.min_loop_matches:
+                info["rejected"] = f"{len(matches)} matches < {cfg.min_loop_matches}"
+                continue
+            out.loop_kf_id, out.matches, out.scale = cand_id, len(matches), S_12.s
+            return cand_id, S_cw, matches
+        return None
+
+    def _search_loop_points(self, kf: KeyFrame, cand_id: int, S_cw: Sim3, matched: dict[int, int]) -> dict[int, int]:
+        """Project the points of the candidate and its covisible keyframes into ``kf`` with S_cw (ORB-SLAM
+        SearchByProjection(Scw), radius 10 px x level scale) and match the features not matched yet."""
+        store = self.store
+        group = [cand_id, *store.covisibility.neighbors(cand_id)]
+        taken_points = set(matched.values())
+        pids = sorted(
+            {int(p) for k in group for p in store.get_keyframe(k).point_ids if p >= 0 and store.has_point(int(p))}
+            - taken_points
+        )
+        if not pids:
+            return {}
+        T_cw = S_cw.to_se3()
+        xyz = np.stack([store.get_point(p).xyz_w for p in pids])
+        uv, z = project_pinhole(T_cw, xyz, kf.camera.K)
+        bounds = ImageBounds.of(kf.camera)
+        ok = np.flatnonzero((z > 0) & np.all(np.isfinite(uv), axis=1) & bounds.contains(np.nan_to_num(uv, nan=-1e9)))
+        if ok.size == 0:
+            return {}
+        taken = np.zeros(len(kf.features), bool)
+        taken[list(matched)] = True
+        n_levels = kf.features.n_levels
+        m = match_projected(
+            kf.features,
+            taken,
+            bounds,
+            uv[ok],
+            np.stack([store.get_point(pids[i]).descriptor for i in ok]),
+            np.full(ok.size, _LOOP_SEARCH_RADIUS_PX) * kf.features.scale_factor,
+            np.zeros(ok.size, np.int64),
+            np.full(ok.size, n_levels - 1, np.int64),
+            TH_LOW,
+            None,
+            None,
+            30,
+        )
+        return {int(f): pids[int(ok[q])] for q, f in zip(m.query, m.feature, strict=True)}
+
+    # ---- VII-C/D: correction ----------------------------------------------------------------------------
+
+    def _correct(
+        self, kf: KeyFrame, loop_kf_id: int, S_cw: Sim3, loop_matches: dict[int, int], out: LoopOutcome
+    ) -> None:
+        store = self.store
+        with store.write():
+            store.update_connections(kf.id)
+            corr = propagate_loop_sim3(store, kf.id, S_cw)
+            before = {k: set(store.covisibility.neighbors(k)) for k in corr.corrected}
+            apply_loop_correction(store, corr)
+            # loop fusion: the loop's points replace the current keyframe's duplicates
+            for feat, pid in sorted(loop_matches.items()):
+                if not store.has_point(pid):
+                    continue
+                existing = int(kf.point_ids[feat])
+                if existing >= 0 and store.has_point(existing):
+                    if existing != pid:
+                        replace_point(store, store.get_point(existing), store.get_point(pid))
+                elif kf.id not in store.get_point(pid).observations:
+                    store.add_observation(pid, kf.id, feat)
+            loop_points = sorted(
+                {
+                    int(p)
+                    for k in [loop_kf_id, *store.covisibility.neighbors(loop_kf_id)]
+                    for p in store.get_keyframe(k).point_ids
+                    if p >= 0
+                }
+            )
+            for k in sorted(corr.corrected):
+                if store.has_keyframe(k):
+                    fuse_points(store, store.get_keyframe(k), loop_points, _LOOP_FUSE_RADIUS_PX, incoming_wins=True)
+            loop_connections: dict[int, set[int]] = {}
+            for k in sorted(corr.corrected):
+                if not store.has_keyframe(k):
+                    continue
+                store.update_connections(k)
+                linked = set(store.covisibility.neighbors(k)) - before.get(k, set()) - set(corr.corrected)
+                if linked:
+                    loop_connections[k] = linked
+            loop_connections.setdefault(kf.id, set()).add(loop_kf_id)
+            t_eg = time.perf_counter()
+            _, n_edges = optimize_essential_graph(
+                store, self.optimizer, loop_kf_id, kf.id, corr, loop_connections, self.cfg.theta_min
+            )
+            out.timings_ms["essential_graph_ms"] = (time.perf_counter() - t_eg) * 1e3
+            out.essential_graph_edges = n_edges
+            store.add_loop_edge(kf.id, loop_kf_id)
+            store.bump_epoch()
