@@ -250,12 +250,28 @@ def _with_midpoints(points: list[Vec3]) -> list[Vec3]:
 
 
 def long_loop_scene() -> Scene:
-    """A corridor ring around a 19 x 9 m block (outer 24 x 14 m, 2.6 m wide, 3 m high); the camera walks
-    its ~66 m centre line once (110 s) looking ahead, then 8 s more past the start: scale drift builds up
-    over a long loop before it closes."""
+    """A corridor ring around a 19 x 9 m block (outer 24 x 14 m, 2.6 m wide, 3 m high) with crates along its
+    outer walls; the camera walks its ~66 m centre line once (70 s) looking 45 deg to the right of its path,
+    then 10 s more past the start: scale drift builds up over a long loop before it closes. It starts on the
+    straight south side by a group of crates, where a monocular map can be initialised."""
     planes = corridor_ring("ring", (12.0, 7.0), 2.6, 3.0)
+    # crates along the outer walls: depth structure, so the two-view geometry is not one plane
+    # (x, y, depth from the wall, height): a storage area by the start on the south wall, then single crates
+    crates = [(1.2, -7.0, 0.9, 1.6), (2.4, -7.0, 0.5, 0.9), (3.5, -7.0, 1.1, 1.2), (4.7, -7.0, 0.6, 2.0),
+              (5.9, -7.0, 0.8, 1.0), (-8.0, -7.0, 0.7, 0.8), (-3.5, -7.0, 0.7, 1.4), (12.0, -3.5, 0.7, 1.1),
+              (12.0, 3.0, 0.7, 0.8), (7.0, 7.0, 0.7, 1.4), (0.5, 7.0, 0.7, 1.1), (-6.0, 7.0, 0.7, 0.8),
+              (-12.0, 2.5, 0.7, 1.4), (-12.0, -3.0, 0.7, 1.1)]
+    for i, (x, y, depth, height) in enumerate(crates):
+        if abs(abs(y) - 7.0) < 1e-9:  # against the south or north wall
+            planes += box(f"crate{i}", (x, y - np.sign(y) * depth / 2), (1.0, depth, height))
+        else:  # against the east or west wall
+            planes += box(f"crate{i}", (x - np.sign(x) * depth / 2, y), (depth, 1.0, height))
     way = rounded_rectangle((10.7, 5.7), corner_m=1.1, spacing_m=1.5, z=1.5)
-    path = CameraPath(way, period_s=110.0, duration_s=118.0, look_ahead_s=1.2, yaw_offset_deg=-15.0)
+    # start halfway along the long south side, on a straight stretch: a monocular map cannot be initialised
+    # while the camera turns (rotation brings no parallax)
+    south = sum(1 for w in way if abs(w[1] + 5.7) < 1e-9)
+    way = way[south // 2 :] + way[: south // 2]
+    path = CameraPath(way, period_s=70.0, duration_s=80.0, look_ahead_s=1.2, yaw_offset_deg=-45.0)
     return Scene("long_loop", tuple(planes), path, texels_per_m=224.0)
 
 

@@ -60,9 +60,9 @@ def _descriptors(ds: SyntheticDataset, orb: FeatureExtractor, frames: list[int])
 def test_same_place_scores_far_higher_than_other_places(
     recognizer: DbowPlaceRecognizer, long_loop: SyntheticDataset, orb: FeatureExtractor
 ) -> None:
-    """Keyframes every 3 s around the whole loop; queries revisit places after one loop (110 s later, new
+    """Keyframes every 3 s around the whole loop; queries revisit places after one loop (70 s later, new
     image noise): the keyframe of the same place must come first, far above every other place."""
-    fps, period = 30, 110.0
+    fps, period = 30, 70.0
     kf_frames = list(range(0, int(period * fps), 3 * fps))
     db = DbowPlaceRecognizer(vocabulary_object=recognizer.vocabulary)
     for kf, d in enumerate(_descriptors(long_loop, orb, kf_frames)):
