@@ -20,7 +20,7 @@ from slamkit.geometry.sim3_ransac import ransac_sim3
 from slamkit.interfaces import Optimizer, PlaceRecognizer
 from slamkit.map.entities import KeyFrame
 from slamkit.map.store import InMemoryMapStore
-from slamkit.pipeline.bundle import intrinsics_of
+from slamkit.pipeline.bundle import intrinsics_of, run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.frame import ImageBounds
 from slamkit.pipeline.fusion import TH_LOW, fuse_points, replace_point
@@ -340,3 +340,18 @@ class LoopCloser:
             out.essential_graph_edges = n_edges
             store.add_loop_edge(kf.id, loop_kf_id)
             store.bump_epoch()
+        if self.cfg.global_ba:
+            t_ba = time.perf_counter()
+            self._global_bundle_adjustment()
+            out.timings_ms["global_ba_ms"] = (time.perf_counter() - t_ba) * 1e3
+
+    def _global_bundle_adjustment(self) -> None:
+        """ORB-SLAM2's global BA after a loop (run here in line): every keyframe and point, the map's origin
+        keyframe fixed, outlier observations removed."""
+        store = self.store
+        with store.read():
+            kf_ids = store.keyframe_ids()
+            if len(kf_ids) < 2:
+                return
+            snap = snapshot_bundle(store, kf_ids[1:], kf_ids[:1], store.point_ids())
+        run_bundle(store, self.optimizer, snap)
