@@ -3,6 +3,8 @@ directory (trajectory.tum, keyframes.tum, metrics.json, config.yaml, trajectory.
 
 from __future__ import annotations
 
+import csv
+import dataclasses
 import json
 import logging
 import time
@@ -148,6 +150,30 @@ def run_metrics(
     return metrics
 
 
+def write_run_logs(out_dir: Path, run: RunLog) -> None:
+    """frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe
+    (candidates, consistency, BoW matches, Sim3 inliers and scale, corrections), so a user can see why a loop
+    was or was not closed."""
+    with (out_dir / "frames.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["frame", "timestamp_s", "state", "method", "features", "inliers", "track_ms", "message"])
+        for o in run.tracking:
+            writer.writerow(
+                [
+                    o.frame_index,
+                    f"{o.timestamp_s:.6f}",
+                    o.state.value,
+                    o.method,
+                    o.n_features,
+                    o.inliers,
+                    f"{o.timings_ms.get('track_ms', float('nan')):.2f}",
+                    o.message,
+                ]
+            )
+    loops = [dataclasses.asdict(lp) for lp in run.loops if lp.candidates or lp.loop_kf_id is not None]
+    (out_dir / "loops.json").write_text(json.dumps(loops, indent=2, default=float) + "\n")
+
+
 def write_outputs(
     out_dir: Path, cfg: DictConfig, runner: SequentialRunner, dataset: Dataset, status: str, error: str | None
 ) -> dict[str, Any]:
@@ -166,6 +192,7 @@ def write_outputs(
     if error:
         metrics["error"] = error
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float) + "\n")
+    write_run_logs(out_dir, runner.log)
     gt = dataset.ground_truth
     if len(frames) >= 3:
         try:

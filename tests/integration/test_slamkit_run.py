@@ -1,0 +1,91 @@
+"""`slamkit run` through the command line: the run directory and its files; a late failure still writes
+what it has and exits non-zero."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+METRIC_KEYS = {
+    "frames",
+    "frames_tracked",
+    "keyframes",
+    "map_points",
+    "path_length_m",
+    "ate_rmse_m",
+    "ate_align",
+    "tracking_ms_median",
+    "tracking_ms_p95",
+    "wall_s",
+    "status",
+    "loops_closed",
+    "relocalizations",
+}
+
+
+def pose_rows(path: Path) -> list[str]:
+    return [line for line in path.read_text().splitlines() if line and not line.startswith("#")]
+
+
+def slamkit_run(cwd: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "slamkit", "run", "runner.progress=false", *overrides],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def test_run_writes_trajectory_keyframes_metrics_config_plot_and_logs(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    result = slamkit_run(tmp_path, "dataset.max_frames=40", f"hydra.run.dir={out}")
+    assert result.returncode == 0, result.stderr
+    assert f"results in {out}" in result.stdout
+    for name in (
+        "trajectory.tum",
+        "keyframes.tum",
+        "metrics.json",
+        "config.yaml",
+        "trajectory.png",
+        "frames.csv",
+        "loops.json",
+    ):
+        assert (out / name).is_file(), name
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics) >= METRIC_KEYS
+    assert metrics["status"] == "ok" and metrics["frames"] == 40 and metrics["ate_align"] == "sim3"
+    rows = pose_rows(out / "trajectory.tum")
+    assert len(rows) == metrics["frames_tracked"] and len(rows[0].split()) == 8
+    assert "seed: 0" in (out / "config.yaml").read_text()
+    states = [line.split(",")[2] for line in (out / "frames.csv").read_text().splitlines()[1:]]
+    assert states[0] == "not_initialized" and states[-1] == "ok"
+
+
+@pytest.mark.shared_data
+def test_late_failure_writes_what_it_has_and_fails(tmp_path: Path, shared_datasets: Path) -> None:
+    src = shared_datasets / "kitti"
+    root = tmp_path / "kitti"
+    seq = root / "sequences" / "07"
+    (seq / "image_0").mkdir(parents=True)
+    (root / "poses").mkdir()
+    shutil.copy(src / "poses" / "07.txt", root / "poses" / "07.txt")
+    for name in ("calib.txt", "times.txt"):
+        shutil.copy(src / "sequences" / "07" / name, seq / name)
+    for i in range(40):
+        shutil.copy(src / "sequences" / "07" / "image_0" / f"{i:06d}.png", seq / "image_0" / f"{i:06d}.png")
+    bad = seq / "image_0" / "000035.png"
+    bad.write_bytes(bad.read_bytes()[:200])  # truncated: unreadable
+    out = tmp_path / "run"
+    result = slamkit_run(tmp_path, "+experiment=kitti07", f"dataset.root={root}", f"hydra.run.dir={out}")
+    assert result.returncode != 0
+    assert "000035.png" in result.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "failed" and "000035.png" in metrics["error"]
+    assert metrics["frames"] == 35 and metrics["frames_tracked"] >= 25
+    assert len(pose_rows(out / "trajectory.tum")) == metrics["frames_tracked"]
