@@ -89,37 +89,40 @@ def essential_graph_problem(
     """The essential graph of ORB-SLAM's OptimizeEssentialGraph with the loop keyframe fixed.
 
     Edges: the new loop connections (those other than current-loop need theta_min shared points), the
-    spanning tree, earlier loop edges, and covisibility edges with at least theta_min shared points. Edge
-    measurements come from the poses before correction; initial values are the corrected poses.
+    spanning tree, earlier loop edges, and covisibility edges with at least theta_min shared points. Loop
+    connections are measured from the corrected poses, the other edges from the poses before correction;
+    initial values are the corrected poses.
     """
     kf_ids = store.keyframe_ids()
     row = {k: i for i, k in enumerate(kf_ids)}
     initial = [corr.corrected.get(k, sim3_of_pose(store.get_keyframe(k).T_c_w)) for k in kf_ids]
     measured = [corr.non_corrected.get(k, initial[row[k]]) for k in kf_ids]
-    edges: dict[tuple[int, int], None] = {}
+    # edge -> its measurement source: loop connections are measured from the corrected poses, every other edge
+    # from the poses before correction (ORB-SLAM OptimizeEssentialGraph); an edge is inserted once, first wins
+    edges: dict[tuple[int, int], list[Sim3]] = {}
 
-    def add(i: int, j: int) -> None:
+    def add(i: int, j: int, source: list[Sim3]) -> None:
         if i != j and i in row and j in row:
-            edges.setdefault((min(i, j), max(i, j)), None)
+            edges.setdefault((min(i, j), max(i, j)), source)
 
     cov = store.covisibility
     for i, linked in sorted(loop_connections.items()):
         for j in sorted(linked):
             if (i, j) != (current_id, loop_kf_id) and cov.weight(i, j) < theta_min:
                 continue
-            add(i, j)
+            add(i, j, initial)
     for p, c in store.spanning_tree.edges():
-        add(p, c)
+        add(p, c, measured)
     for a, b in sorted(store.loop_edges):
-        add(a, b)
+        add(a, b, measured)
     for a, b, w in cov.edges():
         if w >= theta_min:
-            add(a, b)
+            add(a, b, measured)
     pairs = sorted(edges)
     S_ij = (
-        np.stack([(measured[row[i]] @ measured[row[j]].inverse()).matrix() for i, j in pairs])
+        np.stack([(edges[i, j][row[i]] @ edges[i, j][row[j]].inverse()).matrix() for i, j in pairs])
         if pairs
-        else (np.zeros((0, 4, 4)))
+        else np.zeros((0, 4, 4))
     )
     problem = EssentialGraphProblem(
         S_c_w=np.stack([s.matrix() for s in initial]),
