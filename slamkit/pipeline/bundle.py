@@ -30,6 +30,7 @@ class BundleSnapshot:
     point_ids: I64
     obs_kf_ids: I64
     obs_feature: I64
+    dropped_point_ids: tuple[int, ...] = ()
 
 
 def snapshot_bundle(
@@ -46,7 +47,15 @@ def snapshot_bundle(
     points, and every observation of those points by those keyframes (ORB-SLAM LocalBundleAdjustment)."""
     kf_ids = np.array(list(free_kf_ids) + list(fixed_kf_ids), np.int64)
     kf_row = {int(k): i for i, k in enumerate(kf_ids)}
-    pids = np.array(point_ids, np.int64)
+    # A point behind every camera that sees it (or seen by none of these keyframes) cannot be optimized: it is
+    # left out and reported, and the caller erases it (ORB-SLAM would flag all its observations as outliers).
+    usable, dropped = [], []
+    for pid in point_ids:
+        if _in_front_of_an_observer(store, pid, kf_row):
+            usable.append(pid)
+        else:
+            dropped.append(int(pid))
+    pids = np.array(usable, np.int64)
     T = np.stack([store.get_keyframe(int(k)).T_c_w for k in kf_ids])
     intr = np.stack([intrinsics_of(store.get_keyframe(int(k)).camera.K) for k in kf_ids])
     xyz = np.stack([store.get_point(int(p)).xyz_w for p in pids]) if len(pids) else np.zeros((0, 3))
@@ -72,9 +81,12 @@ def snapshot_bundle(
         level[sel] = feats.level[obs_feat_a[sel]]
         scale_factor = feats.scale_factor
     n_free = len(free_kf_ids)
+    # a free keyframe left without observations (all its points dropped) is held fixed: nothing constrains it
+    observed = np.zeros(len(kf_ids), bool)
+    observed[obs_pose_a] = True
     problem = BundleProblem(
         T_c_w=T,
-        pose_fixed=np.arange(len(kf_ids)) >= n_free,
+        pose_fixed=(np.arange(len(kf_ids)) >= n_free) | ~observed,
         intrinsics=intr,
         bf=np.zeros(len(kf_ids)),
         xyz_w=xyz,
@@ -90,14 +102,31 @@ def snapshot_bundle(
         chi2_mono=chi2_mono,
         chi2_stereo=chi2_stereo,
     )
-    return BundleSnapshot(problem, kf_ids, pids, obs_kf_a, obs_feat_a)
+    return BundleSnapshot(problem, kf_ids, pids, obs_kf_a, obs_feat_a, tuple(dropped))
+
+
+def _in_front_of_an_observer(store: InMemoryMapStore, point_id: int, kf_row: dict[int, int]) -> bool:
+    point = store.get_point(point_id)
+    for kf_id in point.observations:
+        if kf_id in kf_row:
+            T = store.get_keyframe(kf_id).T_c_w
+            if float(T[2, :3] @ point.xyz_w + T[2, 3]) > 0.0:
+                return True
+    return False
 
 
 def run_bundle(
     store: InMemoryMapStore, optimizer: Optimizer, snap: BundleSnapshot, abort: AbortToken | None = None
 ) -> BundleResult:
     """Optimize a snapshot (no lock held) and commit it under the map's write lock."""
-    result = optimizer.bundle_adjust(snap.problem, abort)
+    problem = snap.problem
+    if problem.obs_pose.size == 0 or problem.pose_fixed.all():
+        # nothing to optimize: only erase the points the snapshot dropped
+        result = BundleResult(problem.T_c_w, problem.xyz_w, np.zeros(0, bool), 0.0, 0.0, 0)
+        with store.write():
+            commit_bundle(store, snap, result)
+        return result
+    result = optimizer.bundle_adjust(problem, abort)
     with store.write():
         commit_bundle(store, snap, result)
     return result
@@ -107,8 +136,11 @@ def commit_bundle(store: InMemoryMapStore, snap: BundleSnapshot, result: BundleR
     """Write optimized poses and points back, skipping entities culled meanwhile, and erase the
     observations flagged as outliers (points left with fewer than 2 observations go too).
 
-    Returns the number of observations removed.
+    Points the snapshot left out (behind every camera) are erased. Returns the number of observations removed.
     """
+    for pid in snap.dropped_point_ids:
+        if store.has_point(pid):
+            store.remove_point(pid)
     for i, kf_id in enumerate(snap.kf_ids):
         if not snap.problem.pose_fixed[i] and store.has_keyframe(int(kf_id)):
             store.get_keyframe(int(kf_id)).T_c_w = result.T_c_w[i].copy()

@@ -1,0 +1,60 @@
+"""Local BA snapshots: a point behind every camera observing it is left out of the problem and erased, instead
+of the optimizer refusing the whole problem (which stopped a run before)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamkit.features import Features
+from slamkit.geometry.camera import PinholeCamera
+from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
+from slamkit.plugins import ComponentRegistry
+
+CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+
+
+def features(uv: np.ndarray) -> Features:
+    n = uv.shape[0]
+    return Features(
+        uv.astype(np.float32),
+        uv.astype(np.float32),
+        np.zeros(n, np.int32),
+        np.zeros(n, np.float32),
+        np.zeros(n, np.float32),
+        np.zeros((n, 32), np.uint8),
+        1.2,
+        8,
+    )
+
+
+def test_point_behind_all_cameras_is_dropped_and_the_rest_optimized() -> None:
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform([-1, -1, 4], [1, 1, 6], (30, 3))
+    xyz_bad = np.array([[0.0, 0.0, -3.0]])  # behind both cameras
+    poses = [np.eye(4), np.eye(4)]
+    poses[1][0, 3] = -0.3  # second camera 0.3 m to the right
+    store = InMemoryMapStore()
+    all_xyz = np.vstack([xyz, xyz_bad])
+    for T in poses:
+        cam = all_xyz @ T[:3, :3].T + T[:3, 3]
+        uv = cam[:, :2] / np.abs(cam[:, 2:]) * 500 + [320, 240]
+        kf_id = store.new_keyframe_id()
+        store.add_keyframe(
+            KeyFrame(kf_id, kf_id, float(kf_id), T.copy(), CAMERA, features(uv), np.full(len(all_xyz), -1, np.int64))
+        )
+    for j, p in enumerate(all_xyz):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, p.copy(), np.zeros(32, np.uint8), 0, 0))
+        for kf_id in (0, 1):
+            store.add_observation(pid, kf_id, j)
+    store.get_keyframe(1).T_c_w[0, 3] = -0.25  # perturbed: BA must pull it back
+    snap = snapshot_bundle(store, [1], [0], store.point_ids())
+    assert snap.dropped_point_ids == (30,)
+    assert len(snap.point_ids) == 30
+    registry = ComponentRegistry.discover()
+    optimizer = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
+    run_bundle(store, optimizer, snap)
+    assert not store.has_point(30)
+    assert abs(store.get_keyframe(1).T_c_w[0, 3] + 0.3) < 1e-3
