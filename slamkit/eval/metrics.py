@@ -202,14 +202,8 @@ def compute_ate(
     S, scale = _align(gt_e, est_e, str(align))
     ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
     ape.process_data((gt_e, est_e))
-    stats = ape.get_all_statistics()
     return AteResult(
-        rmse_m=float(stats["rmse"]),
-        mean_m=float(stats["mean"]),
-        median_m=float(stats["median"]),
-        max_m=float(stats["max"]),
-        min_m=float(stats["min"]),
-        std_m=float(stats["std"]),
+        **_statistics(ape, "_m"),
         matched_poses=int(gt_e.num_poses),
         align=str(align),
         scale=scale,
@@ -258,19 +252,10 @@ def compute_rpe(
         raise EvaluationError(
             f"RPE with delta={delta} {delta_unit} over {gt_e.num_poses} matched poses found no pose pairs ({exc})"
         ) from exc
-    ts = trans.get_all_statistics()
-    rs = rot.get_all_statistics()
+    rot_stats = _statistics(rot, "_deg", prefix="rot_")
     return RpeResult(
-        rmse_m=float(ts["rmse"]),
-        mean_m=float(ts["mean"]),
-        median_m=float(ts["median"]),
-        max_m=float(ts["max"]),
-        min_m=float(ts["min"]),
-        std_m=float(ts["std"]),
-        rot_rmse_deg=float(rs["rmse"]),
-        rot_mean_deg=float(rs["mean"]),
-        rot_median_deg=float(rs["median"]),
-        rot_max_deg=float(rs["max"]),
+        **_statistics(trans, "_m"),
+        **{k: v for k, v in rot_stats.items() if k in _RPE_ROTATION_FIELDS},
         num_pairs=len(trans.error),
         delta=float(delta),
         delta_unit=str(delta_unit),
@@ -281,3 +266,15 @@ def compute_rpe(
         errors_m=np.asarray(trans.error, dtype=np.float64),
         errors_deg=np.asarray(rot.error, dtype=np.float64),
     )
+
+
+#: The rotation statistics RpeResult keeps.
+_RPE_ROTATION_FIELDS = ("rot_rmse_deg", "rot_mean_deg", "rot_median_deg", "rot_max_deg")
+
+
+def _statistics(metric: evo_metrics.PE, unit_suffix: str, prefix: str = "") -> dict[str, float]:
+    """evo's rmse/mean/median/max/min/std of a processed metric as result fields, e.g. ``rmse_m``."""
+    stats = metric.get_all_statistics()
+    return {
+        f"{prefix}{name}{unit_suffix}": float(stats[name]) for name in ("rmse", "mean", "median", "max", "min", "std")
+    }
