@@ -18,6 +18,25 @@ I64 = NDArray[np.int64]
 B = NDArray[np.bool_]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _accumulate_block(J: F64, r: F64, rows: int, w: float, g: F64, H: F64) -> None:  # pragma: no cover - compiled
+    """g += w J^T r and the upper triangle of H += w J^T J, over the first ``rows`` residual rows.
+
+    J: (3, n) Jacobian of one observation with respect to one block (n = 6 for a pose, 3 for a point); g: (n,),
+    H: (n, n) views into the block's gradient and Hessian."""
+    n = g.shape[0]
+    for i in range(n):
+        gi = 0.0
+        for a in range(rows):
+            gi += J[a, i] * r[a]
+        g[i] += w * gi
+        for jj in range(i, n):
+            s = 0.0
+            for a in range(rows):
+                s += J[a, i] * J[a, jj]
+            H[i, jj] += w * s
+
+
 @numba.njit(cache=True, nogil=True)
 def ba_linearize(
     R: F64,
@@ -100,27 +119,9 @@ def ba_linearize(
             for b in range(3):
                 Jp[a, b] = A[a, 0] * R[k, 0, b] + A[a, 1] * R[k, 1, b] + A[a, 2] * R[k, 2, b]
         if ci >= 0:
-            for i in range(6):
-                gi = 0.0
-                for a in range(rows):
-                    gi += Jc[a, i] * r[a]
-                gc[ci, i] += w * gi
-                for jj in range(i, 6):
-                    s = 0.0
-                    for a in range(rows):
-                        s += Jc[a, i] * Jc[a, jj]
-                    U[ci, i, jj] += w * s
+            _accumulate_block(Jc, r, rows, w, gc[ci], U[ci])
         if pi >= 0:
-            for i in range(3):
-                gi = 0.0
-                for a in range(rows):
-                    gi += Jp[a, i] * r[a]
-                gp[pi, i] += w * gi
-                for jj in range(i, 3):
-                    s = 0.0
-                    for a in range(rows):
-                        s += Jp[a, i] * Jp[a, jj]
-                    V[pi, i, jj] += w * s
+            _accumulate_block(Jp, r, rows, w, gp[pi], V[pi])
         if ci >= 0 and pi >= 0:
             for i in range(6):
                 for jj in range(3):

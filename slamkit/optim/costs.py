@@ -28,6 +28,7 @@ __all__ = [
 ]
 
 F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
 B = NDArray[np.bool_]
 
 
@@ -118,30 +119,27 @@ def bundle_cost(problem: BundleProblem, T_c_w: F64, xyz_w: F64, active: B | None
 def sim3_chi2(problem: Sim3Problem, S_12: F64) -> tuple[F64, F64]:
     """(N,) chi2 of direction 1 (uv1 vs project_1(S_12 xyz2_c2)) and (N,) of direction 2 (uv2 vs project_2(S_21 xyz1_c1))."""
     n = len(problem.xyz1_c1)
-    S_21 = np.linalg.inv(S_12)
-    zero_bf = np.zeros(n)
-    nan_ur = np.full(n, np.nan)
-    e1 = _reprojection_chi2(
-        np.broadcast_to(S_12[:3, :3], (n, 3, 3)),
-        np.broadcast_to(S_12[:3, 3], (n, 3)),
-        problem.xyz2_c2,
-        problem.uv1_px,
-        nan_ur,
-        problem.level1.astype(np.float64),
-        np.broadcast_to(problem.intrinsics1, (n, 4)),
-        zero_bf,
-        problem.scale_factor,
-    )
-    e2 = _reprojection_chi2(
-        np.broadcast_to(S_21[:3, :3], (n, 3, 3)),
-        np.broadcast_to(S_21[:3, 3], (n, 3)),
+
+    def direction(S: F64, xyz: F64, uv: F64, level: I64, intrinsics: F64) -> F64:
+        return _reprojection_chi2(
+            np.broadcast_to(S[:3, :3], (n, 3, 3)),
+            np.broadcast_to(S[:3, 3], (n, 3)),
+            xyz,
+            uv,
+            np.full(n, np.nan),
+            level.astype(np.float64),
+            np.broadcast_to(intrinsics, (n, 4)),
+            np.zeros(n),
+            problem.scale_factor,
+        )
+
+    e1 = direction(S_12, problem.xyz2_c2, problem.uv1_px, problem.level1, problem.intrinsics1)
+    e2 = direction(
+        np.asarray(np.linalg.inv(S_12), np.float64),
         problem.xyz1_c1,
         problem.uv2_px,
-        nan_ur,
-        problem.level2.astype(np.float64),
-        np.broadcast_to(problem.intrinsics2, (n, 4)),
-        zero_bf,
-        problem.scale_factor,
+        problem.level2,
+        problem.intrinsics2,
     )
     return e1, e2
 
