@@ -73,6 +73,9 @@ class GtsamOptimizer:
     """slamkit's Optimizer on GTSAM. Config: Levenberg-Marquardt settings (see slamkit_gtsam.plugin)."""
 
     name = "gtsam"
+    #: GTSAM's Python wrapper holds the GIL through optimize/linearize: the threaded runner runs local mapping's
+    #: and loop closing's optimizations in a worker process (slamkit.app._background_optimizer).
+    holds_gil = True
 
     @staticmethod
     def reference_bundle_adjust(problem: BundleProblem) -> BundleResult:

@@ -6,30 +6,19 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 from tqdm import tqdm
 
 from slamkit.interfaces import Camera, Dataset
 from slamkit.map.store import InMemoryMapStore
-from slamkit.pipeline.local_mapping import LocalMapper, MappingOutcome
-from slamkit.pipeline.loop_closing import LoopCloser, LoopOutcome
+from slamkit.pipeline.local_mapping import LocalMapper
+from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
 from slamkit.pipeline.trajectory import TrajectoryRecorder
+from slamkit.runtime.log import RunLog
 from slamkit.sensors import FrameData
 
 log = logging.getLogger("slamkit.runner")
-
-
-@dataclass
-class RunLog:
-    """Everything a run did, frame by frame and keyframe by keyframe."""
-
-    tracking: list[TrackingOutcome] = field(default_factory=list)
-    mapping: list[MappingOutcome] = field(default_factory=list)
-    loops: list[LoopOutcome] = field(default_factory=list)
-    resets: int = 0
-    wall_s: float = 0.0
 
 
 class SequentialRunner:
@@ -57,8 +46,11 @@ class SequentialRunner:
         """Process every frame; results accumulate in ``self.log`` and ``self.recorder`` even if it raises."""
         start = time.perf_counter()
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
+        first_t: float | None = None
         try:
             for data in dataset:
+                first_t = data.timestamp_s if first_t is None else first_t
+                self.log.sequence_s = data.timestamp_s - first_t
                 self.step(data, camera)
                 out = self.log.tracking[-1]
                 if on_frame is not None:

@@ -1,0 +1,249 @@
+"""``slamkit bench [OPTIONS] [OVERRIDES...]``: run a sequence and report where the time goes.
+
+Takes the same config overrides as ``slamkit run`` (``slamkit bench +experiment=kitti07 dataset.root=...``).
+Reports per-stage timings, median and p95 in ms: tracking (ORB extraction, initial pose = motion model or
+reference keyframe or relocalization, local-map tracking, whole frame) over the frames tracked after
+initialisation; local mapping per keyframe (whole, and each stage with local BA separately); loop closing
+(detection, Sim3, correction, essential graph). Plus frames dropped (real-time playback), the real-time factor
+(sequence time / wall time), peak memory (resident set size sampled every 50 ms during the run) and memory per
+keyframe, accuracy (ATE) when the dataset has ground truth, and, for runs of 1000+ tracked frames, the median
+tracking time of the first and last 500 frames after initialisation (is the cost flat as the map grows?).
+
+``--runners threaded,sequential`` runs the same config once per runner, one after the other in this process,
+and adds the threaded/sequential ATE ratio: the side-by-side comparison of issue 6.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+
+from slamkit.bench.optimizer import machine_info
+
+__all__ = ["add_bench_run_arguments", "bench_one", "run_bench_command", "summarize_run"]
+
+#: Frames at each end of a long run compared for the flat-cost check (issue 6: first/last 500 after init).
+FLAT_COST_WINDOW = 500
+_RSS_SAMPLE_S = 0.05
+_TRACKING_STAGES = ("extract_ms", "initial_pose_ms", "local_map_ms", "track_ms")
+_LOOP_STAGES = ("detect_ms", "sim3_ms", "correction_ms", "essential_graph_ms", "global_ba_ms")
+
+
+class RssSampler(threading.Thread):
+    """Samples this process's resident set size until stopped; ``peak_mb`` is the largest sample."""
+
+    def __init__(self, period_s: float = _RSS_SAMPLE_S) -> None:
+        super().__init__(name="rss-sampler", daemon=True)
+        self._proc = psutil.Process()
+        self._stop_event = threading.Event()
+        self.period_s = period_s
+        self.start_mb = self._rss_mb()
+        self.peak_mb = self.start_mb
+
+    def _rss_mb(self) -> float:
+        return float(self._proc.memory_info().rss) / 2**20
+
+    def run(self) -> None:
+        while not self._stop_event.wait(self.period_s):
+            self.peak_mb = max(self.peak_mb, self._rss_mb())
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        self.join(timeout=5)
+        self.peak_mb = max(self.peak_mb, self._rss_mb())
+
+
+def _stats(values: Sequence[float]) -> dict[str, float | int | None]:
+    if not values:
+        return {"median": None, "p95": None, "n": 0}
+    arr = np.asarray(values, dtype=np.float64)
+    return {"median": float(np.median(arr)), "p95": float(np.percentile(arr, 95)), "n": int(arr.size)}
+
+
+def summarize_run(runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: float) -> dict[str, Any]:
+    """The bench record of a finished (or failed) run: stage statistics, counts, memory, accuracy."""
+    from slamkit.app import run_metrics
+
+    log = runner.log
+    frames = runner.recorder.frames(runner.store)
+    keyframes = runner.recorder.keyframes(runner.store)
+    metrics = run_metrics(log, runner.store, frames, keyframes, dataset)
+    tracked = [o for o in log.tracking if o.state == "ok" and o.method != "initialize"]
+    tracking = {s: _stats([o.timings_ms[s] for o in tracked if s in o.timings_ms]) for s in _TRACKING_STAGES}
+    mapping_stages = sorted({k for m in log.mapping for k in m.timings_ms})
+    mapping = {"per_keyframe_ms": _stats([sum(m.timings_ms.values()) for m in log.mapping])}
+    mapping.update({s: _stats([m.timings_ms[s] for m in log.mapping if s in m.timings_ms]) for s in mapping_stages})
+    loops = {s: _stats([lp.timings_ms[s] for lp in log.loops if s in lp.timings_ms]) for s in _LOOP_STAGES}
+    n_kf = max(int(metrics["keyframes"]), 1)
+    record: dict[str, Any] = {
+        "runner": log.runner,
+        "dataset": metrics["dataset"],
+        "frames": metrics["frames"],
+        "frames_tracked": metrics["frames_tracked"],
+        "frames_dropped": log.frames_dropped,
+        "realtime_factor": log.realtime_factor,
+        "wall_s": log.wall_s,
+        "keyframes": metrics["keyframes"],
+        "keyframes_inserted": len(log.mapping),
+        "map_points": metrics["map_points"],
+        "loops_closed": metrics["loops_closed"],
+        "tracking_ms_median": tracking["track_ms"]["median"],
+        "tracking_ms_p95": tracking["track_ms"]["p95"],
+        "local_mapping_ms_median": mapping["per_keyframe_ms"]["median"],
+        "local_ba_ms_median": mapping.get("local_ba_ms", {}).get("median"),
+        "peak_rss_mb": peak_rss_mb,
+        "rss_growth_per_keyframe_mb": (peak_rss_mb - start_rss_mb) / n_kf,
+        "stages": {"tracking": tracking, "local_mapping": mapping, "loop_closing": loops},
+    }
+    for key in ("ate_rmse_m", "kf_ate_rmse_m", "ate_rmse_pct_of_path", "path_length_m", "loops_false"):
+        if key in metrics:
+            record[key] = metrics[key]
+    track_ms = [o.timings_ms["track_ms"] for o in tracked if "track_ms" in o.timings_ms]
+    if len(track_ms) >= 2 * FLAT_COST_WINDOW:
+        first = float(np.median(track_ms[:FLAT_COST_WINDOW]))
+        last = float(np.median(track_ms[-FLAT_COST_WINDOW:]))
+        record["flat_cost"] = {
+            "window_frames": FLAT_COST_WINDOW,
+            "first_ms_median": first,
+            "last_ms_median": last,
+            "last_over_first": last / first if first > 0 else None,
+        }
+    return record
+
+
+def bench_one(overrides: Sequence[str], progress: bool = True) -> dict[str, Any]:
+    """Compose the config from ``overrides``, run it, and return the bench record (``status`` ok/failed)."""
+    from slamkit.app import build_runner
+    from slamkit.config import compose_config
+
+    cfg = compose_config([*overrides, f"runner.progress={'true' if progress else 'false'}"])
+    runner, dataset = build_runner(cfg)
+    gc.collect()
+    sampler = RssSampler()
+    sampler.start()
+    status, error = "ok", None
+    try:
+        runner.run(dataset, dataset.camera)
+    except Exception as exc:  # a failed run still reports what it measured
+        status, error = "failed", f"{type(exc).__name__}: {exc}"
+    finally:
+        sampler.stop()
+    record = summarize_run(runner, dataset, sampler.peak_mb, sampler.start_mb)
+    record["status"] = status
+    record["overrides"] = list(overrides)
+    if error:
+        record["error"] = error.splitlines()[0]
+    return record
+
+
+def _fmt(value: Any, digits: int = 1) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def format_table(records: Sequence[dict[str, Any]]) -> str:
+    """A plain-text table: one column pair (median / p95) per run."""
+    header = ["stage (ms)"] + [f"{r['runner']} median / p95" for r in records]
+    rows: list[list[str]] = []
+    groups = ("tracking", "local_mapping", "loop_closing")
+    names = sorted(
+        {(g, s) for r in records for g in groups for s in r["stages"][g]}, key=lambda gs: groups.index(gs[0])
+    )
+    for group, stage in names:
+        cells = []
+        for r in records:
+            st = r["stages"][group].get(stage)
+            cells.append("-" if not st or st["n"] == 0 else f"{_fmt(st['median'])} / {_fmt(st['p95'])}  (n={st['n']})")
+        rows.append([f"{group}.{stage}", *cells])
+    for key, digits in (
+        ("frames", 0),
+        ("frames_tracked", 0),
+        ("frames_dropped", 0),
+        ("realtime_factor", 2),
+        ("wall_s", 1),
+        ("keyframes", 0),
+        ("map_points", 0),
+        ("loops_closed", 0),
+        ("peak_rss_mb", 0),
+        ("rss_growth_per_keyframe_mb", 3),
+        ("ate_rmse_m", 4),
+        ("kf_ate_rmse_m", 4),
+        ("ate_rmse_pct_of_path", 3),
+        ("status", 0),
+    ):
+        rows.append([key, *[_fmt(r.get(key), digits) for r in records]])
+    if any("flat_cost" in r for r in records):
+        rows.append(
+            [
+                "tracking first/last 500 (ms)",
+                *[
+                    "-"
+                    if "flat_cost" not in r
+                    else f"{_fmt(r['flat_cost']['first_ms_median'])} / {_fmt(r['flat_cost']['last_ms_median'])} "
+                    f"(x{_fmt(r['flat_cost']['last_over_first'], 2)})"
+                    for r in records
+                ],
+            ]
+        )
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(header, widths, strict=True))]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in rows]
+    return "\n".join(lines)
+
+
+def add_bench_run_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("overrides", nargs="*", help="config overrides, as for `slamkit run` (key=value, +group=x)")
+    parser.add_argument("--json", type=Path, default=None, help="write every figure to this JSON file")
+    parser.add_argument(
+        "--runners",
+        default=None,
+        help="comma-separated runners to run side by side on the same config (e.g. threaded,sequential); "
+        "default: the config's runner",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_bench_command(args: argparse.Namespace) -> int:
+    runners = [r.strip() for r in args.runners.split(",")] if args.runners else [None]
+    records = []
+    for kind in runners:
+        overrides = list(args.overrides) + ([f"runner={kind}"] if kind else [])
+        print(f"slamkit bench: {' '.join(overrides) or '(defaults)'}", file=sys.stderr)
+        t0 = time.perf_counter()
+        records.append(bench_one(overrides, progress=not args.no_progress))
+        print(f"  done in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    result: dict[str, Any] = {
+        "machine": machine_info(),
+        "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "load_average_1min": psutil.getloadavg()[0],
+        "runs": records,
+    }
+    # the first run's headline figures at top level (the keys issue 6 asks for)
+    for key in ("tracking_ms_median", "local_mapping_ms_median", "frames_dropped", "realtime_factor", "peak_rss_mb"):
+        result[key] = records[0].get(key)
+    by_runner = {r["runner"]: r for r in records}
+    if "threaded" in by_runner and "sequential" in by_runner:
+        t, s = by_runner["threaded"].get("ate_rmse_m"), by_runner["sequential"].get("ate_rmse_m")
+        result["ate_ratio_threaded_over_sequential"] = t / s if t is not None and s else None
+    print(format_table(records))
+    if "ate_ratio_threaded_over_sequential" in result:
+        print(f"ATE threaded / sequential: {_fmt(result['ate_ratio_threaded_over_sequential'], 2)}")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2, default=float) + "\n")
+        print(f"wrote {args.json}", file=sys.stderr)
+    return 0 if all(r["status"] == "ok" for r in records) else 1

@@ -1,0 +1,38 @@
+"""RunLog: what a run did, frame by frame and keyframe by keyframe (shared by every runner)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from slamkit.pipeline.local_mapping import MappingOutcome
+from slamkit.pipeline.loop_closing import LoopOutcome
+from slamkit.pipeline.tracking import TrackingOutcome
+
+
+@dataclass
+class RunLog:
+    """Everything a run did.
+
+    tracking: one outcome per frame tracking received (in order). mapping / loops: one outcome per keyframe local
+    mapping / loop closing processed. frames_dropped: frames that real-time playback delivered while tracking
+    was busy and that were replaced by a newer one before tracking took them (0 when playing as fast as
+    possible). sequence_s: time span of the frames played (last minus first timestamp, s). wall_s: wall time of
+    the run, s. failed_thread: name of the pipeline thread whose exception stopped the run, if any.
+    """
+
+    tracking: list[TrackingOutcome] = field(default_factory=list)
+    mapping: list[MappingOutcome] = field(default_factory=list)
+    loops: list[LoopOutcome] = field(default_factory=list)
+    resets: int = 0
+    wall_s: float = 0.0
+    frames_dropped: int = 0
+    sequence_s: float = 0.0
+    runner: str = "sequential"
+    failed_thread: str | None = None
+
+    @property
+    def realtime_factor(self) -> float | None:
+        """Sequence time over wall time: 1.0 keeps pace with the camera, above 1 runs faster than it."""
+        if self.wall_s <= 0.0 or self.sequence_s <= 0.0:
+            return None
+        return self.sequence_s / self.wall_s

@@ -1,0 +1,128 @@
+"""FrameSource: plays a dataset to the tracking thread from a thread of its own, like a camera driver.
+
+Two modes. As fast as possible: every frame is delivered, in order, through a short bounded queue (the next
+frames are read or rendered while tracking works on the current one). Real time: each frame is released at its
+own timestamp (scaled by ``speed``) into a one-slot mailbox; a frame still in the mailbox when the next one
+arrives is replaced and counted as dropped, as a live camera's frames are when tracking is busy.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Iterable
+
+from slamkit.runtime.workers import ThreadFault
+from slamkit.sensors import FrameData
+
+#: Frames read ahead in as-fast-as-possible mode.
+PREFETCH_FRAMES = 4
+
+
+class EndOfSequence:
+    """Marker delivered after the last frame."""
+
+
+END = EndOfSequence()
+
+
+class FrameSource(threading.Thread):
+    """Delivers FrameData to ``get()``; ``frames_dropped`` counts frames replaced unseen (real time only).
+
+    frames: the dataset (iterated once, in this thread). realtime: release frames at their timestamps.
+    speed: playback rate factor for real time (2.0 plays twice as fast). on_fault: called if reading raises.
+    """
+
+    def __init__(
+        self,
+        frames: Iterable[FrameData],
+        realtime: bool,
+        on_fault: Callable[[ThreadFault], None],
+        speed: float = 1.0,
+    ) -> None:
+        super().__init__(name="frame-source", daemon=True)
+        if speed <= 0:
+            raise ValueError(f"playback speed must be > 0, got {speed}")
+        self._frames = frames
+        self.realtime = realtime
+        self.speed = speed
+        self._on_fault = on_fault
+        self._cond = threading.Condition()
+        self._slots: deque[FrameData | EndOfSequence] = deque()
+        self._stop_requested = False
+        self._interrupted = False
+        self.frames_read = 0
+        self.frames_dropped = 0
+        self.first_timestamp_s: float | None = None
+        self.last_timestamp_s: float | None = None
+        self.fault: ThreadFault | None = None
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stop_requested = True
+            self._cond.notify_all()
+
+    def get(self, timeout_s: float | None = None) -> FrameData | EndOfSequence | None:
+        """The next frame (real time: the newest), END after the last one, or None on timeout / stop."""
+        with self._cond:
+            ok = self._cond.wait_for(
+                lambda: bool(self._slots) or self._stop_requested or self._interrupted, timeout=timeout_s
+            )
+            if not ok or not self._slots or self._interrupted:
+                return None
+            item = self._slots.popleft()
+            self._cond.notify_all()
+            return item
+
+    def interrupt(self) -> None:
+        """Make ``get()`` return None from now on (a pipeline thread failed: tracking must stop)."""
+        with self._cond:
+            self._interrupted = True
+            self._cond.notify_all()
+
+    def _put(self, item: FrameData | EndOfSequence) -> bool:
+        with self._cond:
+            if self.realtime:
+                if isinstance(item, FrameData):
+                    # the camera does not wait: an untaken frame is replaced by the newer one
+                    while self._slots and isinstance(self._slots[0], FrameData):
+                        self._slots.popleft()
+                        self.frames_dropped += 1
+            else:
+                self._cond.wait_for(lambda: len(self._slots) < PREFETCH_FRAMES or self._stop_requested)
+            if self._stop_requested:
+                return False
+            self._slots.append(item)
+            self._cond.notify_all()
+            return True
+
+    def _wait_until(self, deadline: float) -> bool:
+        """Sleep until the perf_counter time ``deadline`` (returns False when stopped meanwhile)."""
+        with self._cond:
+            while not self._stop_requested:
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    return True
+                self._cond.wait(timeout=left)
+            return False
+
+    def run(self) -> None:
+        try:
+            start = time.perf_counter()
+            for data in self._frames:
+                if self.first_timestamp_s is None:
+                    self.first_timestamp_s = data.timestamp_s
+                if self.realtime:
+                    due = start + (data.timestamp_s - self.first_timestamp_s) / self.speed
+                    if not self._wait_until(due):
+                        return
+                self.last_timestamp_s = data.timestamp_s
+                self.frames_read += 1
+                if not self._put(data):
+                    return
+            self._put(END)
+        except BaseException as exc:  # reported, never a silently dead thread
+            self.fault = ThreadFault(self.name, exc, traceback.format_exc())
+            self._on_fault(self.fault)

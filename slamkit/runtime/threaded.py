@@ -1,0 +1,262 @@
+"""The real-time runner: tracking, local mapping and loop closing in three threads, as ORB-SLAM runs.
+
+Tracking runs in the calling thread (so Ctrl-C lands there); a frame-source thread plays the dataset (as fast as
+possible, or at its own frame rate with dropped frames counted); local mapping and loop closing are
+PipelineWorkers. Tracking hands new keyframes to local mapping and, when local mapping is busy, sets its abort
+token so the running local BA stops early (ORB-SLAM V-E). Local mapping hands processed keyframes to loop
+closing. Loop closing parks local mapping at a safe point (a Future) before it works on a keyframe and lets it go
+after, so no keyframe it uses is culled and a correction (under the map's write lock, bumping the map epoch) never
+meets a half-done local-mapping step. A map reset by tracking parks and empties both workers first.
+
+Any thread's exception stops the run: tracking stops taking frames, the other workers stop, and ``run`` raises
+PipelineThreadError naming the thread with its traceback; ``self.log`` and ``self.recorder`` keep everything done so
+far so the caller can write it. Not deterministic (thread timing decides which frames become keyframes); the
+SequentialRunner is the reproducible mode.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator
+
+from tqdm import tqdm
+
+from slamkit.interfaces import Camera, Dataset
+from slamkit.map.entities import KeyFrame
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.local_mapping import LocalMapper
+from slamkit.pipeline.loop_closing import LoopCloser
+from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
+from slamkit.pipeline.trajectory import TrajectoryRecorder
+from slamkit.runtime.log import RunLog
+from slamkit.runtime.source import END, FrameSource
+from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault
+from slamkit.sensors import FrameData
+
+log = logging.getLogger("slamkit.runner")
+
+#: How long the end of a run waits for a worker thread to finish its queue / to stop after a failure, s.
+DRAIN_TIMEOUT_S = 600.0
+STOP_TIMEOUT_S = 60.0
+
+MappingItem = tuple[KeyFrame, bool]
+
+
+class ThreadedRunner:
+    """Runs a dataset through tracking, local mapping and loop closing in three threads.
+
+    realtime: play frames at the dataset's timestamps (scaled by ``speed``) and drop those that arrive while
+    tracking is busy; otherwise every frame is tracked as fast as possible.
+    """
+
+    def __init__(
+        self,
+        tracker: Tracker,
+        mapper: LocalMapper,
+        store: InMemoryMapStore,
+        progress: bool = True,
+        loop_closer: LoopCloser | None = None,
+        realtime: bool = False,
+        speed: float = 1.0,
+    ) -> None:
+        self.tracker = tracker
+        self.mapper = mapper
+        self.loop_closer = loop_closer
+        self.store = store
+        self.recorder = TrajectoryRecorder()
+        self.progress = progress
+        self.realtime = realtime
+        self.speed = speed
+        self.log = RunLog(runner="threaded")
+        self._fault: ThreadFault | None = None
+        self._fault_lock = threading.Lock()
+        # keyframes tracking made that local mapping has not inserted yet: tracked frames may refer to them
+        self._pending_keyframes: dict[int, KeyFrame] = {}
+        self._source: FrameSource | None = None
+        self._mapping: PipelineWorker[MappingItem] | None = None
+        self._closing: PipelineWorker[KeyFrame] | None = None
+
+    # ---- faults ------------------------------------------------------------------------------------
+
+    def _on_fault(self, fault: ThreadFault) -> None:
+        """Called from the failing thread: remember the first fault and stop every other thread."""
+        with self._fault_lock:
+            if self._fault is not None:
+                return
+            self._fault = fault
+            self.log.failed_thread = fault.thread_name
+        log.error("the %s thread failed: %s", fault.thread_name, fault.exc)
+        if self._source is not None:
+            self._source.interrupt()
+        for worker in (self._mapping, self._closing):
+            if worker is not None and worker.name != fault.thread_name:
+                worker.stop(drain=False)
+
+    # ---- worker bodies --------------------------------------------------------------------------------
+
+    def _map_keyframe(self, item: MappingItem, abort: threading.Event) -> None:
+        """Local mapping thread: one keyframe (VI-A..E), then hand it to loop closing."""
+        kf, already_in_map = item
+        assert self._mapping is not None
+        if self._mapping.pending() > 0:
+            abort.set()  # ORB-SLAM skips local BA while newer keyframes wait
+        outcome = self.mapper.step(kf, already_in_map=already_in_map, abort=abort)
+        self.log.mapping.append(outcome)
+        self._pending_keyframes.pop(kf.id, None)
+        for culled in outcome.culled_keyframes:
+            self.recorder.on_culled(culled)
+        if self._closing is not None and self.store.has_keyframe(kf.id):
+            self._closing.submit(kf)
+
+    def _close_loops(self, kf: KeyFrame, abort: threading.Event) -> None:
+        """Loop closing thread: detect (and correct) a loop at one keyframe with local mapping parked."""
+        assert self.loop_closer is not None
+        with self._parked(self._mapping, finish_queue=True):
+            if not self.store.has_keyframe(kf.id):
+                return  # culled by local mapping before loop closing reached it
+            self.log.loops.append(self.loop_closer.step(kf))
+
+    @contextlib.contextmanager
+    def _parked(
+        self, *workers: PipelineWorker[MappingItem] | PipelineWorker[KeyFrame] | None, finish_queue: bool = False
+    ) -> Iterator[None]:
+        """Park workers at a safe point for the duration of the block (raises if one of them died); with
+        finish_queue they first process what is queued."""
+        parked = []
+        try:
+            for worker in workers:
+                if worker is None:
+                    continue
+                worker.pause(finish_queue).result()
+                parked.append(worker)
+            yield
+        finally:
+            for worker in parked:
+                worker.resume()
+
+    @contextlib.contextmanager
+    def _quiesced_for_reset(self) -> Iterator[None]:
+        """Tracking resets the map: park both workers and drop their queued keyframes first."""
+        with self._parked(self._closing, self._mapping):
+            for worker in (self._mapping, self._closing):
+                if worker is not None:
+                    dropped = worker.clear()
+                    if dropped:
+                        log.info("map reset: %s dropped %d queued keyframes", worker.name, dropped)
+            self._pending_keyframes.clear()
+            yield
+
+    # ---- tracking (the calling thread) --------------------------------------------------------------
+
+    def _keyframe_pose(self, kf_id: int) -> KeyFrame | None:
+        if self.store.has_keyframe(kf_id):
+            return self.store.get_keyframe(kf_id)
+        return self._pending_keyframes.get(kf_id)
+
+    def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
+        assert self._mapping is not None
+        was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
+        out = self.tracker.step(data, camera, mapping_idle=self._mapping.idle() and not self._mapping.stopping())
+        if was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED:
+            self.log.resets += 1
+            self.recorder.clear()
+        self.log.tracking.append(out)
+        if out.already_in_map and out.new_keyframes:
+            kf_ini = out.new_keyframes[0]
+            self.recorder.record(kf_ini.frame_index, kf_ini.timestamp_s, kf_ini.T_c_w, kf_ini.id, kf_ini.T_c_w)
+        if out.new_keyframes and not self._mapping.idle():
+            self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
+        for kf in out.new_keyframes:
+            self._pending_keyframes[kf.id] = kf
+            self._mapping.submit((kf, out.already_in_map))
+        if out.state == TrackingState.OK and out.T_c_w is not None:
+            ref_id = self.tracker.reference_kf_id
+            ref = self._keyframe_pose(ref_id) if ref_id is not None else None
+            if ref is not None and ref_id is not None:
+                self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref_id, ref.T_c_w)
+        return out
+
+    def run(
+        self, dataset: Dataset, camera: Camera, on_frame: Callable[[TrackingOutcome], None] | None = None
+    ) -> RunLog:
+        """Process the dataset; results accumulate in ``self.log`` and ``self.recorder`` even if it raises.
+
+        Raises PipelineThreadError when a pipeline thread failed; KeyboardInterrupt passes through after the
+        threads stopped.
+        """
+        start = time.perf_counter()
+        self._source = FrameSource(dataset, self.realtime, self._on_fault, self.speed)
+        self._mapping = PipelineWorker("local-mapping", self._map_keyframe, self._on_fault)
+        if self.loop_closer is not None:
+            self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault)
+        self.tracker.reset_guard = self._quiesced_for_reset
+        mapping = self._mapping
+        self.tracker.keyframes_allowed = lambda: not mapping.stopping()
+        bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
+        workers = [w for w in (self._mapping, self._closing) if w is not None]
+        for thread in (self._source, *workers):
+            thread.start()
+        finished = False
+        try:
+            while self._fault is None:
+                item = self._source.get()
+                if item is None or item is END or self._fault is not None:
+                    break
+                assert isinstance(item, FrameData)
+                try:
+                    out = self._track(item, camera)
+                except Exception as exc:  # reported like any other thread's failure
+                    self._on_fault(ThreadFault("tracking", exc, traceback.format_exc()))
+                    break
+                if on_frame is not None:
+                    on_frame(out)
+                bar.update(1)
+                bar.set_postfix_str(
+                    f"{out.state.value} kf={self.store.n_keyframes()} mp={self.store.n_points()} "
+                    f"q={self._mapping.pending()} drop={self._source.frames_dropped}",
+                    refresh=False,
+                )
+            if self._fault is None:
+                self._drain(workers)
+            finished = True
+        finally:
+            bar.close()
+            if not finished or self._fault is not None:
+                self._stop_all(workers)
+            self._source.stop()
+            self.log.frames_dropped = self._source.frames_dropped
+            if self._source.first_timestamp_s is not None and self._source.last_timestamp_s is not None:
+                self.log.sequence_s = self._source.last_timestamp_s - self._source.first_timestamp_s
+            self.log.wall_s = time.perf_counter() - start
+        if self._fault is not None:
+            raise self._fault.as_error()
+        return self.log
+
+    def _drain(self, workers: list[PipelineWorker[MappingItem] | PipelineWorker[KeyFrame]]) -> None:
+        """End of the sequence: let local mapping, then loop closing, finish their queues."""
+        for worker in workers:  # mapping first: it feeds loop closing
+            worker.stop(drain=True)
+            worker.join(timeout=DRAIN_TIMEOUT_S)
+            if worker.is_alive():
+                fault = ThreadFault(
+                    worker.name,
+                    TimeoutError(f"did not finish its queue within {DRAIN_TIMEOUT_S:.0f} s"),
+                    "",
+                )
+                self._on_fault(fault)
+                return
+
+    def _stop_all(self, workers: list[PipelineWorker[MappingItem] | PipelineWorker[KeyFrame]]) -> None:
+        for worker in workers:
+            worker.stop(drain=False)
+        for worker in workers:
+            worker.join(timeout=STOP_TIMEOUT_S)
+            if worker.is_alive():
+                log.error("the %s thread did not stop within %.0f s; leaving it", worker.name, STOP_TIMEOUT_S)
+
+
+__all__ = ["PipelineThreadError", "ThreadedRunner"]

@@ -1,0 +1,176 @@
+"""The threaded runner on the synthetic room: it tracks like the sequential runner, and a failure in any of its
+threads stops the run with that thread's name, keeps what was computed, and never hangs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from slamkit.app import build_runner, run_metrics
+from slamkit.config import compose_config
+from slamkit.pipeline.local_mapping import LocalMapper
+from slamkit.runtime.threaded import ThreadedRunner
+from slamkit.runtime.workers import PipelineThreadError
+
+pytestmark = pytest.mark.timeout(600)
+
+BASE = ["runner=threaded", "runner.progress=false", "dataset.max_frames=150"]
+
+
+def _runner(*overrides: str) -> tuple[ThreadedRunner, Any]:
+    runner, dataset = build_runner(compose_config([*BASE, *overrides]))
+    assert isinstance(runner, ThreadedRunner)
+    return runner, dataset
+
+
+def _fail_on_call(n: int, message: str):  # type: ignore[no-untyped-def]
+    """A replacement for a step function that works normally n-1 times and raises on the n-th call."""
+    calls = {"n": 0}
+
+    def wrap(real):  # type: ignore[no-untyped-def]
+        def step(*args: Any, **kwargs: Any) -> Any:
+            calls["n"] += 1
+            if calls["n"] == n:
+                raise RuntimeError(message)
+            return real(*args, **kwargs)
+
+        return step
+
+    return wrap
+
+
+def test_threaded_run_tracks_the_room_as_accurately_as_the_sequential_one() -> None:
+    runner, dataset = _runner()
+    log = runner.run(dataset, dataset.camera)
+    frames = runner.recorder.frames(runner.store)
+    metrics = run_metrics(log, runner.store, frames, runner.recorder.keyframes(runner.store), dataset)
+    assert metrics["runner"] == "threaded" and metrics["frames_dropped"] == 0
+    assert metrics["frames"] == 150
+    assert metrics["frames_tracked"] >= 150 - 12  # initialises at frame ~10, then tracks every frame
+    assert metrics["keyframes"] >= 5 and len(log.mapping) >= metrics["keyframes"]
+    # room's path over 5 s is ~2.4 m: 1% of it; the sequential runner reaches ~0.1-0.2%
+    assert metrics["ate_rmse_pct_of_path"] < 1.0
+    assert metrics["realtime_factor"] is not None and metrics["realtime_factor"] > 0
+
+
+@pytest.mark.parametrize(
+    ("thread", "target"),
+    [("tracking", "tracker"), ("local-mapping", "mapper"), ("loop-closing", "loop_closer"), ("frame-source", None)],
+)
+def test_a_failure_in_any_thread_stops_the_run_with_its_name_and_keeps_the_trajectory(
+    thread: str, target: str | None
+) -> None:
+    runner, dataset = _runner()
+    message = f"injected failure in {thread}"
+    if target is None:
+        frames = iter(dataset)
+
+        def failing_frames():  # type: ignore[no-untyped-def]
+            for i, data in enumerate(frames):
+                if i == 60:
+                    raise OSError(message)
+                yield data
+
+        dataset_to_play: Any = failing_frames()
+        dataset_to_play_len = len(dataset)
+    else:
+        component = getattr(runner, target)
+        component.step = _fail_on_call(40 if thread == "tracking" else 4, message)(component.step)
+        dataset_to_play = dataset
+        dataset_to_play_len = len(dataset)
+
+    class Played:
+        def __len__(self) -> int:
+            return dataset_to_play_len
+
+        def __iter__(self):  # type: ignore[no-untyped-def]
+            return iter(dataset_to_play)
+
+    t0 = time.perf_counter()
+    with pytest.raises(PipelineThreadError) as info:
+        runner.run(Played(), dataset.camera)  # type: ignore[arg-type]
+    assert info.value.thread_name == thread
+    assert message in str(info.value) and "Traceback" in info.value.formatted_traceback
+    assert runner.log.failed_thread == thread
+    # it stopped early (150 frames take far longer than the failure point) and kept what it had
+    assert len(runner.log.tracking) < 150
+    assert len(runner.recorder.frames(runner.store)) >= 10
+    assert time.perf_counter() - t0 < 300
+    for name in ("local-mapping", "loop-closing", "frame-source"):
+        for t in __import__("threading").enumerate():
+            if t.name == name:
+                t.join(timeout=30)
+                assert not t.is_alive(), f"{name} still running after the failure"
+
+
+def test_slamkit_run_writes_a_failed_run_and_exits_non_zero(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from slamkit.cli import main
+
+    monkeypatch.setattr(
+        LocalMapper, "step", _fail_on_call(4, "injected local-mapping failure")(LocalMapper.step), raising=True
+    )
+    out = tmp_path / "run"
+    try:
+        rc = main(["run", *BASE, f"hydra.run.dir={out}"])
+    except SystemExit as exc:  # Hydra reports a task's exception and exits 1
+        rc = int(exc.code or 0)
+    assert rc != 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "failed" and metrics["failed_thread"] == "local-mapping"
+    assert "injected local-mapping failure" in metrics["error"]
+    poses = np.loadtxt(out / "trajectory.tum", ndmin=2)
+    assert poses.shape[0] >= 10 and poses.shape[1] == 8
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="SIGINT delivery to a child process is POSIX-only here")
+def test_ctrl_c_stops_a_threaded_run_with_exit_code_130(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    cmd = [
+        sys.executable,
+        "-m",
+        "slamkit.cli",
+        "run",
+        "runner=threaded",
+        "runner.progress=false",
+        f"hydra.run.dir={out}",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    assert proc.stdout is not None
+    lines = []
+    for line in proc.stdout:  # wait until tracking runs on an initialised map
+        lines.append(line)
+        if "map initialised" in line:
+            break
+    time.sleep(3.0)
+    proc.send_signal(signal.SIGINT)
+    try:
+        rest, _ = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail("the run did not stop within 120 s of Ctrl-C:\n" + "".join(lines))
+    assert proc.returncode == 130, "".join(lines) + rest
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted"
+    assert 0 < metrics["frames"] < 840
+    assert np.loadtxt(out / "trajectory.tum", ndmin=2).shape[0] >= 1
+
+
+def test_realtime_playback_drops_the_frames_tracking_is_too_busy_for() -> None:
+    """At 8x the camera rate (240 Hz) tracking cannot keep up: it always takes the newest frame, the others are
+    dropped and counted, and every frame is either tracked or dropped."""
+    runner, dataset = _runner("runner.realtime=true", "runner.speed=8.0")
+    log = runner.run(dataset, dataset.camera)
+    assert log.frames_dropped > 0
+    assert len(log.tracking) + log.frames_dropped == 150
+    indices = [o.frame_index for o in log.tracking]
+    assert indices == sorted(indices) and indices[-1] >= 140

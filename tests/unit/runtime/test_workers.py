@@ -1,0 +1,129 @@
+"""PipelineWorker and FrameSource: ordering, pausing at safe points, abort, faults, real-time dropping."""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import Future
+
+import numpy as np
+import pytest
+
+from slamkit.runtime.source import END, FrameSource
+from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault
+from slamkit.sensors import FrameData
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def _frames(n: int, fps: float) -> list[FrameData]:
+    img = np.zeros((4, 4), np.uint8)
+    return [FrameData(index=i, timestamp_s=i / fps, image=img) for i in range(n)]
+
+
+def test_worker_processes_items_in_order_and_drains_before_stopping() -> None:
+    seen: list[int] = []
+    faults: list[ThreadFault] = []
+    worker: PipelineWorker[int] = PipelineWorker("w", lambda item, abort: seen.append(item), faults.append)
+    worker.start()
+    for i in range(50):
+        worker.submit(i)
+    worker.stop(drain=True)
+    worker.join(timeout=10)
+    assert not worker.is_alive()
+    assert seen == list(range(50)) and not faults
+
+
+def test_pause_waits_for_the_current_item_and_aborts_it() -> None:
+    started = threading.Event()
+    aborted_seen: list[bool] = []
+
+    def slow(item: int, abort: threading.Event) -> None:
+        started.set()
+        # an optimization loop that honours the abort token
+        for _ in range(1000):
+            if abort.is_set():
+                aborted_seen.append(True)
+                return
+            time.sleep(0.005)
+        aborted_seen.append(False)
+
+    worker: PipelineWorker[int] = PipelineWorker("mapping", slow, lambda f: None)
+    worker.start()
+    worker.submit(1)
+    assert started.wait(5)
+    t0 = time.perf_counter()
+    worker.pause().result(timeout=5)
+    assert time.perf_counter() - t0 < 2.0  # the abort token cut the 5 s item short
+    assert aborted_seen == [True]
+    worker.submit(2)  # queued while parked: not started
+    time.sleep(0.1)
+    assert worker.pending() == 1 and len(aborted_seen) == 1
+    worker.resume()
+    worker.stop(drain=True)
+    worker.join(timeout=10)
+    assert len(aborted_seen) == 2 and aborted_seen[1] is False
+
+
+def test_a_raising_item_reports_the_thread_name_and_traceback_and_fails_pausers() -> None:
+    faults: list[ThreadFault] = []
+    gate = threading.Event()
+
+    def boom(item: int, abort: threading.Event) -> None:
+        gate.wait(5)
+        raise ValueError(f"bad item {item}")
+
+    worker: PipelineWorker[int] = PipelineWorker("loop-closing", boom, faults.append)
+    worker.start()
+    worker.submit(7)
+    time.sleep(0.05)
+    fut: Future[None] = worker.pause()
+    gate.set()
+    worker.join(timeout=5)
+    assert not worker.is_alive()
+    assert len(faults) == 1 and faults[0].thread_name == "loop-closing"
+    assert "bad item 7" in faults[0].formatted_traceback and "boom" in faults[0].formatted_traceback
+    with pytest.raises(PipelineThreadError, match="loop-closing thread failed: ValueError: bad item 7"):
+        fut.result(timeout=1)
+
+
+def test_fast_source_delivers_every_frame_in_order_then_end() -> None:
+    src = FrameSource(_frames(20, 30.0), realtime=False, on_fault=lambda f: None)
+    src.start()
+    got = []
+    while True:
+        item = src.get(timeout_s=5)
+        if item is END:
+            break
+        assert isinstance(item, FrameData)
+        got.append(item.index)
+    assert got == list(range(20)) and src.frames_dropped == 0
+
+
+def test_realtime_source_drops_frames_a_busy_consumer_misses() -> None:
+    """100 frames at 200 Hz (0.5 s) to a consumer that needs 20 ms per frame: it can take about a quarter."""
+    src = FrameSource(_frames(100, 200.0), realtime=True, on_fault=lambda f: None)
+    src.start()
+    got = []
+    while True:
+        item = src.get(timeout_s=5)
+        if item is END:
+            break
+        assert isinstance(item, FrameData)
+        got.append(item.index)
+        time.sleep(0.02)
+    assert got == sorted(got) and got[-1] >= 95  # always the newest frame
+    assert len(got) + src.frames_dropped == 100
+    assert 50 <= src.frames_dropped <= 95
+
+
+def test_a_failing_source_reports_its_fault() -> None:
+    def frames():  # type: ignore[no-untyped-def]
+        yield from _frames(3, 30.0)
+        raise OSError("cannot read frame 3: /data/img003.png")
+
+    faults: list[ThreadFault] = []
+    src = FrameSource(frames(), realtime=False, on_fault=faults.append)
+    src.start()
+    src.join(timeout=5)
+    assert faults and faults[0].thread_name == "frame-source" and "img003.png" in str(faults[0].exc)
