@@ -108,6 +108,9 @@ def summarize_run(runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: f
     for key in ("ate_rmse_m", "kf_ate_rmse_m", "ate_rmse_pct_of_path", "path_length_m", "loops_false"):
         if key in metrics:
             record[key] = metrics[key]
+    overlap = _tracking_beside_local_ba(log)
+    if overlap is not None:
+        record["tracking_beside_local_ba"] = overlap
     track_ms = [o.timings_ms["track_ms"] for o in tracked if "track_ms" in o.timings_ms]
     if len(track_ms) >= 2 * FLAT_COST_WINDOW:
         first = float(np.median(track_ms[:FLAT_COST_WINDOW]))
@@ -119,6 +122,30 @@ def summarize_run(runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: f
             "last_over_first": last / first if first > 0 else None,
         }
     return record
+
+
+def _tracking_beside_local_ba(log: Any) -> dict[str, Any] | None:
+    """Median wall time of tracking a frame while a local BA ran in the mapping thread, and otherwise (threaded
+    runner only): a backend that holds the GIL shows up as a large ratio."""
+    if not log.tracking_wall_s or not log.local_ba_wall_s:
+        return None
+    ba = np.asarray(log.local_ba_wall_s, dtype=np.float64)
+    during: list[float] = []
+    apart: list[float] = []
+    for out, (t0, t1) in zip(log.tracking, log.tracking_wall_s, strict=False):
+        if out.state != "ok" or out.method == "initialize":
+            continue
+        overlaps = bool(np.any((ba[:, 0] < t1) & (ba[:, 1] > t0)))
+        (during if overlaps else apart).append((t1 - t0) * 1e3)
+    med_during = float(np.median(during)) if during else None
+    med_apart = float(np.median(apart)) if apart else None
+    return {
+        "frames_during_ba": len(during),
+        "frames_otherwise": len(apart),
+        "tracking_ms_median_during_ba": med_during,
+        "tracking_ms_median_otherwise": med_apart,
+        "ratio": med_during / med_apart if med_during is not None and med_apart else None,
+    }
 
 
 def bench_one(overrides: Sequence[str], progress: bool = True) -> dict[str, Any]:
@@ -185,6 +212,19 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
         ("status", 0),
     ):
         rows.append([key, *[_fmt(r.get(key), digits) for r in records]])
+    if any("tracking_beside_local_ba" in r for r in records):
+        rows.append(
+            [
+                "tracking during / apart from local BA (ms)",
+                *[
+                    "-"
+                    if "tracking_beside_local_ba" not in r
+                    else f"{_fmt(r['tracking_beside_local_ba']['tracking_ms_median_during_ba'])} / "
+                    f"{_fmt(r['tracking_beside_local_ba']['tracking_ms_median_otherwise'])}"
+                    for r in records
+                ],
+            ]
+        )
     if any("flat_cost" in r for r in records):
         rows.append(
             [

@@ -29,6 +29,10 @@ class RunLog:
     sequence_s: float = 0.0
     runner: str = "sequential"
     failed_thread: str | None = None
+    # wall-clock intervals (time.perf_counter(), s) of each frame's tracking and of each local BA, recorded by
+    # the threaded runner: how fast does tracking run while a local BA runs beside it?
+    tracking_wall_s: list[tuple[float, float]] = field(default_factory=list)
+    local_ba_wall_s: list[tuple[float, float]] = field(default_factory=list)
 
     @property
     def realtime_factor(self) -> float | None:

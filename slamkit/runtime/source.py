@@ -126,3 +126,5 @@ class FrameSource(threading.Thread):
         except BaseException as exc:  # reported, never a silently dead thread
             self.fault = ThreadFault(self.name, exc, traceback.format_exc())
             self._on_fault(self.fault)
+            # the frames already delivered are good: tracking finishes them, then meets the end
+            self._put(END)

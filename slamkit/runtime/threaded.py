@@ -90,8 +90,8 @@ class ThreadedRunner:
             self._fault = fault
             self.log.failed_thread = fault.thread_name
         log.error("the %s thread failed: %s", fault.thread_name, fault.exc)
-        if self._source is not None:
-            self._source.interrupt()
+        if self._source is not None and fault.thread_name != self._source.name:
+            self._source.interrupt()  # a failed source still delivers the frames it read, then the end
         for worker in (self._mapping, self._closing):
             if worker is not None and worker.name != fault.thread_name:
                 worker.stop(drain=False)
@@ -104,8 +104,15 @@ class ThreadedRunner:
         assert self._mapping is not None
         if self._mapping.pending() > 0:
             abort.set()  # ORB-SLAM skips local BA while newer keyframes wait
+        t_start = time.perf_counter()
         outcome = self.mapper.step(kf, already_in_map=already_in_map, abort=abort)
         self.log.mapping.append(outcome)
+        if "local_ba_ms" in outcome.timings_ms:
+            # the stages ran in the order of their timings: the BA began after the ones listed before it
+            stages = list(outcome.timings_ms)
+            before = sum(outcome.timings_ms[k] for k in stages[: stages.index("local_ba_ms")])
+            ba_start = t_start + before / 1e3
+            self.log.local_ba_wall_s.append((ba_start, ba_start + outcome.timings_ms["local_ba_ms"] / 1e3))
         self._pending_keyframes.pop(kf.id, None)
         for culled in outcome.culled_keyframes:
             self.recorder.on_culled(culled)
@@ -202,13 +209,15 @@ class ThreadedRunner:
             thread.start()
         finished = False
         try:
-            while self._fault is None:
+            while self._fault is None or self._fault.thread_name == self._source.name:
                 item = self._source.get()
-                if item is None or item is END or self._fault is not None:
+                if item is None or item is END:
                     break
                 assert isinstance(item, FrameData)
                 try:
+                    t_track = time.perf_counter()
                     out = self._track(item, camera)
+                    self.log.tracking_wall_s.append((t_track, time.perf_counter()))
                 except Exception as exc:  # reported like any other thread's failure
                     self._on_fault(ThreadFault("tracking", exc, traceback.format_exc()))
                     break

@@ -103,6 +103,8 @@ def test_a_failure_in_any_thread_stops_the_run_with_its_name_and_keeps_the_traje
     assert runner.log.failed_thread == thread
     # it stopped early (150 frames take far longer than the failure point) and kept what it had
     assert len(runner.log.tracking) < 150
+    if thread == "frame-source":
+        assert len(runner.log.tracking) == 60  # the frames read before the failure are all tracked
     assert len(runner.recorder.frames(runner.store)) >= 10
     assert time.perf_counter() - t0 < 300
     for name in ("local-mapping", "loop-closing", "frame-source"):
