@@ -15,18 +15,23 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from slamkit.errors import SlamkitError
-from slamkit.interfaces import Dataset
+from slamkit.errors import ConfigError, SlamkitError
+from slamkit.interfaces import Dataset, Optimizer
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import PipelineConfig
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingState
 from slamkit.plugins import ComponentRegistry
-from slamkit.runtime.sequential import RunLog, SequentialRunner
+from slamkit.runtime.log import RunLog
+from slamkit.runtime.sequential import SequentialRunner
+from slamkit.runtime.threaded import ThreadedRunner
 from slamkit.sensors import Trajectory
 
 log = logging.getLogger("slamkit")
+
+RUNNER_KINDS = ("sequential", "threaded")
+Runner = SequentialRunner | ThreadedRunner
 
 
 def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, Any]:
@@ -87,6 +92,21 @@ def count_false_loops(run: RunLog, store: InMemoryMapStore, gt: Trajectory | Non
     return false
 
 
+def loop_summaries(run: RunLog) -> dict[str, float | int | None]:
+    """Scalar summaries of the closed loops (None when no loop closed), for sweep reports:
+    ``essential_graph_edges_max`` (edges of the largest essential graph optimized, ORB-SLAM Table VI's "edges"),
+    ``essential_graph_ms_total`` (time building and optimizing essential graphs, ms) and
+    ``loop_correction_ms_total`` (whole loop corrections: propagation, fusion, essential graph, ms)."""
+    closed = [lp for lp in run.loops if lp.loop_kf_id is not None]
+    if not closed:
+        return {"essential_graph_edges_max": None, "essential_graph_ms_total": None, "loop_correction_ms_total": None}
+    return {
+        "essential_graph_edges_max": max(lp.essential_graph_edges for lp in closed),
+        "essential_graph_ms_total": float(sum(lp.timings_ms.get("essential_graph_ms", 0.0) for lp in closed)),
+        "loop_correction_ms_total": float(sum(lp.timings_ms.get("correction_ms", 0.0) for lp in closed)),
+    }
+
+
 def run_metrics(
     run: RunLog, store: InMemoryMapStore, frames: Trajectory, keyframes: Trajectory, dataset: Dataset
 ) -> dict[str, Any]:
@@ -113,6 +133,9 @@ def run_metrics(
         "local_mapping_ms_median": _percentile(mapping_ms, 50),
         "local_ba_ms_median": _percentile(ba_ms, 50),
         "wall_s": run.wall_s,
+        "runner": run.runner,
+        "frames_dropped": run.frames_dropped,
+        "realtime_factor": run.realtime_factor,
         "relocalizations": sum(o.method == "relocalization" and o.state == TrackingState.OK for o in run.tracking),
         "loops_closed": sum(loop.loop_kf_id is not None for loop in run.loops),
         "loop_closing_ms_median": _percentile([sum(lp.timings_ms.values()) for lp in run.loops], 50),
@@ -121,6 +144,7 @@ def run_metrics(
             lp.timings_ms.get("essential_graph_ms") for lp in run.loops if lp.loop_kf_id is not None
         ],
     }
+    metrics.update(loop_summaries(run))
     gt = dataset.ground_truth
     if gt is not None and run.tracking:
         # the ground truth over the frames this run processed (max_frames/skip may cut the sequence)
@@ -170,12 +194,12 @@ def write_run_logs(out_dir: Path, run: RunLog) -> None:
                     o.message,
                 ]
             )
-    loops = [dataclasses.asdict(lp) for lp in run.loops if lp.candidates or lp.loop_kf_id is not None]
+    loops = [dataclasses.asdict(lp) for lp in run.loops if lp.candidates or lp.pending or lp.loop_kf_id is not None]
     (out_dir / "loops.json").write_text(json.dumps(loops, indent=2, default=float) + "\n")
 
 
 def write_outputs(
-    out_dir: Path, cfg: DictConfig, runner: SequentialRunner, dataset: Dataset, status: str, error: str | None
+    out_dir: Path, cfg: DictConfig, runner: Runner, dataset: Dataset, status: str, error: str | None
 ) -> dict[str, Any]:
     """Write what the run has (also after a failure) and return the metrics."""
     from slamkit.io.trajectory_io import write_trajectory
@@ -191,6 +215,8 @@ def write_outputs(
     metrics["seed"] = int(cfg.seed)
     if error:
         metrics["error"] = error
+    if runner.log.failed_thread is not None:
+        metrics["failed_thread"] = runner.log.failed_thread
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float) + "\n")
     write_run_logs(out_dir, runner.log)
     gt = dataset.ground_truth
@@ -214,7 +240,7 @@ def write_outputs(
     return metrics
 
 
-def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> tuple[SequentialRunner, Dataset]:
+def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> tuple[Runner, Dataset]:
     """Build the dataset, the components and the runner a composed config describes (no Hydra runtime
     needed: tests and notebooks call this with ``slamkit.config.compose_config(...)``)."""
     registry = registry or ComponentRegistry.discover()
@@ -242,28 +268,95 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         init_extractor,
         place,
     )
-    mapper = LocalMapper(pipeline.local_mapping, store, components["optimizer"], place)
+    kind = str(cfg.runner.get("kind", "sequential"))
+    if kind not in RUNNER_KINDS:
+        raise ConfigError(f"runner.kind = {kind!r}: expected one of {', '.join(RUNNER_KINDS)}")
+    background_optimizer = components["optimizer"]
+    if kind == "threaded":
+        background_optimizer = _background_optimizer(cfg, components["optimizer"])
+    mapper = LocalMapper(pipeline.local_mapping, store, background_optimizer, place)
     loop_closer = None
     if place is not None:
-        loop_closer = LoopCloser(pipeline.loop_closing, store, components["optimizer"], place, rng)
-    runner = SequentialRunner(
-        tracker, mapper, store, progress=bool(cfg.runner.get("progress", True)), loop_closer=loop_closer
-    )
+        loop_closer = LoopCloser(pipeline.loop_closing, store, background_optimizer, place, rng)
+    progress = bool(cfg.runner.get("progress", True))
+    runner: Runner
+    if kind == "threaded":
+        runner = ThreadedRunner(
+            tracker,
+            mapper,
+            store,
+            progress=progress,
+            loop_closer=loop_closer,
+            realtime=bool(cfg.runner.get("realtime", False)),
+            speed=float(cfg.runner.get("speed", 1.0)),
+        )
+    else:
+        runner = SequentialRunner(tracker, mapper, store, progress=progress, loop_closer=loop_closer)
     return runner, dataset
 
 
+def _background_optimizer(cfg: DictConfig, optimizer: Optimizer) -> Optimizer:
+    """The optimizer local mapping and loop closing use in the threaded runner: a backend that holds the GIL
+    through its C++ calls (GTSAM) would freeze tracking during a local BA, so it runs in a worker process
+    (``runner.offload_gil_holding_optimizer``, default true); others run inline."""
+    if not getattr(optimizer, "holds_gil", False) or not bool(cfg.runner.get("offload_gil_holding_optimizer", True)):
+        return optimizer
+    if str(cfg.optimizer.get("worker", "inline")) == "process":
+        return optimizer
+    from slamkit.optim.factory import build_optimizer
+
+    node = OmegaConf.to_container(cfg.optimizer, resolve=True)
+    assert isinstance(node, dict)
+    node["worker"] = "process"
+    log.info("optimizer %s holds the GIL: local mapping and loop closing use it in a worker process", optimizer.name)
+    return build_optimizer({str(k): v for k, v in node.items()})
+
+
+def _is_multirun() -> bool:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def write_failed_job(out_dir: Path, cfg: DictConfig, error: str, stage: str) -> dict[str, Any]:
+    """metrics.json of a job that failed before it had anything to measure (``stage``: where it failed)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    metrics: dict[str, Any] = {"status": "failed", "stage": stage, "error": error, "seed": cfg.get("seed")}
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str) + "\n")
+    try:
+        (out_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    except Exception:  # an unresolvable config may be the very failure: keep it unresolved
+        (out_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    return metrics
+
+
 def run_job(cfg: DictConfig) -> dict[str, Any]:
-    """Hydra task function of ``slamkit run``."""
-    runner, dataset = build_runner(cfg)
+    """Hydra task function of ``slamkit run``. A failing job writes metrics.json with ``status: failed`` and
+    ``error``; in a multirun it then returns (logged as an error) so the other jobs of the sweep go on, in a
+    single run it raises."""
     out_dir = _output_dir()
+    try:
+        runner, dataset = build_runner(cfg)
+    except Exception as exc:
+        error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+        metrics = write_failed_job(out_dir, cfg, error, "build")
+        if not _is_multirun():
+            raise
+        log.error("job failed while building its components: %s", error)
+        return metrics
     log.info("dataset %s: %d frames -> %s", getattr(dataset, "name", "?"), len(dataset), out_dir)
     start = time.perf_counter()
     try:
         runner.run(dataset, dataset.camera)
     except BaseException as exc:
         error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-        write_outputs(out_dir, cfg, runner, dataset, "failed", error)
-        raise
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        metrics = write_outputs(out_dir, cfg, runner, dataset, status, error or type(exc).__name__)
+        if not isinstance(exc, Exception) or not _is_multirun():
+            raise
+        log.error("job failed while running: %s", error)
+        return metrics
     metrics = write_outputs(out_dir, cfg, runner, dataset, "ok", None)
     log.info(
         "done in %.1f s: %s",

@@ -15,6 +15,9 @@ from slamkit import __version__
 from slamkit.errors import SlamkitError
 from slamkit.plugins import ComponentRegistry
 
+#: The shell's convention for a process ended by SIGINT (128 + 2).
+EXIT_INTERRUPTED = 130
+
 
 def _run_hydra_app(hydra_args: Sequence[str]) -> int:
     import hydra
@@ -31,6 +34,10 @@ def _run_hydra_app(hydra_args: Sequence[str]) -> int:
     except SlamkitError as exc:
         print(f"slamkit run: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # the run directory already holds what was computed (metrics.json says "interrupted")
+        print("slamkit run: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     finally:
         sys.argv = saved_argv
     return 0
@@ -66,6 +73,27 @@ def _plugins_command(args: argparse.Namespace) -> int:
     return 1 if failures and args.strict else 0
 
 
+def _bench_run(argv: Sequence[str]) -> int:
+    """``slamkit bench [--json FILE] [--runners a,b] [OVERRIDES...]`` (``slamkit bench optimizer`` is separate)."""
+    from slamkit.bench.run import __doc__ as doc
+    from slamkit.bench.run import add_bench_run_arguments, run_bench_command
+
+    parser = argparse.ArgumentParser(
+        prog="slamkit bench",
+        description=(doc or "").split("\n\n")[0] + " See also: `slamkit bench optimizer`.",
+    )
+    add_bench_run_arguments(parser)
+    args = parser.parse_args(list(argv))
+    try:
+        return run_bench_command(args)
+    except SlamkitError as exc:
+        print(f"slamkit bench: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("slamkit bench: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="slamkit", description="Feature-based visual SLAM, faithful to ORB-SLAM.")
     parser.add_argument("--version", action="version", version=f"slamkit {__version__}")
@@ -82,7 +110,14 @@ def build_parser() -> argparse.ArgumentParser:
     from slamkit.eval.cli import add_eval_parser
 
     add_eval_parser(sub)
-    bench = sub.add_parser("bench", help="benchmarks: `slamkit bench optimizer [--json FILE]`")
+    from slamkit.report.cli import add_report_parser
+
+    add_report_parser(sub)
+    bench = sub.add_parser(
+        "bench",
+        help="benchmarks: `slamkit bench [--json FILE] [--runners threaded,sequential] [OVERRIDES...]` runs a "
+        "sequence and reports per-stage timings; `slamkit bench optimizer` compares the optimizer backends",
+    )
     bench_sub = bench.add_subparsers(dest="bench_command", required=True)
     from slamkit.bench.optimizer import add_bench_optimizer_arguments, run_bench_optimizer
 
@@ -99,6 +134,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "run":
         return _run_hydra_app(argv[1:])
+    if argv and argv[0] == "bench" and (len(argv) == 1 or argv[1] != "optimizer"):
+        return _bench_run(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))

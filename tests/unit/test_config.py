@@ -16,7 +16,8 @@ def test_default_config_selects_the_synthetic_dataset_and_paper_constants() -> N
     assert cfg.pipeline.loop_closing.theta_min == 100  # ORB-SLAM III-D
     assert cfg.map.covisibility_min_shared == 15  # ORB-SLAM III-D
     assert cfg.pipeline.local_mapping.keyframe_culling_redundancy == 0.9  # ORB-SLAM VI-E
-    assert cfg.runner.kind == "sequential"
+    assert cfg.runner.kind == "threaded"  # issue 6: ORB-SLAM's three threads by default
+    assert compose_config(["+sweep=theta_min"]).runner.kind == "sequential"  # ablations are reproducible
 
 
 def test_group_and_value_overrides() -> None:
