@@ -9,6 +9,7 @@ import json
 import logging
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingState
 from slamkit.plugins import ComponentRegistry
+from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
 from slamkit.runtime.log import RunLog
 from slamkit.runtime.sequential import SequentialRunner
 from slamkit.runtime.threaded import ThreadedRunner
@@ -267,6 +269,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         rng,
         init_extractor,
         place,
+        pose_optimizer=_pose_optimizer(pipeline.tracking.pose_optimization, components["optimizer"]),
     )
     kind = str(cfg.runner.get("kind", "sequential"))
     if kind not in RUNNER_KINDS:
@@ -293,6 +296,15 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     else:
         runner = SequentialRunner(tracker, mapper, store, progress=progress, loop_closer=loop_closer)
     return runner, dataset
+
+
+def _pose_optimizer(choice: str, optimizer: Optimizer) -> Callable[[PoseOnlyProblem], PoseOnlyResult] | None:
+    """Tracking's motion-only BA: None = the tracker's compiled default, or the optimizer backend's."""
+    if choice == "compiled":
+        return None
+    if choice == "optimizer":
+        return optimizer.optimize_pose
+    raise ConfigError(f"pipeline.tracking.pose_optimization = {choice!r}: expected 'compiled' or 'optimizer'")
 
 
 def _background_optimizer(cfg: DictConfig, optimizer: Optimizer) -> Optimizer:

@@ -42,6 +42,7 @@ def from_mapping(cls: type[T], node: Mapping[str, Any], prefix: str) -> T:
 
 @dataclass(frozen=True)
 class TrackingConfig:
+    pose_optimization: str = "compiled"
     motion_model_search_radius_px: float = 15.0
     min_motion_model_matches: int = 20
     min_reference_kf_matches: int = 15
@@ -110,6 +111,13 @@ class LoopClosingConfig:
     min_inliers_after_sim3_opt: int = 20
     min_loop_matches: int = 40
     global_ba: bool = False
+    geometric_verification: bool = True
+    verify_covisible_keyframes: int = 5
+    verify_coincidences: int = 3
+    verify_search_radius_px: float = 3.0
+    verify_min_matches: int = 30
+    verify_max_misses: int = 2
+    max_loop_rotation_deg: float = 20.0
 
 
 @dataclass(frozen=True)

@@ -7,10 +7,17 @@ to create are handed to local mapping by the runner (it does not insert them in 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
+from collections import Counter
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from enum import StrEnum
+from itertools import chain
+from operator import attrgetter
+from typing import Any
 
 import cv2
 import numpy as np
@@ -18,7 +25,7 @@ from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import SE3, invert_T
 from slamkit.interfaces import BowDescription, Camera, FeatureExtractor, Initializer, Optimizer, PlaceRecognizer
-from slamkit.map.entities import KeyFrame
+from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import intrinsics_of
 from slamkit.pipeline.config import TrackingConfig
@@ -26,8 +33,9 @@ from slamkit.pipeline.frame import Frame, ImageBounds
 from slamkit.pipeline.initialization import MonocularInitialization, create_initial_map, new_keyframe
 from slamkit.pipeline.map_points import predict_level
 from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
+from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
 from slamkit.pipeline.projection import frustum_test, match_projected, project_pinhole, radius_by_viewing_cos
-from slamkit.problems import PoseOnlyProblem
+from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
 from slamkit.sensors import FrameData
 
 log = logging.getLogger("slamkit.tracking")
@@ -86,12 +94,17 @@ class Tracker:
         rng: np.random.Generator,
         init_extractor: FeatureExtractor | None = None,
         place: PlaceRecognizer | None = None,
+        pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
     ) -> None:
+        """pose_optimizer: motion-only BA of tracking; default the compiled one of
+        slamkit.pipeline.pose_optimization (same algorithm as ``Optimizer.optimize_pose``, a few hundred times
+        cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend."""
         self.cfg = cfg
         self.extractor = extractor
         # ORB-SLAM extracts twice the features on frames used for monocular initialisation
         self.init_extractor = init_extractor or extractor
         self.optimizer = optimizer
+        self.optimize_pose = pose_optimizer or motion_only_ba
         self.store = store
         self.place = place  # bag of words: reference-keyframe matching and relocalization (ORB-SLAM V-B, V-C)
         self.relocalizations = 0
@@ -105,6 +118,11 @@ class Tracker:
         self._bounds: dict[int, ImageBounds] = {}
         self._last_T_l_r: F64 | None = None
         self._frame_bow: BowDescription | None = None
+        self.reset_guard: Callable[[], AbstractContextManager[None]] = contextlib.nullcontext
+        # the threaded runner says no while local mapping is parked for loop closing
+        self.keyframes_allowed: Callable[[], bool] = lambda: True
+        # a keyframe is wanted but local mapping is busy (V-E condition 2): True inserts it anyway
+        self.on_mapping_busy: Callable[[], bool] = lambda: False
 
     # ---- public ------------------------------------------------------------------------------
 
@@ -122,8 +140,9 @@ class Tracker:
         return outcome
 
     def reset(self) -> None:
-        """Forget the map and start initialising again."""
-        with self.store.write():
+        """Forget the map and start initialising again (inside ``reset_guard``: the threaded runner parks local
+        mapping and loop closing there, so no thread works on keyframes that are being removed)."""
+        with self.reset_guard(), self.store.write():
             for kf_id in self.store.keyframe_ids():
                 self.store.remove_keyframe(kf_id)
                 if self.place is not None:
@@ -276,7 +295,16 @@ class Tracker:
         return self._bounds[key]
 
     def _valid_point_ids(self, point_ids: I64) -> NDArray[np.bool_]:
-        return np.array([p >= 0 and self.store.has_point(int(p)) for p in point_ids], bool)
+        """(N,) bool: the entry names a point that is in the map."""
+        ok = point_ids >= 0
+        n = int(np.count_nonzero(ok))
+        if n:
+            ok[ok] = np.fromiter(map(self.store.has_point, point_ids[ok].tolist()), bool, n)
+        return ok
+
+    def _points(self, point_ids: I64) -> list[MapPoint]:
+        """The map points of (K,) ids that are all in the map."""
+        return list(map(self.store.get_point, point_ids.tolist()))
 
     def _optimize_pose(self, frame: Frame, T_init: F64) -> int:
         """Motion-only BA on the frame's matches; marks outliers; returns the inlier count."""
@@ -284,7 +312,7 @@ class Tracker:
         frame.outlier[:] = False
         if idx.size < 3:
             return 0
-        xyz = np.stack([self.store.get_point(int(p)).xyz_w for p in frame.point_ids[idx]])
+        xyz = _rows(self._points(frame.point_ids[idx]), "xyz_w", 3, np.float64)
         feats = frame.features
         problem = PoseOnlyProblem(
             T_c_w_init=T_init,
@@ -299,7 +327,7 @@ class Tracker:
             rounds=self.cfg.pose_rounds,
             iterations_per_round=self.cfg.pose_iterations_per_round,
         )
-        result = self.optimizer.optimize_pose(problem)
+        result = self.optimize_pose(problem)
         frame.T_c_w = result.T_c_w
         frame.outlier[idx] = ~result.inliers
         return int(result.inliers.sum())
@@ -320,8 +348,9 @@ class Tracker:
         if valid.size == 0:
             return False
         pids = last.point_ids[valid]
-        xyz = np.stack([self.store.get_point(int(p)).xyz_w for p in pids])
-        desc = np.stack([self.store.get_point(int(p)).descriptor for p in pids])
+        points = self._points(pids)
+        xyz = _rows(points, "xyz_w", 3, np.float64)
+        desc = _rows(points, "descriptor", frame.features.descriptors.shape[1], np.uint8)
         uv, z = project_pinhole(T_pred, xyz, frame.camera.K)
         inside = (z > 0) & np.all(np.isfinite(uv), axis=1)
         inside &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
@@ -398,10 +427,8 @@ class Tracker:
     def _local_keyframes(self, frame: Frame) -> list[int]:
         """V-D: K1 (keyframes sharing points with the frame), then K2 (their best covisible neighbours,
         spanning-tree children and parent), at most ``local_map_covisible_keyframes``; sets K_ref."""
-        counts: dict[int, int] = {}
-        for pid in frame.point_ids[frame.point_ids >= 0]:
-            for kf_id in self.store.get_point(int(pid)).observations:
-                counts[kf_id] = counts.get(kf_id, 0) + 1
+        matched = self._points(frame.point_ids[frame.point_ids >= 0])
+        counts = Counter(chain.from_iterable(p.observations for p in matched))
         if not counts:
             return []
         k1 = sorted(counts, key=lambda k: (-counts[k], k))
@@ -426,86 +453,106 @@ class Tracker:
 
     def _track_local_map(self, frame: Frame) -> int:
         """V-D: project the local map's points with the five filters, match, optimize the pose again."""
-        cfg = self.cfg
         frame.point_ids[~self._valid_point_ids(frame.point_ids)] = -1
         local_kfs = self._local_keyframes(frame)
-        matched = set(int(p) for p in frame.point_ids[frame.point_ids >= 0])
-        for pid in matched:
-            self.store.get_point(pid).n_visible += 1
-        candidates = sorted(
-            {int(p) for k in local_kfs for p in self.store.get_keyframe(k).point_ids if p >= 0} - matched
-        )
-        if candidates:
-            points = [self.store.get_point(p) for p in candidates]
-            xyz = np.stack([p.xyz_w for p in points])
-            feats = frame.features
-            assert frame.T_c_w is not None
-            test = frustum_test(
-                frame.T_c_w,
-                frame.camera.K,
-                frame.bounds,
-                xyz,
-                np.stack([p.normal_w for p in points]),
-                np.array([p.d_min_m for p in points]),
-                np.array([p.d_max_m for p in points]),
-                cfg.local_map_min_view_cos,
-                feats.scale_factor,
-                feats.n_levels,
-            )
-            q = np.flatnonzero(test.visible)
-            for i in q:
-                points[i].n_visible += 1
-            recent = frame.index < self.last_reloc_frame_index + 2
-            th = cfg.local_map_search_radius_relocalized_px if recent else cfg.local_map_search_radius_px
-            level = test.predicted_level[q]
-            radius = th * radius_by_viewing_cos(test.view_cos[q]) * np.power(feats.scale_factor, level)
-            m = match_projected(
-                feats,
-                frame.point_ids >= 0,
-                frame.bounds,
-                test.uv_px[q],
-                np.stack([points[i].descriptor for i in q]) if q.size else np.zeros((0, 32), np.uint8),
-                radius,
-                level - 1,
-                level,
-                cfg.descriptor_threshold_high,
-                cfg.local_map_ratio,
-                None,
-                cfg.rotation_histogram_bins,
-            )
-            cand = np.array(candidates, np.int64)
-            frame.point_ids[m.feature] = cand[q[m.query]]
+        matched = np.unique(frame.point_ids[frame.point_ids >= 0])
+        for point in self._points(matched):
+            point.n_visible += 1
+        if local_kfs:
+            ids = np.concatenate([self.store.get_keyframe(k).point_ids for k in local_kfs])
+            candidates = np.setdiff1d(np.unique(ids[ids >= 0]), matched, assume_unique=True)
+            if candidates.size:
+                self._search_local_points(frame, candidates.astype(np.int64))
         assert frame.T_c_w is not None
         self._optimize_pose(frame, frame.T_c_w)
         inliers = 0
-        for i in np.flatnonzero((frame.point_ids >= 0) & ~frame.outlier):
-            point = self.store.get_point(int(frame.point_ids[i]))
+        for point in self._points(frame.point_ids[(frame.point_ids >= 0) & ~frame.outlier]):
             point.n_found += 1
             if point.observations:
                 inliers += 1
         return inliers
 
-    def _need_new_keyframe(self, frame: Frame, inliers: int, mapping_idle: bool) -> bool:
-        """The four conditions of V-E."""
+    def _search_local_points(self, frame: Frame, candidates: I64) -> None:
+        """ORB-SLAM SearchLocalPoints: the frustum test of every candidate (sorted point ids not matched yet),
+        then the search around the projections of the visible ones. Attributes are read only as far as a
+        point gets: the position of all, the viewing data of those projecting into the image, the descriptor
+        of the visible ones."""
         cfg = self.cfg
-        n_kfs = self.store.n_keyframes()
-        if (
-            frame.index < self.last_reloc_frame_index + cfg.keyframe_min_frames_since_reloc
-            and n_kfs > cfg.keyframe_min_frames_since_reloc
-        ):
-            return False  # condition 1
-        idle_or_late = mapping_idle or frame.index >= self.last_kf_frame_index + cfg.keyframe_max_frames_idle
-        if not idle_or_late:
-            return False  # condition 2
-        if inliers < cfg.keyframe_min_tracked_points:
-            return False  # condition 3
-        if self.reference_kf_id is None or not self.store.has_keyframe(self.reference_kf_id):
-            return True
-        ref = self.store.get_keyframe(self.reference_kf_id)
-        min_obs = 2 if n_kfs <= 2 else 3
-        ref_points = [int(p) for p in ref.point_ids if p >= 0 and self.store.has_point(int(p))]
-        n_ref = sum(1 for p in ref_points if len(self.store.get_point(p).observations) >= min_obs)
-        return inliers < cfg.keyframe_max_ref_ratio * n_ref  # condition 4
+        feats = frame.features
+        K = frame.camera.K
+        assert frame.T_c_w is not None
+        points = self._points(candidates)
+        xyz = _rows(points, "xyz_w", 3, np.float64)
+        uv, z = project_pinhole(frame.T_c_w, xyz, K)
+        in_image = (z > 0) & np.all(np.isfinite(uv), axis=1)
+        in_image &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
+        s = np.flatnonzero(in_image)
+        if s.size == 0:
+            return
+        near = [points[i] for i in s]
+        test = frustum_test(
+            frame.T_c_w,
+            K,
+            frame.bounds,
+            xyz[s],
+            _rows(near, "normal_w", 3, np.float64),
+            _scalars(near, "d_min_m"),
+            _scalars(near, "d_max_m"),
+            cfg.local_map_min_view_cos,
+            feats.scale_factor,
+            feats.n_levels,
+        )
+        v = np.flatnonzero(test.visible)
+        visible = [near[i] for i in v]
+        for point in visible:
+            point.n_visible += 1
+        recent = frame.index < self.last_reloc_frame_index + 2
+        th = cfg.local_map_search_radius_relocalized_px if recent else cfg.local_map_search_radius_px
+        level = test.predicted_level[v]
+        radius = th * radius_by_viewing_cos(test.view_cos[v]) * np.power(feats.scale_factor, level)
+        m = match_projected(
+            feats,
+            frame.point_ids >= 0,
+            frame.bounds,
+            test.uv_px[v],
+            _rows(visible, "descriptor", feats.descriptors.shape[1], np.uint8),
+            radius,
+            level - 1,
+            level,
+            cfg.descriptor_threshold_high,
+            cfg.local_map_ratio,
+            None,
+            cfg.rotation_histogram_bins,
+        )
+        frame.point_ids[m.feature] = candidates[s[v[m.query]]]
+
+    def _need_new_keyframe(self, frame: Frame, inliers: int, mapping_idle: bool) -> bool:
+        """The four conditions of V-E. Conditions 1, 3 and 4 are read from the map under its read lock; when
+        only condition 2 fails (local mapping busy, fewer than 20 frames since the last keyframe),
+        ``on_mapping_busy`` is told: the threaded runner then stops the running local BA ("a signal is sent
+        to stop local BA") and, when playing as fast as possible, waits for local mapping and returns True."""
+        cfg = self.cfg
+        if not self.keyframes_allowed():
+            return False  # local mapping is stopped for a loop correction (ORB-SLAM NeedNewKeyFrame)
+        with self.store.read():
+            n_kfs = self.store.n_keyframes()
+            if (
+                frame.index < self.last_reloc_frame_index + cfg.keyframe_min_frames_since_reloc
+                and n_kfs > cfg.keyframe_min_frames_since_reloc
+            ):
+                return False  # condition 1
+            if inliers < cfg.keyframe_min_tracked_points:
+                return False  # condition 3
+            if self.reference_kf_id is not None and self.store.has_keyframe(self.reference_kf_id):
+                ref = self.store.get_keyframe(self.reference_kf_id)
+                min_obs = 2 if n_kfs <= 2 else 3
+                ref_points = self._points(ref.point_ids[self._valid_point_ids(ref.point_ids)])
+                n_ref = sum(1 for p in ref_points if len(p.observations) >= min_obs)
+                if inliers >= cfg.keyframe_max_ref_ratio * n_ref:
+                    return False  # condition 4
+        if mapping_idle or frame.index >= self.last_kf_frame_index + cfg.keyframe_max_frames_idle:
+            return True  # condition 2
+        return self.on_mapping_busy()
 
     # ---- V-C: relocalization ---------------------------------------------------------------------------
 
@@ -604,3 +651,16 @@ class Tracker:
         )
         frame.point_ids[m.feature] = np.array(pids, np.int64)[q[m.query]]
         return len(m)
+
+
+def _rows(points: list[MapPoint], attribute: str, width: int, dtype: type) -> NDArray[Any]:
+    """(K, width) array of one vector attribute of K map points (one concatenation, no per-row stacking)."""
+    if not points:
+        return np.zeros((0, width), dtype)
+    flat = np.concatenate(list(map(attrgetter(attribute), points)))
+    return flat.astype(dtype, copy=False).reshape(len(points), width)
+
+
+def _scalars(points: list[MapPoint], attribute: str) -> F64:
+    """(K,) float64 of one scalar attribute of K map points."""
+    return np.fromiter(map(attrgetter(attribute), points), np.float64, len(points))

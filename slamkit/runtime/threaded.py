@@ -159,6 +159,21 @@ class ThreadedRunner:
 
     # ---- tracking (the calling thread) --------------------------------------------------------------
 
+    def _keyframe_wanted_while_mapping_busy(self) -> bool:
+        """Tracking wants a keyframe but local mapping is busy (V-E condition 2 fails).
+
+        Real time: stop the running local BA so mapping becomes free soon, and do not insert (ORB-SLAM: the
+        next frames will ask again). As fast as possible: wait for local mapping to finish and insert, so
+        tracking does not outrun mapping on a recorded sequence — a live camera gives mapping the time the
+        frame period leaves it, and aborting every local BA because frames come faster than any camera would
+        starve the map of its optimization."""
+        assert self._mapping is not None
+        if self.realtime:
+            self._mapping.abort.set()
+            return False
+        self._mapping.wait_idle()
+        return self._fault is None and not self._mapping.stopping()
+
     def _keyframe_pose(self, kf_id: int) -> KeyFrame | None:
         if self.store.has_keyframe(kf_id):
             return self.store.get_keyframe(kf_id)
@@ -203,6 +218,7 @@ class ThreadedRunner:
         self.tracker.reset_guard = self._quiesced_for_reset
         mapping = self._mapping
         self.tracker.keyframes_allowed = lambda: not mapping.stopping()
+        self.tracker.on_mapping_busy = self._keyframe_wanted_while_mapping_busy
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
         workers = [w for w in (self._mapping, self._closing) if w is not None]
         for thread in (self._source, *workers):

@@ -17,7 +17,14 @@ from slamkit.config import compose_config
 @pytest.mark.slow
 @pytest.mark.shared_data
 def test_kitti07_slice_tracks_97_percent_with_ate_under_half_percent(shared_datasets: Path) -> None:
-    cfg = compose_config(["+experiment=kitti07", f"dataset.root={shared_datasets / 'kitti'}", "runner.progress=false"])
+    cfg = compose_config(
+        [
+            "+experiment=kitti07",
+            f"dataset.root={shared_datasets / 'kitti'}",
+            "runner=sequential",
+            "runner.progress=false",
+        ]
+    )
     runner, dataset = build_runner(cfg)
     runner.run(dataset, dataset.camera)
     metrics = run_metrics(

@@ -12,7 +12,7 @@ from slamkit.io.base import SequenceDataset
 from slamkit.pipeline.tracking import TrackingState
 from slamkit.sensors import FrameData
 
-BASE = ["runner.progress=false", "optimizer.worker=inline"]
+BASE = ["runner=sequential", "runner.progress=false", "optimizer.worker=inline"]
 
 
 def run_synthetic(*overrides: str) -> tuple[dict, object]:

@@ -13,7 +13,9 @@ from slamkit.pipeline.tracking import TrackingState
 
 def test_kidnapped_camera_relocalizes_within_five_frames() -> None:
     # the room's trajectory returns to its start: frames 791.. see what frames 0.. mapped
-    cfg = compose_config(["runner.progress=false", "dataset.skip=[300,790]", "pipeline.loop_closing.enabled=false"])
+    cfg = compose_config(
+        ["runner=sequential", "runner.progress=false", "dataset.skip=[300,790]", "pipeline.loop_closing.enabled=false"]
+    )
     runner, dataset = build_runner(cfg)
     runner.run(dataset, dataset.camera)
     outcomes = runner.log.tracking

@@ -1,0 +1,307 @@
+"""Motion-only bundle adjustment for tracking (ORB-SLAM ``Optimizer::PoseOptimization``), compiled with numba.
+
+Tracking optimises one pose against a few hundred fixed points up to three times a frame; a general
+optimizer call (problem validation, vectorised NumPy over (E, 3, 6) Jacobians, a Python LM loop) costs
+several milliseconds there, most of it interpreter overhead. This module runs the same algorithm in one
+numba kernel that releases the GIL, so local mapping can run beside tracking:
+
+- ``rounds`` (4) optimisations of ``iterations_per_round`` (10) Levenberg-Marquardt iterations, each round
+  starting again from the initial pose (ORB-SLAM resets the vertex's estimate) and using only the
+  observations classified as inliers;
+- the Huber kernel (delta = sqrt(chi2 gate)) in the first two rounds, none from the third on;
+- after every round every observation is re-classified with the chi-square gate (5.991 for monocular ones),
+  a point behind the camera being an outlier whatever its chi2; an outlier may come back in a later round.
+
+The LM step is g2o's (and slamkit_scipy.lm's): initial damping tau * max diag(H), Nielsen's update, up to ten
+damped solves per iteration until one lowers the cost. Residual r = projection - observation (px), information
+1 / scale_factor^(2 level), left perturbation T <- exp(xi) T with xi = [omega, v].
+``optimize_pose`` takes and returns the optimizer interface's PoseOnlyProblem / PoseOnlyResult, so it can stand
+in for ``Optimizer.optimize_pose``; only monocular observations are supported (tracking is monocular).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
+
+F64 = NDArray[np.float64]
+
+#: g2o's LM: initial damping = tau * max diag(H); damped solves per iteration; relative cost tolerance.
+LM_TAU = 1e-5
+LM_MAX_TRIALS = 10
+LM_REL_TOL = 1e-10
+#: Below this rotation angle (rad) exp uses the Taylor series of its coefficients (slamkit.geometry.so3).
+_SMALL_ANGLE = 1e-4
+
+
+@numba.njit(cache=True, nogil=True)
+def _exp_times(h: F64, T: F64) -> F64:  # pragma: no cover - numba
+    """exp(h) @ T for h = [omega, v] (6,) and T (4, 4)."""
+    wx, wy, wz = h[0], h[1], h[2]
+    t2 = wx * wx + wy * wy + wz * wz
+    theta = np.sqrt(t2)
+    if theta < _SMALL_ANGLE:
+        a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+        b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+        c = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
+    else:
+        a = np.sin(theta) / theta
+        b = (1.0 - np.cos(theta)) / t2
+        c = (theta - np.sin(theta)) / (t2 * theta)
+    W = np.zeros((3, 3))
+    W[0, 1], W[0, 2] = -wz, wy
+    W[1, 0], W[1, 2] = wz, -wx
+    W[2, 0], W[2, 1] = -wy, wx
+    W2 = W @ W
+    E = np.eye(4)
+    for i in range(3):
+        for j in range(3):
+            E[i, j] += a * W[i, j] + b * W2[i, j]
+        s = h[3 + i]
+        for j in range(3):
+            s += (b * W[i, j] + c * W2[i, j]) * h[3 + j]
+        E[i, 3] = s
+    return E @ T
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _residual(
+    T: F64, X: F64, uv: F64, fx: float, fy: float, cx: float, cy: float, i: int
+) -> tuple[float, float, float, float, float]:  # pragma: no cover - numba
+    """Camera point (x, y, z) of point i at pose T and its residual (ru, rv), px."""
+    x = T[0, 0] * X[i, 0] + T[0, 1] * X[i, 1] + T[0, 2] * X[i, 2] + T[0, 3]
+    y = T[1, 0] * X[i, 0] + T[1, 1] * X[i, 1] + T[1, 2] * X[i, 2] + T[1, 3]
+    z = T[2, 0] * X[i, 0] + T[2, 1] * X[i, 1] + T[2, 2] * X[i, 2] + T[2, 3]
+    iz = 1.0 / z
+    return x, y, z, fx * x * iz + cx - uv[i, 0], fy * y * iz + cy - uv[i, 1]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _rho(chi2: float, delta: float, robust: bool) -> float:  # pragma: no cover - numba
+    """Huber cost of a chi2 value (g2o's RobustKernelHuber), or chi2 itself."""
+    if not robust or chi2 <= delta * delta:
+        return chi2
+    return 2.0 * delta * np.sqrt(chi2) - delta * delta
+
+
+@numba.njit(cache=True, nogil=True)
+def _cost(
+    T: F64, X: F64, uv: F64, info: F64, delta: F64, use: NDArray[np.bool_], K4: F64, robust: bool
+) -> float:  # pragma: no cover - numba
+    f = 0.0
+    for i in range(X.shape[0]):
+        if use[i]:
+            _, _, _, ru, rv = _residual(T, X, uv, K4[0], K4[1], K4[2], K4[3], i)
+            f += _rho(info[i] * (ru * ru + rv * rv), delta[i], robust)
+    return f
+
+
+@numba.njit(cache=True, nogil=True)
+def _linearize(
+    T: F64, X: F64, uv: F64, info: F64, delta: F64, use: NDArray[np.bool_], K4: F64, robust: bool
+) -> tuple[F64, F64, float]:  # pragma: no cover - numba
+    """H = sum J^T w J (6, 6), g = sum J^T w r (6,), robust cost; w = info * rho'(chi2) (IRLS)."""
+    fx, fy, cx, cy = K4[0], K4[1], K4[2], K4[3]
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    J = np.zeros((2, 6))
+    f = 0.0
+    for i in range(X.shape[0]):
+        if not use[i]:
+            continue
+        x, y, z, ru, rv = _residual(T, X, uv, fx, fy, cx, cy, i)
+        chi2 = info[i] * (ru * ru + rv * rv)
+        w = info[i]
+        if robust and chi2 > delta[i] * delta[i]:
+            w *= delta[i] / np.sqrt(max(chi2, 1e-300))
+        f += _rho(chi2, delta[i], robust)
+        iz = 1.0 / z
+        iz2 = iz * iz
+        # d r / d p_c rows a0 = (fx/z, 0, -fx x/z^2), a1 = (0, fy/z, -fy y/z^2); d r / d omega = cross(p_c, a)
+        a00, a02 = fx * iz, -fx * x * iz2
+        a11, a12 = fy * iz, -fy * y * iz2
+        J[0, 0], J[0, 1], J[0, 2] = y * a02, z * a00 - x * a02, -y * a00
+        J[0, 3], J[0, 4], J[0, 5] = a00, 0.0, a02
+        J[1, 0], J[1, 1], J[1, 2] = y * a12 - z * a11, -x * a12, x * a11
+        J[1, 3], J[1, 4], J[1, 5] = 0.0, a11, a12
+        for a in range(6):
+            ga = w * (J[0, a] * ru + J[1, a] * rv)
+            g[a] += ga
+            for b in range(a, 6):
+                H[a, b] += w * (J[0, a] * J[0, b] + J[1, a] * J[1, b])
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g, f
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_damped(H: F64, g: F64, lam: float) -> F64:  # pragma: no cover - numba
+    """h with (H + lam I) h = -g by Cholesky; NaNs when the damped matrix is not positive definite."""
+    L = np.zeros((6, 6))
+    for i in range(6):
+        for j in range(i + 1):
+            s = H[i, j] + (lam if i == j else 0.0)
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            if i == j:
+                if not s > 0.0:
+                    return np.full(6, np.nan)
+                L[i, i] = np.sqrt(s)
+            else:
+                L[i, j] = s / L[j, j]
+    y = np.zeros(6)
+    for i in range(6):
+        s = -g[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    h = np.zeros(6)
+    for i in range(5, -1, -1):
+        s = y[i]
+        for k in range(i + 1, 6):
+            s -= L[k, i] * h[k]
+        h[i] = s / L[i, i]
+    return h
+
+
+@numba.njit(cache=True, nogil=True)
+def _levenberg_marquardt(
+    T: F64,
+    X: F64,
+    uv: F64,
+    info: F64,
+    delta: F64,
+    use: NDArray[np.bool_],
+    K4: F64,
+    robust: bool,
+    iterations: int,
+    tau: float,
+    max_trials: int,
+    rel_tol: float,
+) -> tuple[F64, int]:  # pragma: no cover - numba
+    """Up to ``iterations`` LM iterations from T (the driver of slamkit_scipy.lm, specialised to one pose)."""
+    lam = -1.0
+    nu = 2.0
+    done = 0
+    stale = True
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    f = 0.0
+    for _ in range(iterations):
+        if stale:
+            H, g, f = _linearize(T, X, uv, info, delta, use, K4, robust)
+            stale = False
+        if lam < 0.0:
+            hmax = 0.0
+            for a in range(6):
+                hmax = max(hmax, H[a, a])
+            lam = tau * max(hmax, 1e-12)
+        accepted = False
+        decrease = 0.0
+        for _trial in range(max_trials):
+            h = _solve_damped(H, g, lam)
+            if not np.all(np.isfinite(h)):
+                lam *= nu
+                nu *= 2.0
+                continue
+            predicted = 0.0
+            for a in range(6):
+                predicted += h[a] * (lam * h[a] - g[a])
+            if predicted <= rel_tol * f:
+                break  # the model promises less than the tolerance: converged
+            T_new = _exp_times(h, T)
+            f_new = _cost(T_new, X, uv, info, delta, use, K4, robust)
+            rho = (f - f_new) / predicted if predicted > 0.0 else -1.0
+            if rho > 0.0 and np.isfinite(f_new):
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                accepted = True
+                decrease = f - f_new
+                T, f = T_new, f_new
+                stale = True
+                break
+            lam *= nu
+            nu *= 2.0
+        done += 1
+        if not accepted or decrease <= rel_tol * max(f, 1e-300):
+            break
+    return T, done
+
+
+@numba.njit(cache=True, nogil=True)
+def _optimize_pose_kernel(
+    T0: F64,
+    X: F64,
+    uv: F64,
+    info: F64,
+    chi2_max: F64,
+    K4: F64,
+    rounds: int,
+    iterations: int,
+    tau: float,
+    max_trials: int,
+    rel_tol: float,
+) -> tuple[F64, NDArray[np.bool_], int, float, float]:  # pragma: no cover - numba
+    n = X.shape[0]
+    delta = np.sqrt(chi2_max)
+    inlier = np.ones(n, np.bool_)
+    cost_initial = _cost(T0, X, uv, info, delta, inlier, K4, True)
+    T = T0.copy()
+    total = 0
+    for it in range(rounds):
+        T, done = _levenberg_marquardt(
+            T0.copy(), X, uv, info, delta, inlier, K4, it < 2, iterations, tau, max_trials, rel_tol
+        )
+        total += done
+        any_in = False
+        for i in range(n):
+            _, _, z, ru, rv = _residual(T, X, uv, K4[0], K4[1], K4[2], K4[3], i)
+            inlier[i] = (info[i] * (ru * ru + rv * rv) <= chi2_max[i]) and z > 0.0
+            any_in = any_in or inlier[i]
+        if not any_in:
+            break
+    cost_final = _cost(T, X, uv, info, delta, inlier, K4, True)
+    return T, inlier, total, cost_initial, cost_final
+
+
+def optimize_pose(problem: PoseOnlyProblem) -> PoseOnlyResult:
+    """Motion-only BA of a monocular PoseOnlyProblem (see the module docstring).
+
+    Raises ValueError when the problem has stereo observations (u_right_px not all NaN), mismatched shapes or
+    non-finite inputs.
+    """
+    X = np.ascontiguousarray(problem.xyz_w, np.float64)
+    uv = np.ascontiguousarray(problem.uv_px, np.float64)
+    n = X.shape[0]
+    T0 = np.ascontiguousarray(problem.T_c_w_init, np.float64)
+    level = np.asarray(problem.level)
+    if X.shape != (n, 3) or uv.shape != (n, 2) or level.shape != (n,) or T0.shape != (4, 4):
+        raise ValueError(
+            f"pose problem: expected xyz_w (N, 3), uv_px (N, 2), level (N,), T_c_w_init (4, 4); got "
+            f"{X.shape}, {uv.shape}, {level.shape}, {T0.shape}"
+        )
+    if np.any(np.isfinite(np.asarray(problem.u_right_px, np.float64))):
+        raise ValueError("pose problem: stereo observations (finite u_right_px) are not supported here")
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(uv)) and np.all(np.isfinite(T0))):
+        raise ValueError("pose problem: xyz_w, uv_px and T_c_w_init must be finite")
+    info = np.power(float(problem.scale_factor), -2.0 * level.astype(np.float64))
+    chi2_max = np.full(n, float(problem.chi2_mono))
+    K4 = np.ascontiguousarray(problem.intrinsics, np.float64)
+    T, inliers, iterations, c0, c1 = _optimize_pose_kernel(
+        T0,
+        X,
+        uv,
+        info,
+        chi2_max,
+        K4,
+        int(problem.rounds),
+        int(problem.iterations_per_round),
+        LM_TAU,
+        LM_MAX_TRIALS,
+        LM_REL_TOL,
+    )
+    return PoseOnlyResult(T_c_w=T, inliers=inliers, cost_initial=c0, cost_final=c1, iterations=iterations)
