@@ -5,8 +5,9 @@ T <- exp(xi) T) and free points (3 each). V is block diagonal (3x3 per point), s
 the reduced camera system S = U - W V^-1 W^T is solved, then the points are back-substituted.
 Up to ``dense_max`` pose parameters (local BA) the blocks, S and the back-substitution come from the numba
 kernels of slamkit_scipy.kernels (one pass over observations, one over points, GIL released) and S is
-solved by dense Cholesky (scipy.linalg); beyond it (large global BA) V's blocks are inverted in one batched
-numpy call, S is formed with one scipy.sparse product and solved with SuperLU.
+solved by the single-threaded numba Cholesky of the same module (upper triangle, zero blocks skipped);
+beyond it (large global BA) V's blocks are inverted in one batched numpy call, S is formed with one
+scipy.sparse product and solved with SuperLU.
 
 ORB-SLAM's schedule: ``iterations_first`` LM iterations with the Huber kernel, then every observation
 failing its chi-square gate or with the point behind the camera is excluded, then ``iterations_second``
@@ -19,14 +20,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from slamkit.interfaces import AbortToken
 from slamkit.problems import BundleProblem, BundleResult
-from slamkit_scipy.kernels import ba_back_substitute, ba_cost, ba_linearize, ba_reduced_system
+from slamkit_scipy.kernels import (
+    ba_back_substitute,
+    ba_cost,
+    ba_linearize,
+    ba_reduced_system,
+    cholesky_solve_upper,
+)
 from slamkit_scipy.lie import se3_exp_batch
 from slamkit_scipy.lm import LMSettings, levenberg_marquardt
 from slamkit_scipy.reprojection import (
@@ -195,9 +201,8 @@ class BundleSolver:
         n = 6 * nc
         if 0 < n <= self.dense_max:
             S, rhs, Vinv = ba_reduced_system(sys.U, sys.V, sys.W, sys.gc, sys.gp, lam, st.c, st.point_ptr, st.point_obs)
-            try:
-                dc = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S, check_finite=False), rhs, check_finite=False)
-            except (np.linalg.LinAlgError, ValueError):
+            dc = cholesky_solve_upper(S, rhs)
+            if not np.all(np.isfinite(dc)):
                 return np.full(n + 3 * npt, np.nan)
             dp = ba_back_substitute(dc, Vinv, sys.W, sys.gp, st.c, st.point_ptr, st.point_obs)
             return np.concatenate([dc, dp.ravel()])

@@ -175,7 +175,8 @@ def ba_reduced_system(
     point_ptr: I64,
     point_obs: I64,
 ) -> tuple[F64, F64, F64]:  # pragma: no cover - compiled
-    """Schur complement with damping lam: -> S (6 nc, 6 nc) = U + lam I - W (V + lam I)^-1 W^T (dense),
+    """Schur complement with damping lam: -> S (6 nc, 6 nc) = U + lam I - W (V + lam I)^-1 W^T (dense, upper
+    triangle and diagonal blocks only: the strictly-lower off-diagonal blocks are left 0),
     rhs (6 nc,) = -gc + W (V + lam I)^-1 gp, and Vinv (npt, 3, 3).
 
     point_obs[point_ptr[q]:point_ptr[q + 1]] lists the observations of free point q whose pose is free.
@@ -215,7 +216,8 @@ def ba_reduced_system(
             ca = c[e]
             for i in range(6):
                 rhs[6 * ca + i] += Y[a, i, 0] * gp[q, 0] + Y[a, i, 1] * gp[q, 1] + Y[a, i, 2] * gp[q, 2]
-        # Y_b W_a^T = (Y_a W_b^T)^T (V^-1 is symmetric): compute each pair once and mirror it.
+        # Y_b W_a^T = (Y_a W_b^T)^T (V^-1 is symmetric): each pair once, written to the upper triangle only
+        # (the Cholesky kernel reads no other); diagonal blocks are kept whole.
         for a in range(n):
             ca = c[point_obs[start + a]]
             for b in range(a, n):
@@ -224,10 +226,55 @@ def ba_reduced_system(
                 for i in range(6):
                     for jj in range(6):
                         v = Y[a, i, 0] * W[eb, jj, 0] + Y[a, i, 1] * W[eb, jj, 1] + Y[a, i, 2] * W[eb, jj, 2]
-                        S[6 * ca + i, 6 * cb + jj] -= v
-                        if b != a:
+                        if ca < cb:
+                            S[6 * ca + i, 6 * cb + jj] -= v
+                        elif ca > cb:
                             S[6 * cb + jj, 6 * ca + i] -= v
+                        else:
+                            S[6 * ca + i, 6 * ca + jj] -= v
+                            if b != a:
+                                S[6 * ca + jj, 6 * ca + i] -= v
     return S, rhs, Vinv
+
+
+@numba.njit(cache=True, nogil=True)
+def cholesky_solve_upper(S: F64, rhs: F64) -> F64:  # pragma: no cover - compiled
+    """Solve S x = rhs for a symmetric positive-definite S (n, n) given by its upper triangle (the lower one
+    is never read): S = R^T R with R upper triangular, factored on a copy row by row, each update a contiguous
+    row operation that skips zero multipliers (so the zero blocks of a sparse reduced camera system cost
+    nothing). Returns x, or NaN everywhere when a pivot is not positive (the LM driver then raises the damping).
+
+    Single-threaded and GIL-free on purpose: a multithreaded BLAS Cholesky of these small systems oversubscribes
+    the cores that tracking needs (and was 100x slower than this on a loaded 2-core machine).
+    """
+    n = S.shape[0]
+    R = S.copy()
+    x = rhs.copy()
+    for j in range(n):
+        d = R[j, j]
+        if not d > 0.0:  # also NaN
+            return np.full(n, np.nan)
+        d = np.sqrt(d)
+        R[j, j] = d
+        inv = 1.0 / d
+        for k in range(j + 1, n):
+            R[j, k] *= inv
+        for i in range(j + 1, n):
+            f = R[j, i]
+            if f != 0.0:
+                for k in range(i, n):
+                    R[i, k] -= f * R[j, k]
+    for j in range(n):  # R^T y = rhs
+        x[j] /= R[j, j]
+        xj = x[j]
+        for k in range(j + 1, n):
+            x[k] -= R[j, k] * xj
+    for j in range(n - 1, -1, -1):  # R x = y
+        s = x[j]
+        for k in range(j + 1, n):
+            s -= R[j, k] * x[k]
+        x[j] = s / R[j, j]
+    return x
 
 
 @numba.njit(cache=True, nogil=True)

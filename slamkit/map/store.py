@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from contextlib import AbstractContextManager
 
 from slamkit.errors import ConfigError
@@ -30,6 +31,7 @@ class InMemoryMapStore:
         self._next_kf_id = 0
         self._next_point_id = 0
         self._epoch = 0
+        self._origin: int | None = None  # cached smallest keyframe id (see origin_keyframe_id)
         self.covisibility = CovisibilityGraph()
         self.spanning_tree = SpanningTree()
         self.loop_edges: set[tuple[int, int]] = set()
@@ -74,6 +76,14 @@ class InMemoryMapStore:
     def n_points(self) -> int:
         return len(self._points)
 
+    def origin_keyframe_id(self) -> int:
+        """The smallest keyframe id in the map (the origin BA holds fixed), without sorting every id."""
+        if self._origin is None or self._origin not in self._keyframes:
+            if not self._keyframes:
+                raise ValueError("the map has no keyframe, so no origin keyframe")
+            self._origin = min(self._keyframes)
+        return self._origin
+
     def has_keyframe(self, keyframe_id: int) -> bool:
         return keyframe_id in self._keyframes
 
@@ -86,11 +96,20 @@ class InMemoryMapStore:
     def get_point(self, point_id: int) -> MapPoint:
         return self._points[point_id]
 
+    def get_points(self, point_ids: Iterable[int]) -> list[MapPoint]:
+        """The points among ``point_ids`` still in the map, in the given order (erased ids are skipped).
+
+        One call instead of has_point/get_point per id: the per-point loops of local mapping use it."""
+        points = self._points
+        return [points[p] for p in point_ids if p in points]
+
     def add_keyframe(self, keyframe: KeyFrame) -> None:
         if keyframe.id in self._keyframes:
             raise ValueError(f"keyframe {keyframe.id} is already in the map")
         self._keyframes[keyframe.id] = keyframe
         self.covisibility.add_node(keyframe.id)
+        if self._origin is not None and keyframe.id < self._origin:
+            self._origin = keyframe.id
 
     def add_point(self, point: MapPoint) -> None:
         if point.id in self._points:

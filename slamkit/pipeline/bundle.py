@@ -47,38 +47,51 @@ def snapshot_bundle(
     points, and every observation of those points by those keyframes (ORB-SLAM LocalBundleAdjustment)."""
     kf_ids = np.array(list(free_kf_ids) + list(fixed_kf_ids), np.int64)
     kf_row = {int(k): i for i, k in enumerate(kf_ids)}
-    # A point behind every camera that sees it (or seen by none of these keyframes) cannot be optimized: it is
-    # left out and reported, and the caller erases it (ORB-SLAM would flag all its observations as outliers).
-    usable, dropped = [], []
-    for pid in point_ids:
-        if _in_front_of_an_observer(store, pid, kf_row):
-            usable.append(pid)
-        else:
-            dropped.append(int(pid))
-    pids = np.array(usable, np.int64)
-    T = np.stack([store.get_keyframe(int(k)).T_c_w for k in kf_ids])
-    intr = np.stack([intrinsics_of(store.get_keyframe(int(k)).camera.K) for k in kf_ids])
-    xyz = np.stack([store.get_point(int(p)).xyz_w for p in pids]) if len(pids) else np.zeros((0, 3))
-    obs_pose, obs_point, obs_kf, obs_feat = [], [], [], []
-    for j, pid in enumerate(pids):
-        for kf_id, feat in sorted(store.get_point(int(pid)).observations.items()):
+    T = np.array([store.get_keyframe(int(k)).T_c_w for k in kf_ids], np.float64).reshape(-1, 4, 4)
+    intr = np.array([intrinsics_of(store.get_keyframe(int(k)).camera.K) for k in kf_ids]).reshape(-1, 4)
+    # one pass over the observations (point order, then keyframe id order): the Python part of the snapshot
+    points = [store.get_point(int(p)) for p in point_ids]
+    obs_pose_l: list[int] = []
+    obs_point_l: list[int] = []
+    obs_kf_l: list[int] = []
+    obs_feat_l: list[int] = []
+    for j, point in enumerate(points):
+        for kf_id, feat in sorted(point.observations.items()):
             row = kf_row.get(kf_id)
             if row is not None:
-                obs_pose.append(row)
-                obs_point.append(j)
-                obs_kf.append(kf_id)
-                obs_feat.append(feat)
-    obs_pose_a = np.array(obs_pose, np.int64)
-    obs_feat_a = np.array(obs_feat, np.int64)
-    obs_kf_a = np.array(obs_kf, np.int64)
-    uv = np.zeros((len(obs_pose), 2))
-    level = np.zeros(len(obs_pose), np.int64)
+                obs_pose_l.append(row)
+                obs_point_l.append(j)
+                obs_kf_l.append(kf_id)
+                obs_feat_l.append(feat)
+    all_xyz = np.array([p.xyz_w for p in points], np.float64).reshape(-1, 3)
+    obs_pose_a = np.array(obs_pose_l, np.int64)
+    obs_point_all = np.array(obs_point_l, np.int64)
+    # A point behind every camera that sees it (or seen by none of these keyframes) cannot be optimized: it is
+    # left out and reported, and the caller erases it (ORB-SLAM would flag all its observations as outliers).
+    depth = np.einsum("ej,ej->e", T[obs_pose_a, 2, :3], all_xyz[obs_point_all]) + T[obs_pose_a, 2, 3]
+    usable = np.zeros(len(points), bool)
+    usable[obs_point_all[depth > 0.0]] = True
+    dropped = [int(points[j].id) for j in np.flatnonzero(~usable).tolist()]
+    pids = np.array([points[j].id for j in np.flatnonzero(usable).tolist()], np.int64)
+    xyz = all_xyz[usable]
+    new_index = np.cumsum(usable) - 1
+    keep = usable[obs_point_all]
+    obs_pose_a = obs_pose_a[keep]
+    obs_point_a = new_index[obs_point_all[keep]].astype(np.int64)
+    obs_kf_a = np.array(obs_kf_l, np.int64)[keep]
+    obs_feat_a = np.array(obs_feat_l, np.int64)[keep]
+    E = obs_pose_a.size
+    uv = np.zeros((E, 2))
+    level = np.zeros(E, np.int64)
     scale_factor = 1.2
-    for kf_id in np.unique(obs_kf_a):
-        sel = obs_kf_a == kf_id
-        feats = store.get_keyframe(int(kf_id)).features
-        uv[sel] = feats.uv_undist_px[obs_feat_a[sel]]
-        level[sel] = feats.level[obs_feat_a[sel]]
+    order = np.argsort(obs_kf_a, kind="stable")
+    kf_unique, starts = np.unique(obs_kf_a[order], return_index=True)
+    bounds = np.append(starts, E)
+    for i, kf_id in enumerate(kf_unique.tolist()):  # each keyframe's features gathered with one indexing
+        rows = order[bounds[i] : bounds[i + 1]]
+        feats = store.get_keyframe(kf_id).features
+        uv[rows] = feats.uv_undist_px[obs_feat_a[rows]]
+        level[rows] = feats.level[obs_feat_a[rows]]
         scale_factor = feats.scale_factor
     n_free = len(free_kf_ids)
     # a free keyframe left without observations (all its points dropped) is held fixed: nothing constrains it
@@ -92,9 +105,9 @@ def snapshot_bundle(
         xyz_w=xyz,
         point_fixed=np.zeros(len(pids), bool),
         obs_pose=obs_pose_a,
-        obs_point=np.array(obs_point, np.int64),
+        obs_point=obs_point_a,
         uv_px=uv,
-        u_right_px=np.full(len(obs_pose), np.nan),
+        u_right_px=np.full(E, np.nan),
         level=level,
         scale_factor=scale_factor,
         iterations_first=iterations_first,
@@ -103,16 +116,6 @@ def snapshot_bundle(
         chi2_stereo=chi2_stereo,
     )
     return BundleSnapshot(problem, kf_ids, pids, obs_kf_a, obs_feat_a, tuple(dropped))
-
-
-def _in_front_of_an_observer(store: InMemoryMapStore, point_id: int, kf_row: dict[int, int]) -> bool:
-    point = store.get_point(point_id)
-    for kf_id in point.observations:
-        if kf_id in kf_row:
-            T = store.get_keyframe(kf_id).T_c_w
-            if float(T[2, :3] @ point.xyz_w + T[2, 3]) > 0.0:
-                return True
-    return False
 
 
 def run_bundle(

@@ -8,7 +8,7 @@ import numpy as np
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.frame import ImageBounds
-from slamkit.pipeline.map_points import compute_distinctive_descriptor
+from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.projection import frustum_test, match_projected
 
 #: ORB-SLAM ORBmatcher TH_LOW: max Hamming distance of a fusion match.
@@ -17,8 +17,11 @@ TH_LOW = 50
 CHI2_FUSE = 5.99
 
 
-def replace_point(store: InMemoryMapStore, old: MapPoint, new: MapPoint) -> None:
-    """Move every observation of ``old`` to ``new`` (where ``new`` is not already observed) and erase old."""
+def replace_point(store: InMemoryMapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
+    """Move every observation of ``old`` to ``new`` (where ``new`` is not already observed) and erase old.
+
+    ``refresh=False`` leaves ``new``'s descriptor to the caller (fusion recomputes its survivors in one batch,
+    after its matches, which read the descriptors before any replacement anyway)."""
     for kf_id, feat in sorted(old.observations.items()):
         store.get_keyframe(kf_id).point_ids[feat] = -1
         if kf_id not in new.observations:
@@ -27,8 +30,8 @@ def replace_point(store: InMemoryMapStore, old: MapPoint, new: MapPoint) -> None
     new.n_found += old.n_found
     old.observations.clear()
     store.remove_point(old.id)
-    keyframes = {k: store.get_keyframe(k) for k in new.observations}
-    compute_distinctive_descriptor(new, keyframes)
+    if refresh:
+        refresh_points(store, [new.id], normals=False)
 
 
 def fuse_points(
@@ -44,20 +47,20 @@ def fuse_points(
     mapping, ORB-SLAM Fuse), or always the incoming one with ``incoming_wins`` (loop fusion, ORB-SLAM
     SearchAndFuse). Returns the number of fused matches.
     """
-    pids = [p for p in point_ids if store.has_point(p) and kf.id not in store.get_point(p).observations]
-    if not pids or len(kf.features) == 0:
+    kf_id = kf.id
+    points = [p for p in store.get_points(point_ids) if kf_id not in p.observations]
+    if not points or len(kf.features) == 0:
         return 0
-    points = [store.get_point(p) for p in pids]
     feats = kf.features
     bounds = ImageBounds.of(kf.camera)
     test = frustum_test(
         kf.T_c_w,
         kf.camera.K,
         bounds,
-        np.stack([p.xyz_w for p in points]),
-        np.stack([p.normal_w for p in points]),
-        np.array([p.d_min_m for p in points]),
-        np.array([p.d_max_m for p in points]),
+        np.array([p.xyz_w for p in points], np.float64),
+        np.array([p.normal_w for p in points], np.float64),
+        np.array([p.d_min_m for p in points], np.float64),
+        np.array([p.d_max_m for p in points], np.float64),
         0.5,
         feats.scale_factor,
         feats.n_levels,
@@ -72,7 +75,7 @@ def fuse_points(
         np.zeros(len(feats), bool),
         bounds,
         test.uv_px[q],
-        np.stack([points[i].descriptor for i in q]),
+        np.array([points[i].descriptor for i in q.tolist()], np.uint8),
         radius,
         level - 1,
         level,
@@ -82,11 +85,14 @@ def fuse_points(
         30,
     )
     sigma2 = feats.level_sigma2()
+    uv_pred = test.uv_px[q[m.query]]
+    err2 = np.sum((uv_pred - feats.uv_undist_px[m.feature]) ** 2, axis=1)
+    gated = err2 <= CHI2_FUSE * sigma2[m.feature]
     fused = 0
-    for row, feat in zip(m.query, m.feature, strict=True):
+    survivors: list[int] = []
+    for row, feat in zip(m.query[gated].tolist(), m.feature[gated].tolist(), strict=True):
         point = points[int(q[row])]
-        err2 = float(np.sum((test.uv_px[q[row]] - feats.uv_undist_px[feat]) ** 2))
-        if err2 > CHI2_FUSE * sigma2[feat] or not store.has_point(point.id) or kf.id in point.observations:
+        if not store.has_point(point.id) or kf_id in point.observations:
             continue
         existing = int(kf.point_ids[feat])
         if existing >= 0 and store.has_point(existing):
@@ -94,10 +100,13 @@ def fuse_points(
                 continue
             other = store.get_point(existing)
             if not incoming_wins and len(other.observations) > len(point.observations):
-                replace_point(store, point, other)
+                replace_point(store, point, other, refresh=False)
+                survivors.append(other.id)
             else:
-                replace_point(store, other, point)
+                replace_point(store, other, point, refresh=False)
+                survivors.append(point.id)
         else:
-            store.add_observation(point.id, kf.id, int(feat))
+            store.add_observation(point.id, kf_id, feat)
         fused += 1
+    refresh_points(store, survivors, normals=False)  # ORB-SLAM Replace: the survivor's descriptor
     return fused

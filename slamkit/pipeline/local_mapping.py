@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -24,7 +25,8 @@ from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.fusion import fuse_points
-from slamkit.pipeline.map_points import compute_distinctive_descriptor, update_normal_and_depth
+from slamkit.pipeline.keyframe_culling import ObservationTable
+from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.projection import project_pinhole
 
@@ -64,10 +66,6 @@ class MappingOutcome:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
-def _keyframes(store: InMemoryMapStore, ids: Iterable[int]) -> dict[int, KeyFrame]:
-    return {k: store.get_keyframe(k) for k in ids if store.has_keyframe(k)}
-
-
 class LocalMapper:
     """Local mapping logic (deterministic: every loop runs in id order)."""
 
@@ -95,15 +93,18 @@ class LocalMapper:
             out.timings_ms[name] = (now - t) * 1e3
             t = now
 
+        # The write lock is taken per mutation phase (never across the matching, triangulation or BA work) so a
+        # tracking thread is held up for short spells only.
         with self.store.write():
             self._process_new_keyframe(kf, already_in_map)
-            lap("insert_ms")
+        lap("insert_ms")
+        with self.store.write():
             out.points_culled = self._cull_recent_points(kf)
-            lap("point_culling_ms")
-            out.points_created = self._create_new_points(kf)
-            lap("triangulation_ms")
-            out.points_fused = self._search_in_neighbors(kf)
-            lap("fusion_ms")
+        lap("point_culling_ms")
+        out.points_created = self._create_new_points(kf)
+        lap("triangulation_ms")
+        out.points_fused = self._search_in_neighbors(kf)
+        lap("fusion_ms")
         if self.cfg.local_ba and self.store.n_keyframes() > 2 and not (abort is not None and abort.is_set()):
             out.ba_outliers, out.ba_aborted = self._local_bundle_adjustment(kf, abort)
         lap("local_ba_ms")
@@ -121,7 +122,8 @@ class LocalMapper:
             kf.bow = self.place.transform(kf.features.descriptors)
         if not already_in_map:
             store.add_keyframe(kf)
-            for idx in np.flatnonzero(kf.point_ids >= 0):
+            observed: list[int] = []
+            for idx in np.flatnonzero(kf.point_ids >= 0).tolist():
                 pid = int(kf.point_ids[idx])
                 if not store.has_point(pid):
                     kf.point_ids[idx] = -1
@@ -130,10 +132,9 @@ class LocalMapper:
                 if kf.id in point.observations:  # two features of this keyframe matched the same point
                     kf.point_ids[idx] = -1
                     continue
-                store.add_observation(pid, kf.id, int(idx))
-                kfs = _keyframes(store, point.observations.keys())
-                update_normal_and_depth(point, kfs)
-                compute_distinctive_descriptor(point, kfs)
+                store.add_observation(pid, kf.id, idx)
+                observed.append(pid)
+            refresh_points(store, observed)  # each point's normal, depth range and descriptor with kf in
         store.update_connections(kf.id)
 
     # ---- VI-B --------------------------------------------------------------------------------------
@@ -162,49 +163,85 @@ class LocalMapper:
     # ---- VI-C --------------------------------------------------------------------------------------
 
     def _create_new_points(self, kf: KeyFrame) -> int:
-        """Triangulate unmatched features of the new keyframe with its covisible neighbours (VI-C)."""
-        cfg = self.cfg
+        """Triangulate unmatched features of the new keyframe with its covisible neighbours (VI-C).
+
+        Each neighbour's matching and triangulation run under the read lock, its new points are added under the
+        write lock (done again there if a loop correction bumped the map's epoch in between)."""
         store = self.store
+        with store.read():
+            neighbors = store.covisibility.best_neighbors(kf.id, self.cfg.triangulation_neighbors)
         created = 0
-        neighbors = store.covisibility.best_neighbors(kf.id, cfg.triangulation_neighbors)
-        center1 = kf.center_w
         for n_id in neighbors:
-            kf2 = store.get_keyframe(n_id)
-            baseline = float(np.linalg.norm(kf2.center_w - center1))
-            depths = _median_depth(kf2, store)
-            if not np.isfinite(depths) or baseline / depths < cfg.min_baseline_depth_ratio:
+            with store.read():
+                epoch = store.epoch
+                found = self._triangulate_with(kf, n_id)
+            if found is None:
                 continue
-            i1, i2 = self._match_for_triangulation(kf, kf2)
-            if i1.size == 0:
-                continue
-            created += self._triangulate_and_add(kf, kf2, i1, i2)
+            with store.write():
+                if store.epoch != epoch:
+                    found = self._triangulate_with(kf, n_id)
+                if found is not None:
+                    created += self._add_points(kf, store.get_keyframe(n_id), *found)
         return created
+
+    def _triangulate_with(self, kf: KeyFrame, n_id: int) -> tuple[I64, I64, F64] | None:
+        """(features of kf, features of the neighbour, (M, 3) m world points) that pass VI-C's checks, or None
+        when the neighbour is gone, too close for its scene depth, or gives nothing. Reads the map only."""
+        store = self.store
+        if not store.has_keyframe(n_id) or not store.has_keyframe(kf.id):
+            return None
+        kf2 = store.get_keyframe(n_id)
+        baseline = float(np.linalg.norm(kf2.center_w - kf.center_w))
+        depths = _median_depth(kf2, store)
+        if not np.isfinite(depths) or baseline / depths < self.cfg.min_baseline_depth_ratio:
+            return None
+        i1, i2 = self._match_for_triangulation(kf, kf2)
+        if i1.size == 0:
+            return None
+        return self._triangulate(kf, kf2, i1, i2)
 
     def _match_for_triangulation(self, kf1: KeyFrame, kf2: KeyFrame) -> tuple[I64, I64]:
         """Unmatched features of kf1 and kf2 with Hamming <= TH_LOW, on the epipolar line (distance^2 <
         3.84 sigma^2 of kf2's level), away from the epipole, best per feature, one-to-one, rotation-consistent
-        (ORB-SLAM SearchForTriangulation; the candidates are all features instead of a BoW node's)."""
-        f1 = np.flatnonzero(kf1.point_ids < 0)
-        f2 = np.flatnonzero(kf2.point_ids < 0)
-        if f1.size == 0 or f2.size == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        d = hamming_matrix(kf1.features.descriptors[f1], kf2.features.descriptors[f2])
-        a, b = np.nonzero(d <= _TH_LOW)
+        (ORB-SLAM SearchForTriangulation). As ORB-SLAM, only features under the same vocabulary node of the
+        direct index are compared when both keyframes have a bag of words; otherwise every pair is."""
+        empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        free1 = kf1.point_ids < 0
+        free2 = kf2.point_ids < 0
+        if not free1.any() or not free2.any():
+            return empty
+        if kf1.bow is not None and kf2.bow is not None:
+            a, b, d = same_node_matches(
+                kf1.bow.direct_index,
+                kf2.bow.direct_index,
+                free1,
+                free2,
+                kf1.features.descriptors,
+                kf2.features.descriptors,
+                _TH_LOW,
+            )
+        else:
+            f1, f2 = np.flatnonzero(free1), np.flatnonzero(free2)
+            dm = hamming_matrix(kf1.features.descriptors[f1], kf2.features.descriptors[f2])
+            ia, ib = np.nonzero(dm <= _TH_LOW)
+            a, b, d = f1[ia], f2[ib], dm[ia, ib].astype(np.int64)
         if a.size == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        uv1 = kf1.features.uv_undist_px[f1[a]].astype(np.float64)
-        uv2 = kf2.features.uv_undist_px[f2[b]].astype(np.float64)
+            return empty
+        uv1 = kf1.features.uv_undist_px[a].astype(np.float64)
+        uv2 = kf2.features.uv_undist_px[b].astype(np.float64)
         F21 = _fundamental_21(kf1, kf2)
         lines = np.c_[uv1, np.ones(a.size)] @ F21.T  # epipolar lines in image 2
         num = np.einsum("ij,ij->i", lines, np.c_[uv2, np.ones(b.size)])
         dist2 = num**2 / np.maximum(lines[:, 0] ** 2 + lines[:, 1] ** 2, 1e-12)
-        sigma2 = kf2.features.level_sigma2()[f2[b]]
+        sigma2 = kf2.features.level_sigma2()[b]
         ok = dist2 < 3.84 * sigma2
-        # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably
+        # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably (an epipole at infinity,
+        # kf1's centre level with kf2's image plane, is close to nothing: NaN distances are not rejected)
         epipole = project_pinhole(kf2.T_c_w, kf1.center_w[None], kf2.camera.K)[0][0]
-        scale2 = kf2.features.level_scale()[f2[b]]
-        ok &= np.linalg.norm(uv2 - epipole, axis=1) >= 10.0 * scale2
-        a, b, dd = a[ok], b[ok], d[a[ok], b[ok]]
+        scale2 = kf2.features.level_scale()[b]
+        with np.errstate(invalid="ignore"):
+            ok &= ~(np.linalg.norm(uv2 - epipole, axis=1) < 10.0 * scale2)
+        a, b, dd = a[ok], b[ok], d[ok]
         # best candidate per kf1 feature
         order = np.lexsort((b, dd, a))
         first = np.ones(order.size, bool)
@@ -213,13 +250,14 @@ class LocalMapper:
         a, b, dd = a[sel], b[sel], dd[sel]
         keep = resolve_one_to_one(a, b, dd)
         a, b = a[keep], b[keep]
-        diff = kf1.features.angle_deg[f1[a]].astype(np.float64) - kf2.features.angle_deg[f2[b]]
+        diff = kf1.features.angle_deg[a].astype(np.float64) - kf2.features.angle_deg[b]
         rot = rotation_consistent(diff, _ROT_BINS)
-        return f1[a[rot]], f2[b[rot]]
+        return a[rot], b[rot]
 
-    def _triangulate_and_add(self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64) -> int:
+    def _triangulate(self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64) -> tuple[I64, I64, F64] | None:
+        """Triangulate matched features; keep those with enough parallax, in front of both cameras, within the
+        chi-square reprojection gate in both, and scale-consistent (VI-C)."""
         cfg = self.cfg
-        store = self.store
         K1, K2 = kf1.camera.K, kf2.camera.K
         uv1 = kf1.features.uv_undist_px[i1].astype(np.float64)
         uv2 = kf2.features.uv_undist_px[i2].astype(np.float64)
@@ -244,9 +282,15 @@ class LocalMapper:
         ratio_octave = kf1.features.level_scale()[i1] / kf2.features.level_scale()[i2]
         factor = cfg.scale_consistency_factor * kf1.features.scale_factor
         ok &= ~((ratio_dist * factor < ratio_octave) | (ratio_dist > ratio_octave * factor))
-        created = 0
-        pair = _keyframes(store, {kf1.id, kf2.id})
-        for m in np.flatnonzero(ok):
+        if not ok.any():
+            return None
+        return i1[ok], i2[ok], xyz[ok]
+
+    def _add_points(self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64, xyz: F64) -> int:
+        """Add the triangulated points whose two features are still unmatched (new map points, VI-C)."""
+        store = self.store
+        created: list[int] = []
+        for m in range(i1.size):
             a, b = int(i1[m]), int(i2[m])
             if kf1.point_ids[a] >= 0 or kf2.point_ids[b] >= 0:
                 continue
@@ -255,11 +299,10 @@ class LocalMapper:
             store.add_point(point)
             store.add_observation(pid, kf1.id, a)
             store.add_observation(pid, kf2.id, b)
-            compute_distinctive_descriptor(point, pair)
-            update_normal_and_depth(point, pair)
-            self.recent_points.append(pid)
-            created += 1
-        return created
+            created.append(pid)
+        refresh_points(store, created)
+        self.recent_points.extend(created)
+        return len(created)
 
     # ---- VI-D (fusion) -------------------------------------------------------------------------------
 
@@ -269,28 +312,30 @@ class LocalMapper:
         store = self.store
         targets: list[int] = []
         seen = {kf.id}
-        for n in store.covisibility.best_neighbors(kf.id, cfg.fuse_neighbors):
-            if n not in seen:
-                targets.append(n)
-                seen.add(n)
-        for n in list(targets):
-            for n2 in store.covisibility.best_neighbors(n, cfg.fuse_second_neighbors):
-                if n2 not in seen:
-                    targets.append(n2)
-                    seen.add(n2)
+        with store.read():
+            for n in store.covisibility.best_neighbors(kf.id, cfg.fuse_neighbors):
+                if n not in seen:
+                    targets.append(n)
+                    seen.add(n)
+            for n in list(targets):
+                for n2 in store.covisibility.best_neighbors(n, cfg.fuse_second_neighbors):
+                    if n2 not in seen:
+                        targets.append(n2)
+                        seen.add(n2)
         fused = 0
-        for t_id in targets:
-            pids = [int(p) for p in kf.point_ids if p >= 0]
-            fused += fuse_points(store, store.get_keyframe(t_id), pids, cfg.fuse_search_radius_px)
-        candidates = sorted({int(p) for t_id in targets for p in store.get_keyframe(t_id).point_ids if p >= 0})
-        fused += fuse_points(store, kf, candidates, cfg.fuse_search_radius_px)
-        for pid in sorted({int(p) for p in kf.point_ids if p >= 0}):
-            if store.has_point(pid):
-                point = store.get_point(pid)
-                kfs = _keyframes(store, point.observations.keys())
-                compute_distinctive_descriptor(point, kfs)
-                update_normal_and_depth(point, kfs)
-        store.update_connections(kf.id)
+        for t_id in targets:  # one short write phase per target
+            with store.write():
+                if store.has_keyframe(t_id):
+                    pids = kf.point_ids[kf.point_ids >= 0].tolist()
+                    fused += fuse_points(store, store.get_keyframe(t_id), pids, cfg.fuse_search_radius_px)
+        with store.write():
+            alive = [t for t in targets if store.has_keyframe(t)]
+            if alive:
+                ids = np.unique(np.concatenate([store.get_keyframe(t).point_ids for t in alive]))
+                fused += fuse_points(store, kf, ids[ids >= 0].tolist(), cfg.fuse_search_radius_px)
+        with store.write():
+            refresh_points(store, kf.point_ids[kf.point_ids >= 0].tolist())
+            store.update_connections(kf.id)
         return fused
 
     # ---- VI-D (local BA) -----------------------------------------------------------------------------
@@ -301,7 +346,7 @@ class LocalMapper:
         store = self.store
         with store.read():
             local = [kf.id, *store.covisibility.neighbors(kf.id)]
-            origin = min(store.keyframe_ids())
+            origin = store.origin_keyframe_id()
             free = [k for k in local if k != origin]
             pids = sorted({int(p) for k in local for p in store.get_keyframe(k).point_ids if p >= 0})
             fixed = sorted({o for p in pids for o in store.get_point(p).observations} - set(free))
@@ -330,49 +375,134 @@ class LocalMapper:
         or a finer scale (VI-E). The map's origin keyframe is never culled."""
         cfg = self.cfg
         store = self.store
-        origin = min(store.keyframe_ids())
+        origin = store.origin_keyframe_id()
+        candidates = [k for k in store.covisibility.neighbors(kf.id) if k != origin and store.has_keyframe(k)]
         culled: list[CulledKeyFrame] = []
-        for k_id in store.covisibility.neighbors(kf.id):
-            if k_id == origin or not store.has_keyframe(k_id):
-                continue
-            k = store.get_keyframe(k_id)
-            n_points = 0
-            redundant = 0
-            for feat in np.flatnonzero(k.point_ids >= 0):
-                pid = int(k.point_ids[feat])
-                if not store.has_point(pid):
-                    continue
-                n_points += 1
-                point = store.get_point(pid)
-                if len(point.observations) <= cfg.keyframe_culling_min_observers:
-                    continue
-                level = int(k.features.level[feat])
-                n_obs = 0
-                for o_id, o_feat in point.observations.items():
-                    if o_id == k_id:
-                        continue
-                    if int(store.get_keyframe(o_id).features.level[o_feat]) <= level + 1:
-                        n_obs += 1
-                        if n_obs >= cfg.keyframe_culling_min_observers:
-                            break
-                if n_obs >= cfg.keyframe_culling_min_observers:
-                    redundant += 1
+        if not candidates:
+            return culled
+        table = ObservationTable(store, candidates)
+        for k_id in candidates:
+            n_points, redundant = table.redundancy(k_id, cfg.keyframe_culling_min_observers)
             if n_points and redundant > cfg.keyframe_culling_redundancy * n_points:
+                k = store.get_keyframe(k_id)
                 parent = store.spanning_tree.parent.get(k_id)
                 T_kp = k.T_c_w @ invert_T(store.get_keyframe(parent).T_c_w) if parent is not None else np.eye(4)
                 culled.append(CulledKeyFrame(k_id, parent, T_kp, k.T_c_w.copy()))
                 store.remove_keyframe(k_id)
+                table.cull(k_id)
                 if self.place is not None:
                     self.place.remove(k_id)
         return culled
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _distance(a64: NDArray[np.uint64], i: int, b64: NDArray[np.uint64], j: int) -> int:  # pragma: no cover
+    """Hamming distance between row i of a64 and row j of b64 (256-bit descriptors as 64-bit words)."""
+    d = 0
+    for k in range(a64.shape[1]):
+        x = a64[i, k] ^ b64[j, k]
+        x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+        x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+        x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+        d += int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
+    return d
+
+
+@numba.njit(cache=True, nogil=True)
+def _node_pair_matches(
+    nodes1: I64,
+    ptr1: I64,
+    feats1: I64,
+    nodes2: I64,
+    ptr2: I64,
+    feats2: I64,
+    free1: NDArray[np.bool_],
+    free2: NDArray[np.bool_],
+    desc1: NDArray[np.uint64],
+    desc2: NDArray[np.uint64],
+    max_distance: int,
+) -> tuple[I64, I64, I64]:  # pragma: no cover - compiled
+    """Merge the two sorted node lists; for every shared node, every (unmatched feature of 1, unmatched feature
+    of 2) pair within max_distance bits -> (a, b, distance), in node order, then a's, then b's."""
+    n_pairs = 0
+    i = j = 0
+    while i < nodes1.shape[0] and j < nodes2.shape[0]:
+        if nodes1[i] < nodes2[j]:
+            i += 1
+        elif nodes1[i] > nodes2[j]:
+            j += 1
+        else:
+            n_pairs += (ptr1[i + 1] - ptr1[i]) * (ptr2[j + 1] - ptr2[j])
+            i += 1
+            j += 1
+    a = np.empty(n_pairs, np.int64)
+    b = np.empty(n_pairs, np.int64)
+    d = np.empty(n_pairs, np.int64)
+    n = 0
+    i = j = 0
+    while i < nodes1.shape[0] and j < nodes2.shape[0]:
+        if nodes1[i] < nodes2[j]:
+            i += 1
+        elif nodes1[i] > nodes2[j]:
+            j += 1
+        else:
+            for s in range(ptr1[i], ptr1[i + 1]):
+                x = feats1[s]
+                if not free1[x]:
+                    continue
+                for t in range(ptr2[j], ptr2[j + 1]):
+                    y = feats2[t]
+                    if not free2[y]:
+                        continue
+                    dist = _distance(desc1, x, desc2, y)
+                    if dist <= max_distance:
+                        a[n] = x
+                        b[n] = y
+                        d[n] = dist
+                        n += 1
+            i += 1
+            j += 1
+    return a[:n], b[:n], d[:n]
+
+
+def _direct_index_arrays(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
+    """A direct index (node -> feature indices) as sorted node ids (K,), offsets (K + 1,), features."""
+    nodes = sorted(di)
+    parts = [np.asarray(di[n], np.int64).ravel() for n in nodes]
+    sizes = np.array([p.size for p in parts], np.int64)
+    ptr = np.concatenate([np.zeros(1, np.int64), np.cumsum(sizes)]).astype(np.int64)
+    feats = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+    return np.array(nodes, np.int64), ptr, feats
+
+
+def same_node_matches(
+    di1: Mapping[int, I64],
+    di2: Mapping[int, I64],
+    free1: NDArray[np.bool_],
+    free2: NDArray[np.bool_],
+    desc1: NDArray[np.uint8],
+    desc2: NDArray[np.uint8],
+    max_distance: int,
+) -> tuple[I64, I64, I64]:
+    """ORB-SLAM SearchForTriangulation's candidates: the pairs (feature a of kf1, feature b of kf2) under the
+    same direct-index node, both unmatched (free1 (N1,) / free2 (N2,) bool), with Hamming distance <=
+    max_distance -> (a, b, distance) arrays, in node order, then a, then b (one compiled pass, GIL released)."""
+    n1, p1, f1 = _direct_index_arrays(di1)
+    n2, p2, f2 = _direct_index_arrays(di2)
+    d1 = np.ascontiguousarray(desc1, np.uint8)
+    d2 = np.ascontiguousarray(desc2, np.uint8)
+    if d1.shape[1] % 8 or d1.shape[1] != d2.shape[1]:
+        raise ValueError(f"descriptors must be (N, D) uint8 with one D, a multiple of 8: {d1.shape}, {d2.shape}")
+    return _node_pair_matches(
+        n1, p1, f1, n2, p2, f2, free1, free2, d1.view(np.uint64), d2.view(np.uint64), int(max_distance)
+    )
+
+
 def _median_depth(kf: KeyFrame, store: InMemoryMapStore) -> float:
-    pids = [int(p) for p in kf.point_ids if p >= 0 and store.has_point(int(p))]
-    if not pids:
+    xyz = [store.get_point(p).xyz_w for p in kf.point_ids[kf.point_ids >= 0].tolist() if store.has_point(p)]
+    if not xyz:
         return float("nan")
-    xyz = np.stack([store.get_point(p).xyz_w for p in pids])
-    return float(np.median(xyz @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3]))
+    return float(np.median(np.array(xyz) @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3]))
 
 
 def _fundamental_21(kf1: KeyFrame, kf2: KeyFrame) -> F64:

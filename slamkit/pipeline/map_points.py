@@ -1,62 +1,220 @@
 """Map point properties derived from its observations (ORB-SLAM sec. III-C): mean viewing direction,
-scale-invariance distances, representative descriptor, and the pyramid level predicted at a distance."""
+scale-invariance distances, representative descriptor, and the pyramid level predicted at a distance.
+
+``refresh_points`` recomputes them for many points at once: the observations are gathered once (grouped by
+keyframe, so each keyframe's arrays are indexed with one numpy call) and one numba pass (GIL released) does
+the arithmetic, instead of a numpy round trip per point. ``update_normal_and_depth`` and
+``compute_distinctive_descriptor`` are the one-point forms of the same kernel.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
+
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.pipeline.matching import hamming_matrix
+from slamkit.map.store import InMemoryMapStore
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+U8 = NDArray[np.uint8]
 
 
-def update_normal_and_depth(point: MapPoint, keyframes: dict[int, KeyFrame]) -> None:
+@numba.njit(cache=True, nogil=True, inline="always")
+def _hamming(d64: NDArray[np.uint64], i: int, j: int) -> int:  # pragma: no cover - compiled
+    """Hamming distance between rows i and j of descriptors viewed as 64-bit words (SWAR popcount)."""
+    d = 0
+    for k in range(d64.shape[1]):
+        x = d64[i, k] ^ d64[j, k]
+        x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+        x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+        x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+        d += int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
+    return d
+
+
+@numba.njit(cache=True, nogil=True)
+def _refresh_kernel(
+    xyz: F64,
+    ptr: I64,
+    center: F64,
+    desc64: NDArray[np.uint64],
+    ref_row: I64,
+    level: I64,
+    scale_factor: F64,
+    n_levels: I64,
+) -> tuple[F64, NDArray[np.bool_], F64, F64, I64]:  # pragma: no cover - compiled
+    """Per point q (observations ptr[q]:ptr[q+1], in keyframe-id order):
+
+    -> normal (P, 3) and has_normal (P,): mean of the unit vectors camera centre -> point, normalised;
+       d_min, d_max (P,) m from the reference observation ref_row[q] (NaN when it has none);
+       best (P,) the observation row with the least median Hamming distance to the others (first on ties),
+       -1 when the point has no observation.
+    """
+    P = ptr.shape[0] - 1
+    normal = np.zeros((P, 3))
+    has_normal = np.zeros(P, np.bool_)
+    d_min = np.full(P, np.nan)
+    d_max = np.full(P, np.nan)
+    best = np.full(P, -1, np.int64)
+    row = np.zeros(64, np.int64)
+    for q in range(P):
+        s, e = ptr[q], ptr[q + 1]
+        n = e - s
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+        count = 0
+        for a in range(s, e):
+            vx = xyz[q, 0] - center[a, 0]
+            vy = xyz[q, 1] - center[a, 1]
+            vz = xyz[q, 2] - center[a, 2]
+            nv = np.sqrt(vx * vx + vy * vy + vz * vz)
+            if nv > 0.0:
+                sx += vx / nv
+                sy += vy / nv
+                sz += vz / nv
+                count += 1
+        if count:
+            mx, my, mz = sx / count, sy / count, sz / count
+            nm = np.sqrt(mx * mx + my * my + mz * mz)
+            if nm > 0.0:
+                mx, my, mz = mx / nm, my / nm, mz / nm
+            normal[q, 0] = mx
+            normal[q, 1] = my
+            normal[q, 2] = mz
+            has_normal[q] = True
+        r = ref_row[q]
+        if r >= 0:
+            vx = xyz[q, 0] - center[r, 0]
+            vy = xyz[q, 1] - center[r, 1]
+            vz = xyz[q, 2] - center[r, 2]
+            dist = np.sqrt(vx * vx + vy * vy + vz * vz)
+            d_max[q] = dist * scale_factor[q] ** level[r]
+            d_min[q] = d_max[q] / scale_factor[q] ** (n_levels[q] - 1)
+        if n == 1:
+            best[q] = s
+        elif n > 1:
+            if row.shape[0] < n:
+                row = np.zeros(n, np.int64)
+            best_median = np.inf
+            for a in range(n):
+                for b in range(n):
+                    row[b] = _hamming(desc64, s + a, s + b)
+                srt = np.sort(row[:n])
+                median = 0.5 * (srt[(n - 1) // 2] + srt[n // 2])  # np.median of the row
+                if median < best_median:
+                    best_median = median
+                    best[q] = s + a
+    return normal, has_normal, d_min, d_max, best
+
+
+class _Gathered:
+    """Observations of P points flattened in point order, each point's in keyframe-id order."""
+
+    def __init__(self, points: list[MapPoint], keyframes: Mapping[int, KeyFrame]) -> None:
+        kf_of: list[int] = []
+        feat_of: list[int] = []
+        ptr = [0]
+        ref_row: list[int] = []
+        for point in points:
+            obs = point.observations
+            ref = -1
+            for kf_id in sorted(obs):
+                if kf_id in keyframes:
+                    if kf_id == point.ref_kf_id:
+                        ref = len(kf_of)
+                    kf_of.append(kf_id)
+                    feat_of.append(obs[kf_id])
+            ptr.append(len(kf_of))
+            ref_row.append(ref)
+        E = len(kf_of)
+        self.ptr = np.array(ptr, np.int64)
+        self.ref_row = np.array(ref_row, np.int64)
+        self.center = np.zeros((E, 3))
+        self.level = np.zeros(E, np.int64)
+        self.desc = np.zeros((E, 32), np.uint8)
+        self.scale_factor = np.ones(len(points))
+        self.n_levels = np.ones(len(points), np.int64)
+        kf_a = np.array(kf_of, np.int64)
+        feat_a = np.array(feat_of, np.int64)
+        if E:
+            order = np.argsort(kf_a, kind="stable")
+            ids, starts = np.unique(kf_a[order], return_index=True)
+            bounds = np.append(starts, E)
+            for i, kf_id in enumerate(ids):
+                rows = order[bounds[i] : bounds[i + 1]]
+                kf = keyframes[int(kf_id)]
+                feats = kf.features
+                if i == 0:
+                    self.desc = np.zeros((E, feats.descriptors.shape[1]), np.uint8)
+                self.center[rows] = kf.center_w
+                self.level[rows] = feats.level[feat_a[rows]]
+                self.desc[rows] = feats.descriptors[feat_a[rows]]
+        has_ref = np.flatnonzero(self.ref_row >= 0)
+        for q in has_ref:  # the reference keyframe's pyramid (one per point)
+            feats = keyframes[kf_of[self.ref_row[q]]].features
+            self.scale_factor[q] = feats.scale_factor
+            self.n_levels[q] = feats.n_levels
+
+
+def _apply(points: list[MapPoint], g: _Gathered, normals: bool, descriptors: bool) -> None:
+    if not points:
+        return
+    xyz = np.array([p.xyz_w for p in points], np.float64).reshape(-1, 3)
+    if g.desc.shape[1] % 8:
+        raise ValueError(f"descriptors must have a multiple of 8 bytes, got {g.desc.shape[1]}")
+    normal, has_normal, d_min, d_max, best = _refresh_kernel(
+        xyz,
+        g.ptr,
+        g.center,
+        np.ascontiguousarray(g.desc).view(np.uint64),
+        g.ref_row,
+        g.level,
+        g.scale_factor,
+        g.n_levels,
+    )
+    for q, point in enumerate(points):
+        if normals and point.observations:
+            if has_normal[q]:
+                point.normal_w = normal[q].copy()
+            if g.ref_row[q] >= 0:
+                point.d_max_m = float(d_max[q])
+                point.d_min_m = float(d_min[q])
+        if descriptors and best[q] >= 0:
+            point.descriptor = g.desc[best[q]].copy()
+
+
+def refresh_points(
+    store: InMemoryMapStore, point_ids: Iterable[int], normals: bool = True, descriptors: bool = True
+) -> None:
+    """``update_normal_and_depth`` (when ``normals``) and ``compute_distinctive_descriptor`` (when
+    ``descriptors``) for every listed point still in the map (duplicates and erased ids ignored), in one
+    gather and one compiled pass."""
+    points = store.get_points(sorted(set(point_ids)))
+    if not points:
+        return
+    kf_ids = {k for p in points for k in p.observations}
+    keyframes = {k: store.get_keyframe(k) for k in kf_ids if store.has_keyframe(k)}
+    _apply(points, _Gathered(points, keyframes), normals, descriptors)
+
+
+def update_normal_and_depth(point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
     """Recompute ``normal_w`` (mean unit vector from the observing cameras to the point) and the distance
     range [d_min, d_max] in which ORB can detect it, from its reference keyframe's pyramid level:
     d_max = d_ref * scale^level, d_min = d_max / scale^(n_levels - 1) (ORB-SLAM MapPoint::UpdateNormalAndDepth).
+    Observers missing from ``keyframes`` are ignored.
     """
-    if not point.observations:
-        return
-    normals = []
-    for kf_id in point.observations:
-        kf = keyframes.get(kf_id)
-        if kf is None:
-            continue
-        v = point.xyz_w - kf.center_w
-        n = np.linalg.norm(v)
-        if n > 0:
-            normals.append(v / n)
-    if normals:
-        mean = np.mean(normals, axis=0)
-        norm = np.linalg.norm(mean)
-        point.normal_w = mean / norm if norm > 0 else mean
-    ref = keyframes.get(point.ref_kf_id)
-    if ref is None or point.ref_kf_id not in point.observations:
-        return
-    feats = ref.features
-    level = int(feats.level[point.observations[point.ref_kf_id]])
-    dist = float(np.linalg.norm(point.xyz_w - ref.center_w))
-    point.d_max_m = dist * feats.scale_factor**level
-    point.d_min_m = point.d_max_m / feats.scale_factor ** (feats.n_levels - 1)
+    _apply([point], _Gathered([point], keyframes), True, False)
 
 
-def compute_distinctive_descriptor(point: MapPoint, keyframes: dict[int, KeyFrame]) -> None:
+def compute_distinctive_descriptor(point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
     """Choose as the point's descriptor the observation with the least median Hamming distance to all the
     others (ORB-SLAM MapPoint::ComputeDistinctiveDescriptors). Deterministic: ties go to the lowest keyframe id."""
-    descs = []
-    for kf_id in sorted(point.observations):
-        kf = keyframes.get(kf_id)
-        if kf is not None:
-            descs.append(kf.features.descriptors[point.observations[kf_id]])
-    if not descs:
-        return
-    if len(descs) == 1:
-        point.descriptor = descs[0].copy()
-        return
-    d = np.stack(descs)
-    dist = hamming_matrix(d, d)
-    median = np.median(dist, axis=1)
-    point.descriptor = d[int(np.argmin(median))].copy()
+    _apply([point], _Gathered([point], keyframes), False, True)
 
 
 def predict_level(

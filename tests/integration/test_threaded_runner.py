@@ -84,7 +84,7 @@ def test_a_failure_in_any_thread_stops_the_run_with_its_name_and_keeps_the_traje
         dataset_to_play_len = len(dataset)
     else:
         component = getattr(runner, target)
-        component.step = _fail_on_call(40 if thread == "tracking" else 4, message)(component.step)
+        component.step = _fail_on_call(40 if thread == "tracking" else 8, message)(component.step)
         dataset_to_play = dataset
         dataset_to_play_len = len(dataset)
 
@@ -118,7 +118,7 @@ def test_slamkit_run_writes_a_failed_run_and_exits_non_zero(tmp_path: Path, monk
     from slamkit.cli import main
 
     monkeypatch.setattr(
-        LocalMapper, "step", _fail_on_call(4, "injected local-mapping failure")(LocalMapper.step), raising=True
+        LocalMapper, "step", _fail_on_call(8, "injected local-mapping failure")(LocalMapper.step), raising=True
     )
     out = tmp_path / "run"
     try:

@@ -1,0 +1,157 @@
+"""Local mapping on a small exact map: triangulation recovers the true points, the local BA runs on a snapshot
+without the map's write lock (a reader gets in while the optimizer works), and the Cholesky kernel and the
+direct-index candidate pairs the faster paths rely on are exact."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from slamkit_scipy.kernels import cholesky_solve_upper
+
+from slamkit.features import Features
+from slamkit.geometry.camera import PinholeCamera
+from slamkit.interfaces import AbortToken
+from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.config import LocalMappingConfig
+from slamkit.pipeline.local_mapping import LocalMapper, same_node_matches
+from slamkit.pipeline.map_points import refresh_points
+from slamkit.plugins import ComponentRegistry
+from slamkit.problems import BundleProblem, BundleResult
+
+CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+N_POINTS = 400
+N_MAPPED = 200  # points 0..199 are in the map; 200..399 are for local mapping to triangulate
+
+
+def scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform([-1.5, -1.0, 4.0], [1.5, 1.0, 6.0], (N_POINTS, 3))
+    desc = rng.integers(0, 256, (N_POINTS, 32), dtype=np.uint8)
+    return xyz, desc
+
+
+def keyframe(store: InMemoryMapStore, x_m: float, xyz: np.ndarray, desc: np.ndarray) -> KeyFrame:
+    """A camera at (x_m, 0, 0) looking along +z; feature j is the exact projection of point j."""
+    T = np.eye(4)
+    T[0, 3] = -x_m
+    cam = xyz @ T[:3, :3].T + T[:3, 3]
+    uv = (cam[:, :2] / cam[:, 2:] * 500.0 + [320.0, 240.0]).astype(np.float32)
+    feats = Features(
+        uv,
+        uv,
+        np.zeros(N_POINTS, np.int32),
+        np.zeros(N_POINTS, np.float32),
+        np.ones(N_POINTS, np.float32),
+        desc.copy(),
+        1.2,
+        8,
+    )
+    kf_id = store.new_keyframe_id()
+    return KeyFrame(kf_id, kf_id, float(kf_id), T, CAMERA, feats, np.full(N_POINTS, -1, np.int64))
+
+
+class WatchingOptimizer:
+    """The scipy optimizer, checking from another thread that the map can be read while BA runs."""
+
+    def __init__(self, store: InMemoryMapStore) -> None:
+        registry = ComponentRegistry.discover()
+        self.inner = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
+        self.store = store
+        self.reader_got_in: list[bool] = []
+
+    def bundle_adjust(self, problem: BundleProblem, abort: AbortToken | None = None) -> BundleResult:
+        got_in = threading.Event()
+
+        def read() -> None:
+            with self.store.read():
+                got_in.set()
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        reader.join(timeout=10.0)
+        self.reader_got_in.append(got_in.is_set())
+        return self.inner.bundle_adjust(problem, abort)
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.inner, name)
+
+
+def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock() -> None:
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kf0, kf1 = keyframe(store, 0.0, xyz, desc), keyframe(store, 0.3, xyz, desc)
+    for kf in (kf0, kf1):
+        store.add_keyframe(kf)
+    for j in range(N_MAPPED):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
+        store.add_observation(pid, 0, j)
+        store.add_observation(pid, 1, j)
+    refresh_points(store, store.point_ids())
+    store.update_connections(0)
+    store.update_connections(1)
+    kf2 = keyframe(store, 0.6, xyz, desc)
+    kf2.point_ids[:N_MAPPED] = np.arange(N_MAPPED)  # tracked by tracking
+    optimizer = WatchingOptimizer(store)
+    mapper = LocalMapper(LocalMappingConfig(), store, optimizer)  # type: ignore[arg-type]
+    out = mapper.step(kf2)
+    assert optimizer.reader_got_in == [True]
+    assert out.points_created >= 0.9 * (N_POINTS - N_MAPPED)
+    # every new point sits on the true point of its feature (exact projections, rounded to float32 pixels)
+    new = [store.get_point(p) for p in store.point_ids() if p >= N_MAPPED]
+    assert len(new) == out.points_created
+    for point in new:
+        feat = point.observations[kf2.id]
+        assert set(point.observations.values()) == {feat}
+        np.testing.assert_allclose(point.xyz_w, xyz[feat], atol=1e-4)  # float32 pixels
+        np.testing.assert_array_equal(point.descriptor, desc[feat])
+        # level-0 features of the reference keyframe (kf2): d_max is its distance, d_min that / 1.2^7
+        assert point.ref_kf_id == kf2.id
+        assert point.d_max_m == pytest.approx(np.linalg.norm(point.xyz_w - kf2.center_w), rel=1e-6)
+        assert point.d_min_m == pytest.approx(point.d_max_m / 1.2**7, rel=1e-12)
+    assert set(store.covisibility.neighbors(kf2.id)) == {0, 1}
+    # exact data: BA keeps the poses where they are and flags nothing
+    assert out.ba_outliers == 0
+    np.testing.assert_allclose(store.get_keyframe(kf2.id).T_c_w[0, 3], -0.6, atol=1e-5)
+
+
+@pytest.mark.parametrize("n", [1, 6, 150, 200])
+def test_cholesky_kernel_reads_the_upper_triangle_only(n: int) -> None:
+    rng = np.random.default_rng(n)
+    A = rng.normal(size=(n, n))
+    S = A @ A.T + n * np.eye(n)
+    if n >= 150:  # block-banded, as the reduced camera system of a forward-moving camera
+        band = np.abs(np.subtract.outer(np.arange(n) // 6, np.arange(n) // 6)) > 3
+        S[band] = 0.0
+        S += n * np.eye(n)
+    b = rng.normal(size=n)
+    garbage = S.copy()
+    garbage[np.tril_indices(n, -1)] = 1e300  # never read
+    np.testing.assert_allclose(cholesky_solve_upper(garbage, b), np.linalg.solve(S, b), rtol=1e-9, atol=1e-12)
+
+
+def test_cholesky_kernel_signals_an_indefinite_system_with_nan() -> None:
+    S = np.array([[1.0, 2.0], [2.0, 1.0]])  # eigenvalues 3 and -1
+    assert np.all(np.isnan(cholesky_solve_upper(S, np.ones(2))))
+    assert np.all(np.isnan(cholesky_solve_upper(np.array([[np.nan]]), np.ones(1))))
+
+
+def test_direct_index_candidates_are_the_close_unmatched_pairs_of_shared_nodes() -> None:
+    rng = np.random.default_rng(7)
+    d1 = rng.integers(0, 256, (6, 32), dtype=np.uint8)
+    d2 = rng.integers(0, 256, (7, 32), dtype=np.uint8)
+    d2[1] = d1[0]  # distance 0
+    d2[6] = d1[2] ^ np.uint8(1)  # distance 32 (one bit per byte)
+    di1 = {3: np.array([0, 2, 5]), 7: np.array([1]), 9: np.array([4])}
+    di2 = {3: np.array([1, 6, 5]), 7: np.array([0, 3]), 8: np.array([2])}
+    free1 = np.array([True, True, True, True, True, False])  # feature 5 of kf1 already has a point
+    free2 = np.array([True, True, True, False, True, True, True])  # feature 3 of kf2 too
+    a, b, d = same_node_matches(di1, di2, free1, free2, d1, d2, 255)
+    assert list(zip(a.tolist(), b.tolist(), strict=True)) == [(0, 1), (0, 6), (0, 5), (2, 1), (2, 6), (2, 5), (1, 0)]
+    bits = np.unpackbits(d1[a] ^ d2[b], axis=1).sum(axis=1)
+    np.testing.assert_array_equal(d, bits)
+    a, b, d = same_node_matches(di1, di2, free1, free2, d1, d2, 50)  # ORB-SLAM TH_LOW
+    assert list(zip(a.tolist(), b.tolist(), d.tolist(), strict=True)) == [(0, 1, 0), (2, 6, 32)]

@@ -1,0 +1,163 @@
+"""The batched map-point refresh (normal, depth range, distinctive descriptor) and the vectorised keyframe
+culling count agree exactly with straightforward per-point implementations of ORB-SLAM's rules."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slamkit.features import Features
+from slamkit.geometry.camera import PinholeCamera
+from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.keyframe_culling import ObservationTable
+from slamkit.pipeline.map_points import compute_distinctive_descriptor, refresh_points, update_normal_and_depth
+
+CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+N_FEATS = 60
+
+
+def random_map(seed: int, n_kf: int = 8, n_points: int = 150) -> InMemoryMapStore:
+    """Keyframes at random poses with random descriptors/levels; points observed by random keyframe subsets."""
+    rng = np.random.default_rng(seed)
+    store = InMemoryMapStore()
+    for _ in range(n_kf):
+        T = np.eye(4)
+        a = rng.normal(scale=0.2, size=3)
+        c, s = np.cos(a[2]), np.sin(a[2])
+        T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        T[:3, 3] = rng.normal(scale=0.5, size=3)
+        uv = rng.uniform(0, 480, (N_FEATS, 2)).astype(np.float32)
+        # few distinct descriptors so median ties happen
+        desc = rng.integers(0, 256, (4, 32), dtype=np.uint8)[rng.integers(0, 4, N_FEATS)]
+        feats = Features(
+            uv,
+            uv,
+            rng.integers(0, 8, N_FEATS).astype(np.int32),
+            np.zeros(N_FEATS, np.float32),
+            np.zeros(N_FEATS, np.float32),
+            desc,
+            1.2,
+            8,
+        )
+        kf_id = store.new_keyframe_id()
+        store.add_keyframe(KeyFrame(kf_id, kf_id, float(kf_id), T, CAMERA, feats, np.full(N_FEATS, -1, np.int64)))
+    for _ in range(n_points):
+        pid = store.new_point_id()
+        observers = sorted(rng.choice(n_kf, size=int(rng.integers(1, n_kf + 1)), replace=False).tolist())
+        free = [k for k in observers if np.any(store.get_keyframe(k).point_ids < 0)]
+        if not free:
+            continue
+        ref = int(rng.choice(free))
+        xyz = rng.normal(size=3) + np.array([0.0, 0.0, 4.0])
+        store.add_point(MapPoint(pid, xyz, np.zeros(32, np.uint8), ref, ref))
+        for k in free:
+            kf = store.get_keyframe(k)
+            store.add_observation(pid, k, int(rng.choice(np.flatnonzero(kf.point_ids < 0))))
+    return store
+
+
+def reference_refresh(point: MapPoint, store: InMemoryMapStore) -> tuple[np.ndarray, float, float, np.ndarray]:
+    """ORB-SLAM's UpdateNormalAndDepth and ComputeDistinctiveDescriptors written point by point."""
+    kfs = {k: store.get_keyframe(k) for k in point.observations}
+    units = [(point.xyz_w - kfs[k].center_w) / np.linalg.norm(point.xyz_w - kfs[k].center_w) for k in kfs]
+    mean = np.mean(units, axis=0)
+    normal = mean / np.linalg.norm(mean)
+    ref = kfs[point.ref_kf_id]
+    level = int(ref.features.level[point.observations[point.ref_kf_id]])
+    d_max = float(np.linalg.norm(point.xyz_w - ref.center_w)) * 1.2**level
+    d_min = d_max / 1.2**7
+    descs = np.stack([kfs[k].features.descriptors[point.observations[k]] for k in sorted(kfs)])
+    bits = np.unpackbits(descs[:, None, :] ^ descs[None, :, :], axis=2).sum(axis=2)
+    median = np.median(bits, axis=1)
+    return normal, d_min, d_max, descs[int(np.argmin(median))]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_batched_refresh_matches_the_per_point_rules(seed: int) -> None:
+    store = random_map(seed)
+    pids = store.point_ids()
+    refresh_points(store, [*pids, *pids[:5], 10_000])  # duplicates and unknown ids are ignored
+    for pid in pids:
+        point = store.get_point(pid)
+        normal, d_min, d_max, desc = reference_refresh(point, store)
+        np.testing.assert_allclose(point.normal_w, normal, atol=1e-12)
+        assert point.d_max_m == pytest.approx(d_max, rel=1e-12)
+        assert point.d_min_m == pytest.approx(d_min, rel=1e-12)
+        np.testing.assert_array_equal(point.descriptor, desc)
+
+
+def test_single_point_forms_match_the_batch() -> None:
+    store = random_map(3)
+    batch = random_map(3)
+    refresh_points(batch, batch.point_ids())
+    for pid in store.point_ids():
+        point = store.get_point(pid)
+        kfs = {k: store.get_keyframe(k) for k in point.observations}
+        update_normal_and_depth(point, kfs)
+        compute_distinctive_descriptor(point, kfs)
+        other = batch.get_point(pid)
+        np.testing.assert_array_equal(point.normal_w, other.normal_w)
+        assert (point.d_min_m, point.d_max_m) == (other.d_min_m, other.d_max_m)
+        np.testing.assert_array_equal(point.descriptor, other.descriptor)
+
+
+def test_descriptor_tie_goes_to_the_lowest_keyframe_id() -> None:
+    store = random_map(4, n_kf=3, n_points=0)
+    pid = store.new_point_id()
+    store.add_point(MapPoint(pid, np.array([0.0, 0.0, 5.0]), np.zeros(32, np.uint8), 0, 0))
+    # two keyframes' descriptors: each has median distance to the pair equal -> first (keyframe 1) wins
+    for k in (2, 1):
+        kf = store.get_keyframe(k)
+        kf.features.descriptors[0] = np.full(32, k, np.uint8)
+        store.add_observation(pid, k, 0)
+    store.get_point(pid).ref_kf_id = 1
+    refresh_points(store, [pid])
+    np.testing.assert_array_equal(store.get_point(pid).descriptor, np.full(32, 1, np.uint8))
+
+
+def test_observers_missing_from_the_mapping_are_ignored() -> None:
+    store = random_map(5)
+    point = next(store.get_point(p) for p in store.point_ids() if len(store.get_point(p).observations) >= 3)
+    before = point.d_max_m
+    others = {k: store.get_keyframe(k) for k in point.observations if k != point.ref_kf_id}
+    update_normal_and_depth(point, others)  # no reference keyframe: the depth range stays
+    assert point.d_max_m == before
+    units = [(point.xyz_w - kf.center_w) / np.linalg.norm(point.xyz_w - kf.center_w) for kf in others.values()]
+    mean = np.mean(units, axis=0)
+    np.testing.assert_allclose(point.normal_w, mean / np.linalg.norm(mean), atol=1e-12)
+
+
+def naive_redundancy(store: InMemoryMapStore, kf_id: int, m: int) -> tuple[int, int]:
+    """ORB-SLAM KeyFrameCulling's count, observation by observation."""
+    k = store.get_keyframe(kf_id)
+    n_points = redundant = 0
+    for feat in np.flatnonzero(k.point_ids >= 0):
+        point = store.get_point(int(k.point_ids[feat]))
+        n_points += 1
+        if len(point.observations) <= m:
+            continue
+        level = int(k.features.level[feat])
+        n_obs = sum(
+            1
+            for o, f in point.observations.items()
+            if o != kf_id and int(store.get_keyframe(o).features.level[f]) <= level + 1
+        )
+        redundant += n_obs >= m
+    return n_points, redundant
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_culling_count_matches_the_per_observation_loop_while_culling(seed: int) -> None:
+    store = random_map(seed, n_kf=10, n_points=300)
+    candidates = store.keyframe_ids()[1:]
+    table = ObservationTable(store, candidates)
+    redundant_seen = 0
+    for k in candidates:
+        expected = naive_redundancy(store, k, 3)
+        assert table.redundancy(k, 3) == expected
+        redundant_seen += expected[1]
+        if k % 3 == 0:  # erase some keyframes on the way: later counts must see their observations gone
+            store.remove_keyframe(k)
+            table.cull(k)
+    assert redundant_seen > 0
