@@ -1,6 +1,8 @@
 """Loop closing (ORB-SLAM sec. VII): detect loop candidates with the place recognizer, check their
 consistency over three keyframes, compute and optimize the Sim3 between the keyframe and a candidate,
-accept it with enough matches, then correct the loop (Sim3 propagation, loop fusion, essential graph).
+require enough matches, verify the hypothesis geometrically in other keyframes (ORB-SLAM3 sec. VI, see
+``loop_verification``; possibly over the next keyframes), then correct the loop (Sim3 propagation, loop
+fusion, essential graph).
 
 ``LoopCloser.step(kf)`` runs after local mapping has processed ``kf``; every decision is recorded in a
 ``LoopOutcome`` so a user can see why a loop was or was not closed.
@@ -22,15 +24,24 @@ from slamkit.map.entities import KeyFrame
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import intrinsics_of, run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LoopClosingConfig
-from slamkit.pipeline.frame import ImageBounds
-from slamkit.pipeline.fusion import TH_LOW, fuse_points, replace_point
+from slamkit.pipeline.fusion import fuse_points, replace_point
 from slamkit.pipeline.loop_correction import (
     apply_loop_correction,
     optimize_essential_graph,
     propagate_loop_sim3,
     sim3_of_pose,
 )
-from slamkit.pipeline.projection import match_projected, project_pinhole
+from slamkit.pipeline.loop_verification import (
+    KeyframeCheck,
+    PendingLoop,
+    VerificationThresholds,
+    advance_pending,
+    check_covisibles,
+    check_keyframe,
+    loop_rotation_deg,
+    loop_window,
+    project_window,
+)
 from slamkit.problems import Sim3Problem
 
 log = logging.getLogger("slamkit.loop")
@@ -43,7 +54,7 @@ _MIN_KEYFRAMES_BETWEEN_LOOPS = 10
 _MIN_BOW_MATCHES = 20
 #: ORB-SLAM: ratio of BoW matching for loop detection.
 _BOW_RATIO = 0.75
-#: ORB-SLAM SearchByProjection(Scw) radius for the final loop check, px.
+#: ORB-SLAM ComputeSim3: SearchByProjection(Scw) radius (th = 10) for the final loop check, px at level 0.
 _LOOP_SEARCH_RADIUS_PX = 10.0
 #: ORB-SLAM SearchAndFuse radius, px (ORBmatcher::Fuse with th = 4).
 _LOOP_FUSE_RADIUS_PX = 4.0
@@ -51,12 +62,19 @@ _LOOP_FUSE_RADIUS_PX = 4.0
 
 @dataclass
 class LoopOutcome:
-    """What loop closing did with one keyframe."""
+    """What loop closing did with one keyframe.
+
+    tried: one record per consistent candidate (BoW matches, Sim3 inliers, loop matches, and its geometric
+    verification: ``correction_rotation_deg`` the turn the loop would give the map, ``verification`` each
+    keyframe's check, ``agreeing`` the covisible keyframes that agreed; ``rejected`` says why). pending: the check of a pending loop hypothesis in this keyframe (ORB-SLAM3's confirmation
+    by the next keyframes), with its state: "agreed", "accepted", "missed" or "dropped".
+    """
 
     kf_id: int
     candidates: list[int] = field(default_factory=list)
     consistent: list[int] = field(default_factory=list)
     tried: list[dict[str, object]] = field(default_factory=list)
+    pending: dict[str, object] | None = None
     loop_kf_id: int | None = None
     matches: int = 0
     scale: float = 1.0
@@ -89,7 +107,9 @@ class LoopCloser:
         self.rng = rng
         self.last_loop_kf_id = -(10**9)
         self._groups: list[_ConsistentGroup] = []
+        self._pending: PendingLoop | None = None
         self.loops: list[LoopOutcome] = []
+        self._thresholds = VerificationThresholds(cfg.verify_search_radius_px, cfg.verify_min_matches)
 
     def _neighbors(self, kf_id: int, n: int) -> list[int]:
         return self.store.covisibility.best_neighbors(kf_id, n) if kf_id in self.store.covisibility else []
@@ -104,6 +124,15 @@ class LoopCloser:
             if not self.cfg.enabled:
                 out.reason = "loop closing disabled"
                 return out
+            found: tuple[int, Sim3, dict[int, int]] | None = None
+            if self._pending is not None:
+                found = self._check_pending(kf, out)
+                if found is None and self._pending is not None and self._pending.misses == 0:
+                    # ORB-SLAM3: a keyframe that confirmed the pending loop is not searched for another one
+                    out.reason = out.reason or "pending loop confirmed; more keyframes must agree"
+                    return out
+            if found is not None:
+                return self._close(kf, found, out, t0)
             if kf.id < self.last_loop_kf_id + _MIN_KEYFRAMES_BETWEEN_LOOPS or (
                 self.store.n_keyframes() <= _MIN_KEYFRAMES_BETWEEN_LOOPS
             ):
@@ -119,30 +148,37 @@ class LoopCloser:
             if found is None:
                 out.reason = out.reason or "no candidate passed the Sim3 checks"
                 return out
-            loop_kf_id, S_cw, loop_matches = found
-            t2 = time.perf_counter()
-            self._correct(kf, loop_kf_id, S_cw, loop_matches, out)
-            out.timings_ms["correction_ms"] = (time.perf_counter() - t2) * 1e3
-            self.last_loop_kf_id = kf.id
-            self.loops.append(out)
-            log.info(
-                "loop closed: keyframe %d <-> %d, %d matches, scale %.3f, %d essential-graph edges",
-                kf.id,
-                loop_kf_id,
-                out.matches,
-                out.scale,
-                out.essential_graph_edges,
-            )
-            return out
+            return self._close(kf, found, out, t0)
         finally:
             if self.store.has_keyframe(kf.id) and kf.bow is not None:
                 self.place.add(kf.id, kf.bow)
+
+    def _close(self, kf: KeyFrame, found: tuple[int, Sim3, dict[int, int]], out: LoopOutcome, t0: float) -> LoopOutcome:
+        """Correct the accepted loop ``found`` = (loop keyframe, S_cw, feature -> loop point matches)."""
+        loop_kf_id, S_cw, loop_matches = found
+        self._pending = None
+        out.loop_kf_id, out.matches, out.scale = loop_kf_id, len(loop_matches), S_cw.s
+        t2 = time.perf_counter()
+        self._correct(kf, loop_kf_id, S_cw, loop_matches, out)
+        out.timings_ms["correction_ms"] = (time.perf_counter() - t2) * 1e3
+        self.last_loop_kf_id = kf.id
+        self.loops.append(out)
+        log.info(
+            "loop closed: keyframe %d <-> %d, %d matches, scale %.3f, %d essential-graph edges",
+            kf.id,
+            loop_kf_id,
+            out.matches,
+            out.scale,
+            out.essential_graph_edges,
+        )
+        return out
 
     # ---- VII-A: detection ----------------------------------------------------------------------------
 
     def _detect(self, kf: KeyFrame, out: LoopOutcome) -> list[int]:
         """Candidates scoring above s_min (the lowest score against covisible neighbours with weight >= 30),
-        kept only when consistent over ``consistency_detections`` consecutive keyframes."""
+        kept only when consistent over ``consistency_detections`` consecutive keyframes (ORB-SLAM2), or all of
+        them when the geometric verification is on (ORB-SLAM3)."""
         assert kf.bow is not None
         cfg = self.cfg
         cov = self.store.covisibility
@@ -170,6 +206,11 @@ class LoopCloser:
             if count >= cfg.consistency_detections - 1 and cand not in consistent:
                 consistent.append(cand)
         self._groups = new_groups
+        if cfg.geometric_verification:
+            # ORB-SLAM3 sec. VI: every candidate goes on to the Sim3 and the geometric verification in covisible
+            # and next keyframes, which replaces ORB-SLAM2's temporal consistency (a revisit seen only in the
+            # last keyframes of a sequence can still close)
+            return candidates
         if not consistent:
             out.reason = f"{len(candidates)} candidate(s), none consistent over {cfg.consistency_detections} keyframes"
         return consistent
@@ -243,53 +284,102 @@ class LoopCloser:
             S_12 = Sim3.from_matrix(opt.S_12)
             S_cw = S_12 @ sim3_of_pose(cand.T_c_w)
             matches = {int(a): int(cand.point_ids[b]) for a, b in zip(i1[opt.inliers], i2[opt.inliers], strict=True)}
-            matches.update(self._search_loop_points(kf, cand_id, S_cw, matches))
+            window = loop_window(store, cand_id)
+            matches.update(self._search_loop_points(kf, S_cw, window, matches))
             info["loop_matches"] = len(matches)
             info["scale"] = S_12.s
             if len(matches) < cfg.min_loop_matches:
                 info["rejected"] = f"{len(matches)} matches < {cfg.min_loop_matches}"
                 continue
-            out.loop_kf_id, out.matches, out.scale = cand_id, len(matches), S_12.s
-            return cand_id, S_cw, matches
+            if not cfg.geometric_verification:
+                return cand_id, S_cw, matches
+            verdict = self._verify(kf, cand_id, S_cw, window, matches, info)
+            if verdict is not None or (self._pending is not None and self._pending.last_kf_id == kf.id):
+                return verdict
         return None
 
-    def _search_loop_points(self, kf: KeyFrame, cand_id: int, S_cw: Sim3, matched: dict[int, int]) -> dict[int, int]:
-        """Project the points of the candidate and its covisible keyframes into ``kf`` with S_cw (ORB-SLAM
-        SearchByProjection(Scw), radius 10 px x level scale) and match the features not matched yet."""
-        store = self.store
-        group = [cand_id, *store.covisibility.neighbors(cand_id)]
-        taken_points = set(matched.values())
-        pids = sorted(
-            {int(p) for k in group for p in store.get_keyframe(k).point_ids if p >= 0 and store.has_point(int(p))}
-            - taken_points
-        )
-        if not pids:
-            return {}
-        T_cw = S_cw.to_se3()
-        xyz = np.stack([store.get_point(p).xyz_w for p in pids])
-        uv, z = project_pinhole(T_cw, xyz, kf.camera.K)
-        bounds = ImageBounds.of(kf.camera)
-        ok = np.flatnonzero((z > 0) & np.all(np.isfinite(uv), axis=1) & bounds.contains(np.nan_to_num(uv, nan=-1e9)))
-        if ok.size == 0:
-            return {}
+    def _search_loop_points(
+        self, kf: KeyFrame, S_cw: Sim3, window: list[int], matched: dict[int, int]
+    ) -> dict[int, int]:
+        """Project the loop window's points not matched yet into ``kf`` with S_cw (ORB-SLAM
+        SearchByProjection(Scw), radius 10 px x the predicted level's scale) and match the free features."""
         taken = np.zeros(len(kf.features), bool)
         taken[list(matched)] = True
-        n_levels = kf.features.n_levels
-        m = match_projected(
-            kf.features,
-            taken,
-            bounds,
-            uv[ok],
-            np.stack([store.get_point(pids[i]).descriptor for i in ok]),
-            np.full(ok.size, _LOOP_SEARCH_RADIUS_PX) * kf.features.scale_factor,
-            np.zeros(ok.size, np.int64),
-            np.full(ok.size, n_levels - 1, np.int64),
-            TH_LOW,
-            None,
-            None,
-            30,
+        used = set(matched.values())
+        rest = [p for p in window if p not in used]
+        return project_window(self.store, kf, S_cw, rest, _LOOP_SEARCH_RADIUS_PX, taken).matches
+
+    # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------
+
+    def _verify(
+        self,
+        kf: KeyFrame,
+        cand_id: int,
+        S_cw: Sim3,
+        window: list[int],
+        matches: dict[int, int],
+        info: dict[str, object],
+    ) -> tuple[int, Sim3, dict[int, int]] | None:
+        """Check the correction the hypothesis implies (ORB-SLAM3's rotation bound), then the hypothesis in the
+        current keyframe and its covisible keyframes. Enough agreeing covisible keyframes accept the loop now;
+        some keep it pending for the next keyframes; none reject it."""
+        cfg = self.cfg
+        turn = loop_rotation_deg(kf.T_c_w, S_cw)
+        info["correction_rotation_deg"] = round(turn, 2)
+        if turn > cfg.max_loop_rotation_deg:
+            info["rejected"] = (
+                f"verification: the loop would turn the map by {turn:.1f} deg > {cfg.max_loop_rotation_deg} deg"
+            )
+            return None
+        own, _ = check_keyframe(self.store, kf, S_cw, window, self._thresholds)
+        checks: list[KeyframeCheck] = [own]
+        if own.agrees:
+            checks += check_covisibles(
+                self.store, kf, S_cw, window, self._thresholds, cfg.verify_covisible_keyframes, cfg.verify_coincidences
+            )
+        agreeing = sum(c.agrees for c in checks[1:])
+        info["verification"] = [c.as_dict() for c in checks]
+        info["agreeing"] = agreeing
+        if not own.agrees:
+            info["rejected"] = f"verification: the current keyframe disagrees ({own.why})"
+            return None
+        if agreeing >= cfg.verify_coincidences:
+            return cand_id, S_cw, matches
+        if agreeing == 0:
+            info["rejected"] = "verification: no covisible keyframe agrees"
+            return None
+        self._pending = PendingLoop(cand_id, kf.id, kf.T_c_w.copy(), S_cw, window, agreeing, 0, matches)
+        info["rejected"] = (
+            f"verification: {agreeing} of {cfg.verify_coincidences} keyframes agree; pending for the next keyframes"
         )
-        return {int(f): pids[int(ok[q])] for q, f in zip(m.query, m.feature, strict=True)}
+        return None
+
+    def _check_pending(self, kf: KeyFrame, out: LoopOutcome) -> tuple[int, Sim3, dict[int, int]] | None:
+        """ORB-SLAM3's confirmation of a pending loop by a new keyframe: carry the hypothesis to it with the
+        tracked motion, check it there; accept after ``verify_coincidences`` agreeing keyframes, drop it after
+        ``verify_max_misses`` consecutive disagreeing ones."""
+        pending = self._pending
+        assert pending is not None
+        if not self.store.has_keyframe(pending.loop_kf_id):
+            self._pending = None
+            out.pending = {"loop_kf": pending.loop_kf_id, "state": "dropped", "why": "loop keyframe culled"}
+            return None
+        cfg = self.cfg
+        step = advance_pending(
+            self.store, pending, kf, self._thresholds, cfg.verify_coincidences, cfg.verify_max_misses
+        )
+        out.pending = {
+            "loop_kf": pending.loop_kf_id,
+            "state": step.state,
+            "check": step.check.as_dict(),
+            "coincidences": pending.coincidences,
+            "misses": pending.misses,
+        }
+        if step.state == "dropped":
+            self._pending = None
+        if step.state == "accepted":
+            return pending.loop_kf_id, step.S_k_w, step.matches
+        return None
 
     # ---- VII-C/D: correction ----------------------------------------------------------------------------
 

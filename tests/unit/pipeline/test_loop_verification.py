@@ -1,0 +1,284 @@
+"""Geometric verification of loop hypotheses (ORB-SLAM3 sec. VI) on a small synthetic map. Place A (the loop's
+side) is a textured wall; place B, 12 m away and facing the other way, is its perfect twin (identical points
+and descriptors, as in the ``twins`` scene where the repeated wall fills 95 % of the view). A true revisit of A
+agrees; B agrees in every keyframe too, and only the ~180 degree turn its correction implies rejects it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from slamkit.config import compose_config
+from slamkit.features import Features
+from slamkit.geometry.camera import PinholeCamera
+from slamkit.geometry.se3 import invert_T
+from slamkit.geometry.sim3 import Sim3
+from slamkit.geometry.so3 import so3_exp
+from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.store import InMemoryMapStore
+from slamkit.optim.factory import build_optimizer
+from slamkit.pipeline.config import PipelineConfig
+from slamkit.pipeline.loop_closing import LoopCloser
+from slamkit.pipeline.loop_verification import (
+    PendingLoop,
+    VerificationThresholds,
+    advance_pending,
+    check_covisibles,
+    check_keyframe,
+    loop_rotation_deg,
+    loop_window,
+    project_window,
+)
+from slamkit.pipeline.map_points import update_normal_and_depth
+from slamkit.plugins import ComponentRegistry
+
+CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+# ORB-SLAM3's defaults (conf/pipeline/orbslam.yaml): radius 3 px, 30 matches.
+TH = VerificationThresholds(3.0, 30)
+N_WALL, N_OTHER = 60, 240
+# place B = G place A: turned by 180 degrees about the vertical through (6, 2, 0) (12 m from A's cameras)
+TWIN = np.array([[-1.0, 0.0, 0.0, 12.0], [0.0, -1.0, 0.0, 4.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def pose_at(x: float, y: float = 0.0) -> np.ndarray:
+    """T_c_w of a camera at (x, y, 0) looking along +y (world z up, camera y down)."""
+    T_w_c = np.eye(4)
+    T_w_c[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    T_w_c[:3, 3] = [x, y, 0.0]
+    return invert_T(T_w_c)
+
+
+def translation(t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = t
+    return T
+
+
+class World:
+    """Points of place A on the plane y = 4 m: the twin wall (x < -0.2) and other surfaces (x > 0.2)."""
+
+    def __init__(self, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        wall = np.column_stack([rng.uniform(-1.6, -0.2, N_WALL), np.full(N_WALL, 4.0), rng.uniform(-1, 1, N_WALL)])
+        other = np.column_stack([rng.uniform(0.2, 1.6, N_OTHER), np.full(N_OTHER, 4.0), rng.uniform(-1, 1, N_OTHER)])
+        self.xyz_a = np.vstack([wall, other])
+        desc_wall = rng.integers(0, 256, (N_WALL, 32), dtype=np.uint8)
+        self.desc_a = np.vstack([desc_wall, rng.integers(0, 256, (N_OTHER, 32), dtype=np.uint8)])
+        self.store = InMemoryMapStore()
+        # the loop's side: three keyframes at place A, the map's world is the true one
+        self.loop_ids = self.add_group([pose_at(x) for x in (0.0, 0.2, -0.2)], self.xyz_a, self.desc_a, np.eye(4))
+
+    def add_group(
+        self, T_c_w_true: list[np.ndarray], xyz_true: np.ndarray, desc: np.ndarray, drift: np.ndarray
+    ) -> list[int]:
+        """Keyframes seeing ``xyz_true`` with ``desc`` from the true poses, stored in a map whose world is
+        ``drift`` @ true world (poses T_c_w_true @ drift^-1, points drift @ xyz), with their own map points."""
+        store = self.store
+        xyz_map = xyz_true @ drift[:3, :3].T + drift[:3, 3]
+        pids = [store.new_point_id() for _ in range(len(xyz_true))]
+        kf_ids: list[int] = []
+        for T in T_c_w_true:
+            xyz_c = xyz_true @ T[:3, :3].T + T[:3, 3]
+            uv = (xyz_c[:, :2] / xyz_c[:, 2:]) * 500.0 + np.array([320.0, 240.0])
+            n = len(uv)
+            feats = Features(
+                uv.astype(np.float32),
+                uv.astype(np.float32),
+                np.zeros(n, np.int32),
+                np.zeros(n, np.float32),
+                np.ones(n, np.float32),
+                desc.copy(),
+                1.2,
+                8,
+            )
+            kf = KeyFrame(store.new_keyframe_id(), len(kf_ids), 0.0, T @ invert_T(drift), CAMERA, feats, np.full(n, -1))
+            store.add_keyframe(kf)
+            kf_ids.append(kf.id)
+        for i, pid in enumerate(pids):
+            store.add_point(MapPoint(pid, xyz_map[i].copy(), desc[i].copy(), kf_ids[0], kf_ids[0]))
+            for k in kf_ids:
+                store.add_observation(pid, k, i)
+        keyframes = {k: store.get_keyframe(k) for k in kf_ids}
+        for pid in pids:
+            update_normal_and_depth(store.get_point(pid), keyframes)
+        for k in kf_ids:
+            store.update_connections(k)
+        return kf_ids
+
+
+@pytest.fixture
+def world() -> World:
+    return World()
+
+
+def test_the_window_is_the_loop_keyframe_and_its_covisible_points(world: World) -> None:
+    window = loop_window(world.store, world.loop_ids[0])
+    assert window == list(range(N_WALL + N_OTHER))
+
+
+def test_a_true_revisit_agrees_in_the_keyframe_and_its_covisibles(world: World) -> None:
+    # The revisit's map drifted by 0.7 m; the hypothesis S_c_w is the true pose (what the Sim3 recovers).
+    drift = translation(np.array([0.5, -0.4, 0.3]))
+    ids = world.add_group([pose_at(x, 0.3) for x in (0.05, 0.15, -0.1, 0.25)], world.xyz_a, world.desc_a, drift)
+    window = loop_window(world.store, world.loop_ids[0])
+    current = world.store.get_keyframe(ids[0])
+    S_cw = Sim3.from_se3(pose_at(0.05, 0.3))
+    check, proj = check_keyframe(world.store, current, S_cw, window, TH)
+    assert check.agrees and check.visible == N_WALL + N_OTHER and check.ratio > 0.95
+    # every match pairs a feature with the loop point it observes (feature i sees point i of place A)
+    assert all(pid == feat for feat, pid in proj.matches.items())
+    covis = check_covisibles(world.store, current, S_cw, window, TH, n_covisibles=5, needed=3)
+    assert [c.agrees for c in covis] == [True, True, True]
+    assert {c.kf_id for c in covis} <= set(ids[1:])
+
+
+def twin_group(world: World, xs: tuple[float, ...]) -> list[int]:
+    """Keyframes at place B seeing B = G A from T_c_w = T_c_w(A) G^-1, in an undrifted map."""
+    return world.add_group(
+        [pose_at(x) @ invert_T(TWIN) for x in xs], world.xyz_a @ TWIN[:3, :3].T + TWIN[:3, 3], world.desc_a, np.eye(4)
+    )
+
+
+def test_a_perfect_twin_agrees_everywhere_but_implies_a_half_turn(world: World) -> None:
+    ids = twin_group(world, (0.05, 0.15, -0.1, 0.25))
+    window = loop_window(world.store, world.loop_ids[0])
+    current = world.store.get_keyframe(ids[0])
+    # The aliasing hypothesis: the current camera placed at A, where it would see exactly this view.
+    S_cw = Sim3.from_se3(pose_at(0.05))
+    check, _ = check_keyframe(world.store, current, S_cw, window, TH)
+    assert check.agrees and check.matches == check.visible == N_WALL + N_OTHER
+    covis = check_covisibles(world.store, current, S_cw, window, TH, n_covisibles=5, needed=3)
+    assert [c.agrees for c in covis] == [True, True, True]
+    # what rejects it: the map would have to turn by 180 degrees
+    assert loop_rotation_deg(current.T_c_w, S_cw) == pytest.approx(180.0, abs=1e-6)
+
+
+def test_the_rotation_of_a_drift_correction_is_its_angle() -> None:
+    T_c_w = pose_at(0.3, 0.2)
+    turn = Sim3(1.3, so3_exp(np.array([0.0, 0.0, np.radians(7.0)])), np.array([0.5, -1.0, 0.2]))
+    # the loop side's frame is the map's turned by 7 degrees (and scaled, moved): S_c_w = T_c_w S_w_w'
+    assert loop_rotation_deg(T_c_w, Sim3.from_se3(T_c_w) @ turn) == pytest.approx(7.0, abs=1e-9)
+    assert loop_rotation_deg(T_c_w, Sim3.from_se3(T_c_w)) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_loop_closer_rejects_the_twin_with_its_reason(world: World) -> None:
+    ids = twin_group(world, (0.05, 0.15, -0.1, 0.25))
+    closer = loop_closer(world)
+    window = loop_window(world.store, world.loop_ids[0])
+    info: dict[str, object] = {}
+    current = world.store.get_keyframe(ids[0])
+    verdict = closer._verify(current, world.loop_ids[0], Sim3.from_se3(pose_at(0.05)), window, {}, info)
+    assert verdict is None and closer._pending is None
+    assert info["correction_rotation_deg"] == pytest.approx(180.0)
+    assert str(info["rejected"]).startswith("verification: the loop would turn the map by 180.0 deg > 20.0 deg")
+
+
+def test_the_loop_closer_accepts_a_revisit_its_covisibles_confirm(world: World) -> None:
+    drift = translation(np.array([0.5, -0.4, 0.3]))
+    ids = world.add_group([pose_at(x, 0.3) for x in (0.05, 0.15, -0.1, 0.25)], world.xyz_a, world.desc_a, drift)
+    closer = loop_closer(world)
+    window = loop_window(world.store, world.loop_ids[0])
+    info: dict[str, object] = {}
+    S_cw = Sim3.from_se3(pose_at(0.05, 0.3))
+    verdict = closer._verify(world.store.get_keyframe(ids[0]), world.loop_ids[0], S_cw, window, {0: 0}, info)
+    assert verdict is not None and verdict[0] == world.loop_ids[0] and verdict[1] is S_cw
+    assert info["agreeing"] == 3 and "rejected" not in info
+    assert info["correction_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_wrong_hypothesis_finds_too_few_matches(world: World) -> None:
+    ids = world.add_group([pose_at(x) for x in (0.05, 0.15)], world.xyz_a, world.desc_a, np.eye(4))
+    window = loop_window(world.store, world.loop_ids[0])
+    S_cw = Sim3.from_se3(pose_at(0.35))  # 30 cm off: 37 px at 4 m, beyond the 3 px window
+    check, _ = check_keyframe(world.store, world.store.get_keyframe(ids[0]), S_cw, window, TH)
+    assert not check.agrees and check.matches < TH.min_matches and "matches <" in check.why
+
+
+def test_points_outside_their_scale_range_are_not_predicted_visible(world: World) -> None:
+    ids = world.add_group([pose_at(0.0, -3.0)], world.xyz_a, world.desc_a, np.eye(4))  # 7 m away: beyond 1.2 d_max
+    window = loop_window(world.store, world.loop_ids[0])
+    proj = project_window(world.store, world.store.get_keyframe(ids[0]), Sim3.from_se3(pose_at(0.0, -3.0)), window, 3.0)
+    assert proj.visible == 0 and proj.matches == {} and proj.ratio == 0.0
+
+
+def test_a_pending_loop_is_accepted_after_three_agreeing_keyframes(world: World) -> None:
+    drift = translation(np.array([0.5, -0.4, 0.3]))
+    xs = (0.05, 0.1, 0.15, 0.2)
+    ids = world.add_group([pose_at(x, 0.3) for x in xs], world.xyz_a, world.desc_a, drift)
+    window = loop_window(world.store, world.loop_ids[0])
+    first = world.store.get_keyframe(ids[0])
+    pending = PendingLoop(
+        world.loop_ids[0], first.id, first.T_c_w.copy(), Sim3.from_se3(pose_at(xs[0], 0.3)), window, 1
+    )
+    states = [advance_pending(world.store, pending, world.store.get_keyframe(k), TH, 3, 2) for k in ids[1:3]]
+    assert [s.state for s in states] == ["agreed", "accepted"]
+    assert pending.coincidences == 3 and pending.last_kf_id == ids[2]
+    # the hypothesis carried by the tracked motion is the third keyframe's true pose (drift undone)
+    assert np.allclose(states[-1].S_k_w.to_se3(), pose_at(xs[2], 0.3), atol=1e-9)
+    assert len(states[-1].matches) > 0.95 * (N_WALL + N_OTHER)
+
+
+def test_a_pending_loop_is_dropped_after_two_misses(world: World) -> None:
+    ids = world.add_group([pose_at(x) for x in (0.05, 0.1, 0.15)], world.xyz_a, world.desc_a, np.eye(4))
+    window = loop_window(world.store, world.loop_ids[0])
+    first = world.store.get_keyframe(ids[0])
+    # a hypothesis 40 cm off: the next keyframes do not find the window where it predicts it
+    pending = PendingLoop(world.loop_ids[0], first.id, first.T_c_w.copy(), Sim3.from_se3(pose_at(0.45)), window, 1)
+    states = [advance_pending(world.store, pending, world.store.get_keyframe(k), TH, 3, 2).state for k in ids[1:]]
+    assert states == ["missed", "dropped"]
+    assert pending.coincidences == 1 and pending.misses == 2
+
+
+def loop_closer(world: World) -> LoopCloser:
+    """A LoopCloser over the world's map with the default config, optimizer and place recognizer."""
+    cfg = compose_config()
+    registry = ComponentRegistry.discover()
+    pipeline = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline, resolve=True))  # type: ignore[arg-type]
+    place = registry.instantiate("place", cfg.place)
+    for k in world.store.keyframe_ids():
+        kf = world.store.get_keyframe(k)
+        kf.bow = place.transform(kf.features.descriptors)
+    optimizer = build_optimizer(cfg.optimizer, registry)
+    return LoopCloser(pipeline.loop_closing, world.store, optimizer, place, np.random.default_rng(0))
+
+
+def test_the_loop_closer_records_a_pending_loop_and_closes_it_on_the_third_agreeing_keyframe(world: World) -> None:
+    drift = translation(np.array([0.5, -0.4, 0.3]))
+    xs = (0.05, 0.1, 0.15, 0.2)
+    ids = world.add_group([pose_at(x, 0.3) for x in xs], world.xyz_a, world.desc_a, drift)
+    closer = loop_closer(world)
+    first = world.store.get_keyframe(ids[0])
+    window = loop_window(world.store, world.loop_ids[0])
+    # as _verify leaves it when one covisible keyframe agreed with the first keyframe's hypothesis
+    closer._pending = PendingLoop(
+        world.loop_ids[0], first.id, first.T_c_w.copy(), Sim3.from_se3(pose_at(xs[0], 0.3)), window, 1
+    )
+    second = closer.step(world.store.get_keyframe(ids[1]))
+    assert second.pending is not None and second.pending["state"] == "agreed" and second.loop_kf_id is None
+    assert second.pending["coincidences"] == 2 and "confirmed" in second.reason
+    third = closer.step(world.store.get_keyframe(ids[2]))
+    assert third.pending is not None and third.pending["state"] == "accepted"
+    assert third.loop_kf_id == world.loop_ids[0] and third.matches > 0.95 * (N_WALL + N_OTHER)
+    # the correction moved the drifted keyframe back to its true pose
+    assert np.allclose(world.store.get_keyframe(ids[2]).T_c_w, pose_at(xs[2], 0.3), atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("key", "default"),
+    [
+        ("verify_covisible_keyframes", 5),  # ORB-SLAM3 nNumCovisibles
+        ("verify_coincidences", 3),  # ORB-SLAM3 mnLoopNumCoincidences >= 3
+        ("verify_search_radius_px", 3.0),  # ORB-SLAM3 FindMatchesByProjection th = 3
+        ("verify_min_matches", 30),  # ORB-SLAM3 nProjMatches = 30
+        ("verify_max_misses", 2),  # ORB-SLAM3 mnLoopNumNotFound >= 2
+        ("max_loop_rotation_deg", 20.0),  # ORB-SLAM3 "BAD LOOP": 0.349 rad
+    ],
+)
+def test_verification_constants_default_to_the_papers_and_are_configurable(key: str, default: float) -> None:
+    typed = PipelineConfig.from_node(OmegaConf.to_container(compose_config().pipeline))  # type: ignore[arg-type]
+    assert getattr(typed.loop_closing, key) == default
+    new = default * 2
+    cfg = compose_config([f"pipeline.loop_closing.{key}={new}"])
+    typed = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline))  # type: ignore[arg-type]
+    assert getattr(typed.loop_closing, key) == new
