@@ -27,7 +27,7 @@ from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.map_points import refresh_points
-from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
+from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent, row_distance
 from slamkit.pipeline.projection import project_pinhole
 
 log = logging.getLogger("slamkit.mapping")
@@ -395,19 +395,6 @@ class LocalMapper:
         return culled
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _distance(a64: NDArray[np.uint64], i: int, b64: NDArray[np.uint64], j: int) -> int:  # pragma: no cover
-    """Hamming distance between row i of a64 and row j of b64 (256-bit descriptors as 64-bit words)."""
-    d = 0
-    for k in range(a64.shape[1]):
-        x = a64[i, k] ^ b64[j, k]
-        x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
-        x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
-        x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-        d += int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
-    return d
-
-
 @numba.njit(cache=True, nogil=True)
 def _node_pair_matches(
     nodes1: I64,
@@ -454,7 +441,7 @@ def _node_pair_matches(
                     y = feats2[t]
                     if not free2[y]:
                         continue
-                    dist = _distance(desc1, x, desc2, y)
+                    dist = row_distance(desc1, x, desc2, y)
                     if dist <= max_distance:
                         a[n] = x
                         b[n] = y

@@ -17,23 +17,11 @@ from numpy.typing import NDArray
 
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline.matching import row_distance
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _hamming(d64: NDArray[np.uint64], i: int, j: int) -> int:  # pragma: no cover - compiled
-    """Hamming distance between rows i and j of descriptors viewed as 64-bit words (SWAR popcount)."""
-    d = 0
-    for k in range(d64.shape[1]):
-        x = d64[i, k] ^ d64[j, k]
-        x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
-        x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
-        x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-        d += int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
-    return d
 
 
 @numba.njit(cache=True, nogil=True)
@@ -103,7 +91,7 @@ def _refresh_kernel(
             best_median = np.inf
             for a in range(n):
                 for b in range(n):
-                    row[b] = _hamming(desc64, s + a, s + b)
+                    row[b] = row_distance(desc64, s + a, desc64, s + b)
                 srt = np.sort(row[:n])
                 median = 0.5 * (srt[(n - 1) // 2] + srt[n // 2])  # np.median of the row
                 if median < best_median:

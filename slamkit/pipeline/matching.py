@@ -26,7 +26,7 @@ _POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], dtype=np.int32)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _row_distance(a64: NDArray[np.uint64], i: int, b64: NDArray[np.uint64], j: int) -> int:  # pragma: no cover
+def row_distance(a64: NDArray[np.uint64], i: int, b64: NDArray[np.uint64], j: int) -> int:  # pragma: no cover
     """Hamming distance between row i of a64 and row j of b64 (descriptors viewed as 64-bit words)."""
     d = 0
     for k in range(a64.shape[1]):
@@ -46,7 +46,7 @@ def _hamming_matrix(a: U8, b: U8) -> NDArray[np.int32]:  # pragma: no cover - nu
     out = np.empty((a64.shape[0], b64.shape[0]), np.int32)
     for i in range(a64.shape[0]):
         for j in range(b64.shape[0]):
-            out[i, j] = _row_distance(a64, i, b64, j)
+            out[i, j] = row_distance(a64, i, b64, j)
     return out
 
 
@@ -158,7 +158,7 @@ def _search_windows(
                     dv = t_uv[j, 1] - v
                     if du * du + dv * dv > r * r:
                         continue
-                    d = _row_distance(qd, i, td, j)
+                    d = row_distance(qd, i, td, j)
                     if d < best[i]:
                         second[i] = best[i]
                         best[i] = d
