@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from slamkit.pipeline.local_mapping import MappingOutcome
 from slamkit.pipeline.loop_closing import LoopOutcome
 from slamkit.pipeline.tracking import TrackingOutcome
+from slamkit.pipeline.trajectory import TrajectoryRecorder
 
 
 @dataclass
@@ -40,3 +41,16 @@ class RunLog:
         if self.wall_s <= 0.0 or self.sequence_s <= 0.0:
             return None
         return self.sequence_s / self.wall_s
+
+
+def log_tracking_outcome(log: RunLog, recorder: TrajectoryRecorder, out: TrackingOutcome, map_was_reset: bool) -> None:
+    """What every runner does after tracking a frame: count a map reset (the trajectory so far lived in the map
+    that is gone, so it is forgotten), log the outcome, and record the initialisation's reference frame, which
+    became keyframe 0 and has an estimated pose too."""
+    if map_was_reset:
+        log.resets += 1
+        recorder.clear()
+    log.tracking.append(out)
+    if out.already_in_map and out.new_keyframes:
+        kf_ini = out.new_keyframes[0]
+        recorder.record(kf_ini.frame_index, kf_ini.timestamp_s, kf_ini.T_c_w, kf_ini.id, kf_ini.T_c_w)

@@ -15,7 +15,7 @@ from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
 from slamkit.pipeline.trajectory import TrajectoryRecorder
-from slamkit.runtime.log import RunLog
+from slamkit.runtime.log import RunLog, log_tracking_outcome
 from slamkit.sensors import FrameData
 
 log = logging.getLogger("slamkit.runner")
@@ -68,14 +68,8 @@ class SequentialRunner:
         """Track one frame, then map the keyframes it produced, then record its pose."""
         was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
         out = self.tracker.step(data, camera, mapping_idle=True)
-        if was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED:
-            self.log.resets += 1
-            self.recorder.clear()
-        self.log.tracking.append(out)
-        if out.already_in_map and out.new_keyframes:
-            # the initialisation's reference frame became the first keyframe: its pose is estimated too
-            kf_ini = out.new_keyframes[0]
-            self.recorder.record(kf_ini.frame_index, kf_ini.timestamp_s, kf_ini.T_c_w, kf_ini.id, kf_ini.T_c_w)
+        map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
+        log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
         for kf in out.new_keyframes:
             mapped = self.mapper.step(kf, already_in_map=out.already_in_map)
             self.log.mapping.append(mapped)

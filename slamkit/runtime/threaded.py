@@ -32,7 +32,7 @@ from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
 from slamkit.pipeline.trajectory import TrajectoryRecorder
-from slamkit.runtime.log import RunLog
+from slamkit.runtime.log import RunLog, log_tracking_outcome
 from slamkit.runtime.source import END, FrameSource
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault
 from slamkit.sensors import FrameData
@@ -183,13 +183,8 @@ class ThreadedRunner:
         assert self._mapping is not None
         was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
         out = self.tracker.step(data, camera, mapping_idle=self._mapping.idle() and not self._mapping.stopping())
-        if was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED:
-            self.log.resets += 1
-            self.recorder.clear()
-        self.log.tracking.append(out)
-        if out.already_in_map and out.new_keyframes:
-            kf_ini = out.new_keyframes[0]
-            self.recorder.record(kf_ini.frame_index, kf_ini.timestamp_s, kf_ini.T_c_w, kf_ini.id, kf_ini.T_c_w)
+        map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
+        log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
         if out.new_keyframes and not self._mapping.idle():
             self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
         for kf in out.new_keyframes:
