@@ -212,32 +212,21 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
         ("status", 0),
     ):
         rows.append([key, *[_fmt(r.get(key), digits) for r in records]])
-    if any("tracking_beside_local_ba" in r for r in records):
-        rows.append(
-            [
-                "tracking during / apart from local BA (ms)",
-                *[
-                    "-"
-                    if "tracking_beside_local_ba" not in r
-                    else f"{_fmt(r['tracking_beside_local_ba']['tracking_ms_median_during_ba'])} / "
-                    f"{_fmt(r['tracking_beside_local_ba']['tracking_ms_median_otherwise'])}"
-                    for r in records
-                ],
-            ]
-        )
-    if any("flat_cost" in r for r in records):
-        rows.append(
-            [
-                "tracking first/last 500 (ms)",
-                *[
-                    "-"
-                    if "flat_cost" not in r
-                    else f"{_fmt(r['flat_cost']['first_ms_median'])} / {_fmt(r['flat_cost']['last_ms_median'])} "
-                    f"(x{_fmt(r['flat_cost']['last_over_first'], 2)})"
-                    for r in records
-                ],
-            ]
-        )
+    optional_rows = (
+        (
+            "tracking during / apart from local BA (ms)",
+            "tracking_beside_local_ba",
+            lambda x: f"{_fmt(x['tracking_ms_median_during_ba'])} / {_fmt(x['tracking_ms_median_otherwise'])}",
+        ),
+        (
+            "tracking first/last 500 (ms)",
+            "flat_cost",
+            lambda x: f"{_fmt(x['first_ms_median'])} / {_fmt(x['last_ms_median'])} (x{_fmt(x['last_over_first'], 2)})",
+        ),
+    )
+    for label, key, cell in optional_rows:
+        if any(key in r for r in records):
+            rows.append([label, *[cell(r[key]) if key in r else "-" for r in records]])
     widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(header, widths, strict=True))]
     lines.append("  ".join("-" * w for w in widths))
