@@ -16,6 +16,10 @@ and synthetic images). The one difference is at cell borders: ORB-SLAM's per-cel
 neighbour across the border, so two adjacent corners in different cells may both survive there, while a
 run over the whole area keeps only the stronger: the cleaner non-maximum suppression.
 
+FAST itself runs with one of two backends giving identical corners, scores and order (tests/unit/orb/
+test_fast9.py): "compiled", fast9.py's numba detector (default: several times faster, no Python object per
+corner, no GIL held), or "opencv", cv2.FastFeatureDetector.
+
 Two strategies give that same result (the test checks they agree bit for bit), and the extractor picks the
 cheaper one per level from the previous frame:
 - "whole": one FAST run at the minimum threshold over the whole area, then the selection above. Best when
@@ -24,6 +28,8 @@ cheaper one per level from the previous frame:
   on each weak cell, widened by 4 px so that every corner inside the cell sees the same neighbours as in a
   whole-area run (FAST reads 3 px around a pixel, non-maximum suppression 1 px more). Best on densely
   textured images, where the low threshold fires everywhere and few cells are weak.
+With the compiled backend a FAST run costs the same at any threshold (it scores every pixel), so "auto"
+always takes "whole" there.
 """
 
 from __future__ import annotations
@@ -38,14 +44,17 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-#: FAST-9/16 reads a Bresenham circle of radius 3 and detects nothing within 3 px of the image border.
-FAST_RADIUS = 3
+# FAST-9/16 reads a Bresenham circle of radius 3 and detects nothing within FAST_RADIUS px of the border.
+from slamkit_orb.fast9 import FAST_RADIUS, fast9_corners
+
 #: A weak cell is re-run on itself widened by this much: FAST's radius plus non-maximum suppression's 1 px.
 _CELL_MARGIN = FAST_RADIUS + 1
-#: "auto" runs the weak cells one by one when at most this share of the cells was weak (else "whole").
+#: "auto" (opencv backend) runs the weak cells one by one when at most this share of the cells was weak.
 SPARSE_WEAK_SHARE = 0.2
 
 Strategy = Literal["auto", "whole", "cells"]
+FastBackend = Literal["compiled", "opencv"]
+FAST_BACKENDS: tuple[FastBackend, ...] = ("compiled", "opencv")
 _RESPONSE = operator.attrgetter("response")
 
 
@@ -88,9 +97,20 @@ class GridFast:
     edge_threshold: px, no corner closer than this to the level border (ORB-SLAM's EDGE_THRESHOLD, 19).
     cell_size_px: nominal cell side (ORB-SLAM's W, 30); cells are stretched to tile the detection area.
     ini_threshold / min_threshold: FAST thresholds, grey levels (ORB-SLAM: 20 and 7).
+    backend: FAST implementation, "compiled" (fast9.py) or "opencv" (cv2.FastFeatureDetector): same output.
     """
 
-    def __init__(self, edge_threshold: int, cell_size_px: int, ini_threshold: int, min_threshold: int) -> None:
+    def __init__(
+        self,
+        edge_threshold: int,
+        cell_size_px: int,
+        ini_threshold: int,
+        min_threshold: int,
+        backend: FastBackend = "compiled",
+    ) -> None:
+        if backend not in FAST_BACKENDS:
+            raise ValueError(f"GridFast: backend must be one of {FAST_BACKENDS}, got {backend!r}")
+        self.backend: FastBackend = backend
         self.edge_threshold = int(edge_threshold)
         self.cell_size_px = int(cell_size_px)
         self.ini_threshold = int(ini_threshold)
@@ -113,6 +133,8 @@ class GridFast:
         self, image: NDArray[np.uint8], threshold: int, x0: int, y0: int, x1: int, y1: int
     ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
         """FAST with non-maximum suppression on image[y0:y1, x0:x1] -> (N, 2) int32 image px, (N,) scores."""
+        if self.backend == "compiled":
+            return fast9_corners(image, threshold, (x0, y0, x1, y1))
         keypoints = self._detector(threshold).detect(image[y0:y1, x0:x1])
         if not keypoints:
             return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
@@ -139,9 +161,9 @@ class GridFast:
     ) -> LevelCorners:
         """level_image: (h, w) uint8 -> the corners ORB-SLAM's grid keeps on it (none if the level is too small).
 
-        strategy: "whole" or "cells" (same result, see the module docstring), or "auto": "cells" when
-        ``weak_hint`` (the share of weak cells expected, e.g. from the previous frame) is at most
-        SPARSE_WEAK_SHARE.
+        strategy: "whole" or "cells" (same result, see the module docstring), or "auto": with the opencv
+        backend "cells" when ``weak_hint`` (the share of weak cells expected, e.g. from the previous frame) is
+        at most SPARSE_WEAK_SHARE, else "whole"; always "whole" with the compiled backend.
         """
         h, w = level_image.shape
         x0, y0, x1, y1 = self.region(w, h)
@@ -151,7 +173,8 @@ class GridFast:
         grid = self._grid(x0, y0, x1, y1)
         n_cells = grid.n_rows * grid.n_cols
         if strategy == "auto":
-            strategy = "cells" if weak_hint <= SPARSE_WEAK_SHARE else "whole"
+            sparse = self.backend == "opencv" and weak_hint <= SPARSE_WEAK_SHARE
+            strategy = "cells" if sparse else "whole"
         if strategy == "whole" or self.min_threshold == self.ini_threshold:
             xy, response = self._fast(level_image, self.min_threshold, x0, y0, x1, y1)
             cell = grid.cell_of(xy)

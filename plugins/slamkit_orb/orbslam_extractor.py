@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from slamkit.errors import CalibrationError, ConfigError
 from slamkit.features import Features
 from slamkit.interfaces import Camera
-from slamkit_orb.grid_fast import FAST_RADIUS, GridFast
+from slamkit_orb.grid_fast import FAST_BACKENDS, FAST_RADIUS, FastBackend, GridFast
 from slamkit_orb.orientation import circular_patch_extent, intensity_centroid_angles
 from slamkit_orb.pyramid import build_pyramid, features_per_level, level_scales, level_sizes
 from slamkit_orb.quadtree import distribute_quadtree
@@ -86,6 +86,8 @@ class OrbSlamExtractor:
     patch_size, half_patch_size: the descriptor patch (31) and the orientation patch radius (15).
     n_threads: worker threads the pyramid levels are shared among (1: all in the caller's thread). The
         output does not depend on it.
+    fast_backend: FAST implementation: "compiled" (fast9.py, numba; faster and holds no GIL) or "opencv"
+        (cv2.FastFeatureDetector). The output does not depend on it.
 
     Output keypoints are in level-0 pixels (level coordinates times scale_factor ** level); ``level`` is the
     pyramid level (octave). An image too small for a level simply yields no keypoints there; a blank image
@@ -104,6 +106,7 @@ class OrbSlamExtractor:
         patch_size: int = 31,
         half_patch_size: int = 15,
         n_threads: int = 2,
+        fast_backend: FastBackend = "compiled",
     ) -> None:
         self.n_features = _int_param(n_features, "n_features", 1)
         if isinstance(scale_factor, bool) or not isinstance(scale_factor, int | float) or not scale_factor > 1.0:
@@ -118,12 +121,21 @@ class OrbSlamExtractor:
         # The orientation patch must fit inside the level image around every keypoint.
         self.edge_threshold = _int_param(edge_threshold, "edge_threshold", max(self.half_patch_size, FAST_RADIUS))
         self.n_threads = _int_param(n_threads, "n_threads", 1, 64)
+        if fast_backend not in FAST_BACKENDS:
+            raise ConfigError(f"features.fast_backend must be one of {', '.join(FAST_BACKENDS)}, got {fast_backend!r}")
+        self.fast_backend: FastBackend = fast_backend
         self._pool: ThreadPoolExecutor | None = None
 
         self.level_budget = features_per_level(self.n_features, self.scale_factor, self.n_levels)
         self.level_scale = level_scales(self.scale_factor, self.n_levels)
         self._u_max = circular_patch_extent(self.half_patch_size)
-        self._grid = GridFast(self.edge_threshold, self.cell_size_px, self.ini_fast_threshold, self.min_fast_threshold)
+        self._grid = GridFast(
+            self.edge_threshold,
+            self.cell_size_px,
+            self.ini_fast_threshold,
+            self.min_fast_threshold,
+            self.fast_backend,
+        )
         self._local = threading.local()  # one cv2.ORB per worker thread
         self._weak_hint = np.ones(self.n_levels)  # per level: share of weak grid cells in the last frame
 
@@ -155,7 +167,8 @@ class OrbSlamExtractor:
             f"n_levels={self.n_levels}, ini_fast_threshold={self.ini_fast_threshold}, "
             f"min_fast_threshold={self.min_fast_threshold}, cell_size_px={self.cell_size_px}, "
             f"edge_threshold={self.edge_threshold}, patch_size={self.patch_size}, "
-            f"half_patch_size={self.half_patch_size}, n_threads={self.n_threads})"
+            f"half_patch_size={self.half_patch_size}, n_threads={self.n_threads}, "
+            f"fast_backend={self.fast_backend!r})"
         )
 
     @staticmethod
