@@ -62,9 +62,11 @@ def hartley_normalization(uv_px: F64) -> tuple[F64, F64]:
 
 def _null_vectors(A: F64) -> F64:
     """A: (B, r, 9) with r >= 8 -> (B, 9) right singular vectors of the smallest singular value."""
-    if A.shape[1] < 9:  # pad with zero rows so full_matrices gives the 9th right singular vector
+    if A.shape[1] < 9:  # pad with zero rows so that all 9 right singular vectors exist
         A = np.concatenate([A, np.zeros((A.shape[0], 9 - A.shape[1], 9))], axis=1)
-    _, _, Vt = np.linalg.svd(A)
+    # Thin SVD: only V is needed. The full one also builds the (r, r) U, which for a refit on ~1000 inliers
+    # (r = 2000 rows) took ~140 ms per call where this takes well under 1 ms.
+    _, _, Vt = np.linalg.svd(A, full_matrices=False)
     out: F64 = Vt[:, -1, :]
     return out
 
