@@ -26,8 +26,9 @@ from slamkit.pipeline.bundle import intrinsics_of, run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
 from slamkit.pipeline.loop_correction import (
+    apply_essential_graph,
     apply_loop_correction,
-    optimize_essential_graph,
+    essential_graph_problem,
     propagate_loop_sim3,
     sim3_of_pose,
 )
@@ -423,11 +424,17 @@ class LoopCloser:
                     loop_connections[k] = linked
             loop_connections.setdefault(kf.id, set()).add(loop_kf_id)
             t_eg = time.perf_counter()
-            _, n_edges = optimize_essential_graph(
-                store, self.optimizer, loop_kf_id, kf.id, corr, loop_connections, self.cfg.theta_min
+            problem, eg_kf_ids = essential_graph_problem(
+                store, loop_kf_id, kf.id, corr, loop_connections, self.cfg.theta_min
             )
+        # The optimization itself runs without the map lock, as ORB-SLAM's OptimizeEssentialGraph does (it locks
+        # the map only to write its result): tracking goes on meanwhile on the half-corrected map. Nothing else
+        # changes keyframe poses or points in between: local mapping is parked for the whole loop-closing step.
+        result = self.optimizer.optimize_essential_graph(problem)
+        with store.write():
+            apply_essential_graph(store, problem, result, eg_kf_ids)
             out.timings_ms["essential_graph_ms"] = (time.perf_counter() - t_eg) * 1e3
-            out.essential_graph_edges = n_edges
+            out.essential_graph_edges = int(problem.edge_i.shape[0])
             store.add_loop_edge(kf.id, loop_kf_id)
             store.bump_epoch()
         if self.cfg.global_ba:

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from slamkit.geometry.sim3 import Sim3
 from slamkit.interfaces import Optimizer
 from slamkit.map.store import InMemoryMapStore
-from slamkit.pipeline.map_points import update_normal_and_depth
+from slamkit.pipeline.map_points import refresh_points
 from slamkit.problems import EssentialGraphProblem, EssentialGraphResult
 
 F64 = NDArray[np.float64]
@@ -56,25 +56,37 @@ def propagate_loop_sim3(store: InMemoryMapStore, current_id: int, S_cw_corrected
     return LoopCorrection(non_corrected, corrected)
 
 
+def _move_points(store: InMemoryMapStore, moves: dict[int, tuple[list[int], F64]]) -> None:
+    """moves: keyframe id -> (point ids, the (4, 4) similarity to apply to their world positions), in one
+    vectorised product per keyframe."""
+    for pids, M in moves.values():
+        if not pids:
+            continue
+        points = store.get_points(pids)
+        xyz = np.array([p.xyz_w for p in points], np.float64).reshape(-1, 3)
+        moved = xyz @ M[:3, :3].T + M[:3, 3]
+        for point, xyz_new in zip(points, moved, strict=True):
+            point.xyz_w = xyz_new.copy()
+
+
 def apply_loop_correction(store: InMemoryMapStore, corr: LoopCorrection) -> set[int]:
     """Move the points seen by the corrected keyframes (each once, by the first keyframe in id order that
     sees it) and set the keyframes' poses. Returns the ids of the corrected points."""
     done: set[int] = set()
-    keyframes = {k: store.get_keyframe(k) for k in store.keyframe_ids()}
+    moves: dict[int, tuple[list[int], F64]] = {}
     for kf_id in sorted(corr.corrected):
-        S_old, S_new_inv = corr.non_corrected[kf_id], corr.corrected[kf_id].inverse()
-        kf = keyframes[kf_id]
-        for pid in kf.point_ids[kf.point_ids >= 0]:
-            pid = int(pid)
-            if pid in done or not store.has_point(pid):
-                continue
-            point = store.get_point(pid)
-            point.xyz_w = S_new_inv.act(S_old.act(point.xyz_w[None]))[0]
-            done.add(pid)
+        kf = store.get_keyframe(kf_id)
+        pids = []
+        for pid in kf.point_ids[kf.point_ids >= 0].tolist():
+            if pid not in done and store.has_point(pid):
+                pids.append(pid)
+                done.add(pid)
+        # p' = S_new^-1 S_old p
+        moves[kf_id] = (pids, corr.corrected[kf_id].inverse().matrix() @ corr.non_corrected[kf_id].matrix())
+    _move_points(store, moves)
     for kf_id, S in corr.corrected.items():
-        keyframes[kf_id].T_c_w = pose_of_sim3(S)
-    for pid in done:
-        update_normal_and_depth(store.get_point(pid), keyframes)
+        store.get_keyframe(kf_id).T_c_w = pose_of_sim3(S)
+    refresh_points(store, done, normals=True, descriptors=False)
     return done
 
 
@@ -139,19 +151,21 @@ def apply_essential_graph(
 ) -> None:
     """Set every keyframe's pose from the optimized Sim3 and move each point with its reference keyframe:
     p' = S_new^-1 S_before p (ORB-SLAM OptimizeEssentialGraph's final step)."""
-    before = {k: Sim3.from_matrix(problem.S_c_w[i]) for i, k in enumerate(kf_ids)}
-    after = {k: Sim3.from_matrix(result.S_c_w[i]) for i, k in enumerate(kf_ids)}
+    row = {k: i for i, k in enumerate(kf_ids)}
+    by_ref: dict[int, list[int]] = {}
     for pid in store.point_ids():
         point = store.get_point(pid)
-        ref = point.ref_kf_id if point.ref_kf_id in after else min(point.observations, default=-1)
-        if ref not in after:
-            continue
-        point.xyz_w = after[ref].inverse().act(before[ref].act(point.xyz_w[None]))[0]
+        ref = point.ref_kf_id if point.ref_kf_id in row else min(point.observations, default=-1)
+        if ref in row:
+            by_ref.setdefault(ref, []).append(pid)
+    moves: dict[int, tuple[list[int], F64]] = {}
+    for ref, pids in by_ref.items():
+        before, after = problem.S_c_w[row[ref]], result.S_c_w[row[ref]]
+        moves[ref] = (pids, Sim3.from_matrix(after).inverse().matrix() @ before)
+    _move_points(store, moves)
     for k in kf_ids:
-        store.get_keyframe(k).T_c_w = pose_of_sim3(after[k])
-    keyframes = {k: store.get_keyframe(k) for k in kf_ids}
-    for pid in store.point_ids():
-        update_normal_and_depth(store.get_point(pid), keyframes)
+        store.get_keyframe(k).T_c_w = pose_of_sim3(Sim3.from_matrix(result.S_c_w[row[k]]))
+    refresh_points(store, store.point_ids(), normals=True, descriptors=False)
 
 
 def optimize_essential_graph(
