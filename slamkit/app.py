@@ -138,6 +138,7 @@ def run_metrics(
         "runner": run.runner,
         "frames_dropped": run.frames_dropped,
         "realtime_factor": run.realtime_factor,
+        "preloaded_mb": run.preloaded_mb,
         "relocalizations": sum(o.method == "relocalization" and o.state == TrackingState.OK for o in run.tracking),
         "loops_closed": sum(loop.loop_kf_id is not None for loop in run.loops),
         "loop_closing_ms_median": _percentile([sum(lp.timings_ms.values()) for lp in run.loops], 50),
@@ -292,10 +293,30 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             loop_closer=loop_closer,
             realtime=bool(cfg.runner.get("realtime", False)),
             speed=float(cfg.runner.get("speed", 1.0)),
+            preload=bool(cfg.runner.get("preload", False)),
+            background_niceness=_int_setting(cfg.runner, "background_niceness", 0, 19, 0),
+            gil_switch_interval_s=_switch_interval_s(cfg.runner),
         )
     else:
         runner = SequentialRunner(tracker, mapper, store, progress=progress, loop_closer=loop_closer)
     return runner, dataset
+
+
+def _int_setting(node: DictConfig, key: str, low: int, high: int, default: int) -> int:
+    value = node.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise ConfigError(f"runner.{key} = {value!r}: expected an integer in [{low}, {high}]")
+    return int(value)
+
+
+def _switch_interval_s(node: DictConfig) -> float | None:
+    """runner.gil_switch_interval_ms (null: keep the interpreter's) -> seconds."""
+    value = node.get("gil_switch_interval_ms", None)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value <= 100:
+        raise ConfigError(f"runner.gil_switch_interval_ms = {value!r}: expected a number in (0, 100] ms or null")
+    return float(value) / 1e3
 
 
 def _pose_optimizer(choice: str, optimizer: Optimizer) -> Callable[[PoseOnlyProblem], PoseOnlyResult] | None:

@@ -102,7 +102,9 @@ def summarize_run(runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: f
         "local_mapping_ms_median": mapping["per_keyframe_ms"]["median"],
         "local_ba_ms_median": mapping.get("local_ba_ms", {}).get("median"),
         "peak_rss_mb": peak_rss_mb,
-        "rss_growth_per_keyframe_mb": (peak_rss_mb - start_rss_mb) / n_kf,
+        # frames preloaded before playback (runner.preload) are the dataset's memory, not the map's
+        "preloaded_mb": log.preloaded_mb,
+        "rss_growth_per_keyframe_mb": (peak_rss_mb - start_rss_mb - log.preloaded_mb) / n_kf,
         "stages": {"tracking": tracking, "local_mapping": mapping, "loop_closing": loops},
     }
     for key in ("ate_rmse_m", "kf_ate_rmse_m", "ate_rmse_pct_of_path", "path_length_m", "loops_false"):
@@ -205,6 +207,7 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
         ("map_points", 0),
         ("loops_closed", 0),
         ("peak_rss_mb", 0),
+        ("preloaded_mb", 0),
         ("rss_growth_per_keyframe_mb", 3),
         ("ate_rmse_m", 4),
         ("kf_ate_rmse_m", 4),

@@ -19,6 +19,7 @@ class RunLog:
     was busy and that were replaced by a newer one before tracking took them (0 when playing as fast as
     possible). sequence_s: time span of the frames played (last minus first timestamp, s). wall_s: wall time of
     the run, s. failed_thread: name of the pipeline thread whose exception stopped the run, if any.
+    preloaded_mb: memory held by frames read into memory before playback (``runner.preload``), MiB.
     """
 
     tracking: list[TrackingOutcome] = field(default_factory=list)
@@ -30,6 +31,7 @@ class RunLog:
     sequence_s: float = 0.0
     runner: str = "sequential"
     failed_thread: str | None = None
+    preloaded_mb: float = 0.0
     # wall-clock intervals (time.perf_counter(), s) of each frame's tracking and of each local BA, recorded by
     # the threaded runner: how fast does tracking run while a local BA runs beside it?
     tracking_wall_s: list[tuple[float, float]] = field(default_factory=list)

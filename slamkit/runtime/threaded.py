@@ -21,7 +21,8 @@ import logging
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
 
 from tqdm import tqdm
 
@@ -33,6 +34,7 @@ from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.log import RunLog, log_tracking_outcome
+from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
 from slamkit.runtime.source import END, FrameSource
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault
 from slamkit.sensors import FrameData
@@ -51,6 +53,12 @@ class ThreadedRunner:
 
     realtime: play frames at the dataset's timestamps (scaled by ``speed``) and drop those that arrive while
     tracking is busy; otherwise every frame is tracked as fast as possible.
+    preload: read (or render) every frame into memory before playback starts, so playback costs no CPU, as a
+    camera's frames do not (the memory is reported as ``log.preloaded_mb``).
+    background_niceness: in real-time playback, how much local mapping, loop closing and a background optimizer
+    process lower their scheduling priority, so tracking gets the cores first (slamkit/runtime/priority.py; 0:
+    equal priority). Not applied when playing as fast as possible (see ``run``).
+    gil_switch_interval_s: the interpreter's GIL switch interval during the run (None: unchanged).
     """
 
     def __init__(
@@ -62,6 +70,9 @@ class ThreadedRunner:
         loop_closer: LoopCloser | None = None,
         realtime: bool = False,
         speed: float = 1.0,
+        preload: bool = False,
+        background_niceness: int = 0,
+        gil_switch_interval_s: float | None = None,
     ) -> None:
         self.tracker = tracker
         self.mapper = mapper
@@ -71,6 +82,9 @@ class ThreadedRunner:
         self.progress = progress
         self.realtime = realtime
         self.speed = speed
+        self.preload = preload
+        self.background_niceness = background_niceness
+        self.gil_switch_interval_s = gil_switch_interval_s
         self.log = RunLog(runner="threaded")
         self._fault: ThreadFault | None = None
         self._fault_lock = threading.Lock()
@@ -205,11 +219,17 @@ class ThreadedRunner:
         Raises PipelineThreadError when a pipeline thread failed; KeyboardInterrupt passes through after the
         threads stopped.
         """
+        frames: Iterable[FrameData] = self._preloaded(dataset) if self.preload else dataset
         start = time.perf_counter()
-        self._source = FrameSource(dataset, self.realtime, self._on_fault, self.speed)
-        self._mapping = PipelineWorker("local-mapping", self._map_keyframe, self._on_fault)
+        self._source = FrameSource(frames, self.realtime, self._on_fault, self.speed)
+        # Only against a clock: playing as fast as possible, tracking is always runnable and would starve the
+        # lower-priority local mapping, tracking on ahead of a map whose new points are not triangulated yet (the
+        # room was lost at frame ~146 that way); with real-time playback tracking leaves time each frame period.
+        nice = self.background_niceness if self.realtime else 0
+        self._mapping = PipelineWorker("local-mapping", self._map_keyframe, self._on_fault, nice)
         if self.loop_closer is not None:
-            self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault)
+            self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault, nice)
+        self._lower_optimizer_process_priority()
         self.tracker.reset_guard = self._quiesced_for_reset
         mapping = self._mapping
         self.tracker.keyframes_allowed = lambda: not mapping.stopping()
@@ -220,26 +240,8 @@ class ThreadedRunner:
             thread.start()
         finished = False
         try:
-            while self._fault is None or self._fault.thread_name == self._source.name:
-                item = self._source.get()
-                if item is None or item is END:
-                    break
-                assert isinstance(item, FrameData)
-                try:
-                    t_track = time.perf_counter()
-                    out = self._track(item, camera)
-                    self.log.tracking_wall_s.append((t_track, time.perf_counter()))
-                except Exception as exc:  # reported like any other thread's failure
-                    self._on_fault(ThreadFault("tracking", exc, traceback.format_exc()))
-                    break
-                if on_frame is not None:
-                    on_frame(out)
-                bar.update(1)
-                bar.set_postfix_str(
-                    f"{out.state.value} kf={self.store.n_keyframes()} mp={self.store.n_points()} "
-                    f"q={self._mapping.pending()} drop={self._source.frames_dropped}",
-                    refresh=False,
-                )
+            with gil_switch_interval(self.gil_switch_interval_s):
+                self._track_frames(camera, bar, on_frame)
             if self._fault is None:
                 self._drain(workers)
             finished = True
@@ -255,6 +257,49 @@ class ThreadedRunner:
         if self._fault is not None:
             raise self._fault.as_error()
         return self.log
+
+    def _track_frames(self, camera: Camera, bar: tqdm[Any], on_frame: Callable[[TrackingOutcome], None] | None) -> None:
+        """The tracking loop: take frames from the source until the end, a fault or a stop."""
+        assert self._source is not None and self._mapping is not None
+        while self._fault is None or self._fault.thread_name == self._source.name:
+            item = self._source.get()
+            if item is None or item is END:
+                break
+            assert isinstance(item, FrameData)
+            try:
+                t_track = time.perf_counter()
+                out = self._track(item, camera)
+                self.log.tracking_wall_s.append((t_track, time.perf_counter()))
+            except Exception as exc:  # reported like any other thread's failure
+                self._on_fault(ThreadFault("tracking", exc, traceback.format_exc()))
+                break
+            if on_frame is not None:
+                on_frame(out)
+            bar.update(1)
+            bar.set_postfix_str(
+                f"{out.state.value} kf={self.store.n_keyframes()} mp={self.store.n_points()} "
+                f"q={self._mapping.pending()} drop={self._source.frames_dropped}",
+                refresh=False,
+            )
+
+    def _preloaded(self, dataset: Dataset) -> list[FrameData]:
+        """Every frame of the dataset, read (rendered) now; records their memory in ``log.preloaded_mb``."""
+        frames: list[FrameData] = []
+        nbytes = 0
+        for data in tqdm(dataset, total=len(dataset), unit="frame", desc="preloading", disable=not self.progress):
+            frames.append(data)
+            images = (data.image, data.color, data.depth_m, data.image_right)
+            nbytes += sum(a.nbytes for a in images if a is not None)
+        self.log.preloaded_mb = nbytes / 2**20
+        log.info("preloaded %d frames (%.0f MiB) before playback", len(frames), self.log.preloaded_mb)
+        return frames
+
+    def _lower_optimizer_process_priority(self) -> None:
+        """A worker process serving only local mapping and loop closing (GTSAM offloaded) is background work too."""
+        optimizer = self.mapper.optimizer
+        pid = getattr(optimizer, "pid", None)
+        if self.realtime and isinstance(pid, int) and optimizer is not self.tracker.optimizer:
+            lower_process_priority(pid, self.background_niceness)
 
     def _drain(self, workers: list[PipelineWorker[MappingItem] | PipelineWorker[KeyFrame]]) -> None:
         """End of the sequence: let local mapping, then loop closing, finish their queues."""

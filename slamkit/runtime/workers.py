@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 from slamkit.errors import SlamkitError
+from slamkit.runtime.priority import lower_thread_priority
 
 Item = TypeVar("Item")
 
@@ -51,6 +52,8 @@ class PipelineWorker(threading.Thread, Generic[Item]):
 
     process: called with each item and the worker's abort token (a threading.Event, cleared before each item).
     on_fault: called once, from this thread, when ``process`` raises; the worker then exits.
+    niceness: how much the thread lowers its own scheduling priority when it starts (0: not at all; see
+        slamkit/runtime/priority.py): background work yields the cores to tracking.
     """
 
     def __init__(
@@ -58,8 +61,11 @@ class PipelineWorker(threading.Thread, Generic[Item]):
         name: str,
         process: Callable[[Item, threading.Event], None],
         on_fault: Callable[[ThreadFault], None],
+        niceness: int = 0,
     ) -> None:
         super().__init__(name=name, daemon=True)
+        self.niceness = niceness
+        self.priority_lowered = False
         self._process = process
         self._on_fault = on_fault
         self._cond = threading.Condition()
@@ -172,6 +178,7 @@ class PipelineWorker(threading.Thread, Generic[Item]):
 
     def run(self) -> None:
         try:
+            self.priority_lowered = lower_thread_priority(self.niceness)
             while True:
                 go, item = self._next_item()
                 if not go:

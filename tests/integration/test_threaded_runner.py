@@ -176,3 +176,24 @@ def test_realtime_playback_drops_the_frames_tracking_is_too_busy_for() -> None:
     assert len(log.tracking) + log.frames_dropped == 150
     indices = [o.frame_index for o in log.tracking]
     assert indices == sorted(indices) and indices[-1] >= 140
+
+
+def test_preloaded_realtime_playback_holds_every_frame_in_memory_and_restores_the_interpreter() -> None:
+    """runner.preload reads every frame before the clock starts (memory reported); background threads run at a
+    lower priority; the GIL switch interval is the configured one during the run and restored after it."""
+    before = sys.getswitchinterval()
+    runner, dataset = _runner(
+        "runner.realtime=true",
+        "runner.speed=8.0",
+        "runner.preload=true",
+        "runner.background_niceness=5",
+        "runner.gil_switch_interval_ms=0.5",
+    )
+    seen_interval: list[float] = []
+    log = runner.run(dataset, dataset.camera, on_frame=lambda out: seen_interval.append(sys.getswitchinterval()))
+    assert log.preloaded_mb == pytest.approx(150 * 640 * 480 / 2**20)
+    assert len(log.tracking) + log.frames_dropped == 150
+    assert set(seen_interval) == {5e-4} and sys.getswitchinterval() == before
+    assert runner._mapping is not None and runner._mapping.niceness == 5
+    if sys.platform.startswith("linux"):
+        assert runner._mapping.priority_lowered
