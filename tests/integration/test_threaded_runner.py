@@ -191,7 +191,8 @@ def test_preloaded_realtime_playback_holds_every_frame_in_memory_and_restores_th
     )
     seen_interval: list[float] = []
     log = runner.run(dataset, dataset.camera, on_frame=lambda out: seen_interval.append(sys.getswitchinterval()))
-    assert log.preloaded_mb == pytest.approx(150 * 640 * 480 / 2**20)
+    # every frame holds its grey image (1 byte per pixel) and the synthetic depth map (float32, 4 bytes per pixel)
+    assert log.preloaded_mb == pytest.approx(150 * 640 * 480 * (1 + 4) / 2**20)
     assert len(log.tracking) + log.frames_dropped == 150
     assert set(seen_interval) == {5e-4} and sys.getswitchinterval() == before
     assert runner._mapping is not None and runner._mapping.niceness == 5
