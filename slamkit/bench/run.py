@@ -150,12 +150,24 @@ def _tracking_beside_local_ba(log: Any) -> dict[str, Any] | None:
     }
 
 
+def compose_bench_config(overrides: Sequence[str], progress: bool = True) -> Any:
+    """The composed config of one bench run; ConfigError naming the overrides when Hydra cannot compose it."""
+    from hydra.errors import HydraException
+
+    from slamkit.config import compose_config
+    from slamkit.errors import ConfigError
+
+    try:
+        return compose_config([*overrides, f"runner.progress={'true' if progress else 'false'}"])
+    except HydraException as exc:
+        raise ConfigError(f"slamkit bench: cannot compose the config for {' '.join(overrides)}: {exc}") from None
+
+
 def bench_one(overrides: Sequence[str], progress: bool = True) -> dict[str, Any]:
     """Compose the config from ``overrides``, run it, and return the bench record (``status`` ok/failed)."""
     from slamkit.app import build_runner
-    from slamkit.config import compose_config
 
-    cfg = compose_config([*overrides, f"runner.progress={'true' if progress else 'false'}"])
+    cfg = compose_bench_config(overrides, progress)
     runner, dataset = build_runner(cfg)
     gc.collect()
     sampler = RssSampler()
@@ -252,8 +264,10 @@ def add_bench_run_arguments(parser: argparse.ArgumentParser) -> None:
 def run_bench_command(args: argparse.Namespace) -> int:
     runners = [r.strip() for r in args.runners.split(",")] if args.runners else [None]
     records = []
-    for kind in runners:
-        overrides = list(args.overrides) + ([f"runner={kind}"] if kind else [])
+    plans = [list(args.overrides) + ([f"runner={kind}"] if kind else []) for kind in runners]
+    for overrides in plans:  # every config composes before anything runs: a typo must not cost the first run
+        compose_bench_config(overrides)
+    for overrides in plans:
         print(f"slamkit bench: {' '.join(overrides) or '(defaults)'}", file=sys.stderr)
         t0 = time.perf_counter()
         records.append(bench_one(overrides, progress=not args.no_progress))

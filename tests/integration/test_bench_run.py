@@ -47,3 +47,16 @@ def test_bench_reports_a_bad_override_clearly(capsys: pytest.CaptureFixture[str]
     rc = main(["bench", "--no-progress", "runner.kind=turbo", "dataset.max_frames=5"])
     assert rc == 2
     assert "runner.kind = 'turbo'" in capsys.readouterr().err
+
+
+def test_bench_composes_every_runners_config_before_running_any(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """runner.preload exists for the threaded runner only: the sequential run cannot be composed, and the bench
+    says so before spending time on the threaded run (whose figures it would otherwise lose)."""
+    out = tmp_path / "bench.json"
+    rc = main(["bench", "--no-progress", "--runners", "threaded,sequential", "--json", str(out), "runner.preload=true"])
+    assert rc == 2 and not out.exists()
+    err = capsys.readouterr().err
+    assert "cannot compose the config for runner.preload=true runner=sequential" in err
+    assert "runner.preload" in err and "Traceback" not in err
