@@ -116,7 +116,8 @@ def _rho(chi2: F64, threshold: float, gamma: float) -> tuple[F64, NDArray[np.boo
 
 def _transfer_sq(H: F64, x_from: F64, x_to: F64) -> F64:
     """H: (B, 3, 3); x_from, x_to: (M, 2) -> (B, M) squared distance between x_to and H x_from (px^2)."""
-    p = np.einsum("bij,mj->bmi", H[:, :, :2], x_from) + H[:, None, :, 2]
+    # p[b, m] = H[b] @ [x, y, 1]: written out (einsum took 4x as long here, with the same result bit for bit)
+    p = x_from[None, :, 0, None] * H[:, None, :, 0] + x_from[None, :, 1, None] * H[:, None, :, 1] + H[:, None, :, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         proj = p[..., :2] / p[..., 2:3]
     d2: F64 = np.sum((proj - x_to) ** 2, axis=-1)
@@ -149,8 +150,9 @@ def score_fundamentals(
     scored with Gamma (= T_H, so that both models are scored on the same scale).
     """
     inv_s2 = 1.0 / (sigma_px * sigma_px)
-    l2 = np.einsum("bij,mj->bmi", F21[:, :, :2], uv1) + F21[:, None, :, 2]  # epipolar lines in image 2
-    l1 = np.einsum("bji,mj->bmi", F21[:, :2, :], uv2) + F21[:, None, 2, :]  # F^T x2: lines in image 1
+    # epipolar lines in image 2 (F x1) and in image 1 (F^T x2), written out as _transfer_sq's product
+    l2 = uv1[None, :, 0, None] * F21[:, None, :, 0] + uv1[None, :, 1, None] * F21[:, None, :, 1] + F21[:, None, :, 2]
+    l1 = uv2[None, :, 0, None] * F21[:, None, 0, :] + uv2[None, :, 1, None] * F21[:, None, 1, :] + F21[:, None, 2, :]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         num2 = l2[..., 0] * uv2[:, 0] + l2[..., 1] * uv2[:, 1] + l2[..., 2]
         num1 = l1[..., 0] * uv1[:, 0] + l1[..., 1] * uv1[:, 1] + l1[..., 2]
