@@ -39,14 +39,7 @@ def lower_thread_priority(niceness: int) -> bool:
     if not sys.platform.startswith("linux") or not hasattr(os, "setpriority"):
         log.debug("thread priorities are only set on Linux; %s keeps its priority", threading.current_thread().name)
         return False
-    tid = threading.get_native_id()
-    try:
-        current = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, min(MAX_NICE, current + niceness))
-    except OSError as exc:  # e.g. a seccomp sandbox refusing setpriority: run on at the normal priority
-        log.warning("could not lower the priority of %s: %s", threading.current_thread().name, exc)
-        return False
-    return True
+    return _renice(threading.get_native_id(), niceness, threading.current_thread().name)
 
 
 def lower_process_priority(pid: int, niceness: int) -> bool:
@@ -54,11 +47,16 @@ def lower_process_priority(pid: int, niceness: int) -> bool:
     work) by ``niceness``; True if applied."""
     if niceness <= 0 or not hasattr(os, "setpriority"):
         return False
+    return _renice(pid, niceness, f"process {pid}")
+
+
+def _renice(who: int, niceness: int, label: str) -> bool:
+    """Raise the nice value of thread/process id ``who`` by ``niceness`` (capped at 19); False if refused."""
     try:
-        current = os.getpriority(os.PRIO_PROCESS, pid)
-        os.setpriority(os.PRIO_PROCESS, pid, min(MAX_NICE, current + niceness))
-    except OSError as exc:
-        log.warning("could not lower the priority of process %d: %s", pid, exc)
+        current = os.getpriority(os.PRIO_PROCESS, who)
+        os.setpriority(os.PRIO_PROCESS, who, min(MAX_NICE, current + niceness))
+    except OSError as exc:  # e.g. a seccomp sandbox refusing setpriority: run on at the normal priority
+        log.warning("could not lower the priority of %s: %s", label, exc)
         return False
     return True
 
