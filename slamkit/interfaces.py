@@ -69,6 +69,9 @@ class Dataset(Protocol):
     camera: the (left) camera. camera_right / T_l_r: the right camera of a stereo pair and the pose of the
     right camera in the left camera frame (maps right-camera points to left). T_b_c: pose of the (left)
     camera in the IMU/body frame. ground_truth: camera poses T_w_c over time, or None.
+
+    Optional: ``prepare_playback()``, which the threaded runner calls before its clock starts, for one-off
+    work that should not land on the first frames of a timed run (the synthetic world makes its textures).
     """
 
     name: str

@@ -126,6 +126,19 @@ class Tracker:
 
     # ---- public ------------------------------------------------------------------------------
 
+    def warm_up(self, camera: Camera) -> None:
+        """Run the feature extractors once on a textured image of the camera's size and throw the result away.
+
+        The first extraction loads the compiled kernels (numba's on-disk cache) and starts thread pools: 20-30
+        ms once, which a timed run should not spend on its first frame. Changes no state of the tracker."""
+        rng = np.random.default_rng(0)
+        noise = rng.integers(0, 256, size=(camera.height, camera.width), dtype=np.uint8)
+        blurred = np.asarray(cv2.GaussianBlur(noise, (0, 0), 2.0), dtype=np.float64)
+        # stretched back to 0..255: blurring leaves little contrast, and FAST must find corners
+        image = np.clip((blurred - blurred.mean()) * 8.0 + 128.0, 0, 255).astype(np.uint8)
+        for extractor in {id(e): e for e in (self.init_extractor, self.extractor)}.values():
+            extractor.extract(image, camera)
+
     def step(self, data: FrameData, camera: Camera, mapping_idle: bool = True) -> TrackingOutcome:
         """Track one frame. camera: the dataset's (left) camera."""
         t0 = time.perf_counter()

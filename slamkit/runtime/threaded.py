@@ -219,6 +219,7 @@ class ThreadedRunner:
         Raises PipelineThreadError when a pipeline thread failed; KeyboardInterrupt passes through after the
         threads stopped.
         """
+        self._prepare(dataset, camera)
         frames: Iterable[FrameData] = self._preloaded(dataset) if self.preload else dataset
         start = time.perf_counter()
         self._source = FrameSource(frames, self.realtime, self._on_fault, self.speed)
@@ -281,6 +282,16 @@ class ThreadedRunner:
                 f"q={self._mapping.pending()} drop={self._source.frames_dropped}",
                 refresh=False,
             )
+
+    def _prepare(self, dataset: Dataset, camera: Camera) -> None:
+        """One-off work before the clock starts: the dataset's own preparation (the synthetic world's textures)
+        and a throw-away feature extraction that loads the compiled kernels."""
+        t0 = time.perf_counter()
+        prepare = getattr(dataset, "prepare_playback", None)
+        if callable(prepare):
+            prepare()
+        self.tracker.warm_up(camera)
+        log.info("prepared playback in %.2f s", time.perf_counter() - t0)
 
     def _preloaded(self, dataset: Dataset) -> list[FrameData]:
         """Every frame of the dataset, read (rendered) now; records their memory in ``log.preloaded_mb``."""

@@ -198,3 +198,48 @@ def test_preloaded_realtime_playback_holds_every_frame_in_memory_and_restores_th
     assert runner._mapping is not None and runner._mapping.niceness == 5
     if sys.platform.startswith("linux"):
         assert runner._mapping.priority_lowered
+
+
+class _RecordedPlayback:
+    """A dataset that records when it is prepared and when its frames start to be read."""
+
+    def __init__(self, dataset: Any, events: list[str]) -> None:
+        self.dataset, self.events = dataset, events
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.dataset, name)
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def prepare_playback(self) -> None:
+        self.events.append("prepare")
+        self.dataset.prepare_playback()
+
+    def __iter__(self):  # type: ignore[no-untyped-def]
+        self.events.append("iter")
+        return iter(self.dataset)
+
+
+def test_the_runner_prepares_the_dataset_and_warms_up_before_the_first_frame() -> None:
+    """One-off costs (the synthetic world's textures, loading the compiled extraction kernels) are paid before
+    the clock starts, and the warm-up leaves tracking where it was."""
+    runner, dataset = _runner("runner.realtime=true", "runner.speed=8.0", "dataset.max_frames=30")
+    events: list[str] = []
+    real_warm_up = runner.tracker.warm_up
+
+    def warm_up(camera: Any) -> None:
+        events.append(f"warm up ({runner.tracker.state.value})")
+        real_warm_up(camera)
+
+    runner.tracker.warm_up = warm_up  # type: ignore[method-assign]
+    log = runner.run(_RecordedPlayback(dataset, events), dataset.camera)
+    assert events == ["prepare", "warm up (not_initialized)", "iter"]
+    assert len(log.tracking) + log.frames_dropped == 30
+
+
+def test_warm_up_leaves_the_tracker_untouched() -> None:
+    runner, dataset = _runner()
+    runner.tracker.warm_up(dataset.camera)
+    assert runner.tracker.state.value == "not_initialized" and runner.tracker.init.reference is None
+    assert runner.store.n_keyframes() == 0 and runner.store.n_points() == 0

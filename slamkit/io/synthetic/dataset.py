@@ -187,6 +187,14 @@ class SyntheticDataset(SequenceDataset):
         self.renderer = PlaneRenderer(world, TextureBank(self.seed, MIP_LEVELS), self.camera.K, width, height)
         self._setup_selection(skip, max_frames)
 
+    def prepare_playback(self) -> None:
+        """Build the whole world now (every texture), so that playing the sequence costs rendering only.
+
+        The threaded runner calls this before its clock starts: the world exists before the camera looks at it,
+        and a real-time run should not pay for generating a wall's texture the first time the wall comes into
+        view (up to half a second of one core, which a live camera never costs)."""
+        self.renderer.prepare_textures(grey=True, color=self.color)
+
     def _n_raw(self) -> int:
         return int(self.frame_times_s.shape[0])
 

@@ -187,6 +187,13 @@ class PlaneRenderer:
         self.width, self.height = int(width), int(height)
         self.planes = prepare_planes(scene)
 
+    def prepare_textures(self, grey: bool = True, color: bool = False) -> None:
+        """Generate every plane's texture pyramids now (else each is made the first time its plane shows:
+        0.9 s for the room's 35 planes, 2.8 s for long_loop's 116, in bursts during playback)."""
+        for rp in self.planes:
+            for colour in [c for c, wanted in ((False, grey), (True, color)) if wanted]:
+                self.bank.get(rp.plane.texture, rp.width_px, rp.height_px, rp.texels_per_m, colour)
+
     def _visible(self, T_c_w: F64) -> list[tuple[RenderPlane, F64, F64]]:
         """(plane, clipped polygon in camera frame (M, 3), its pixels (M, 2)) of planes that may show."""
         R, t = T_c_w[:3, :3], T_c_w[:3, 3]

@@ -155,3 +155,32 @@ def test_writer_excludes_readers_and_is_not_starved() -> None:
 def test_bad_config_is_named() -> None:
     with pytest.raises(ConfigError, match=r"map\.covisibility_min_shared"):
         InMemoryMapStore(covisibility_min_shared=0)
+
+
+def test_reader_waiting_goes_in_between_a_writers_back_to_back_writes() -> None:
+    """Local mapping writes in a series of short phases; tracking's read must not wait for the whole series."""
+    lock = ReadWriteLock()
+    events: list[str] = []
+    writer_in = threading.Event()
+
+    def writer() -> None:
+        for i in range(20):
+            with lock.write():
+                events.append(f"w{i}")
+                writer_in.set()
+                time.sleep(0.002)
+
+    def reader() -> None:
+        with lock.read():
+            events.append("r")
+
+    t1 = threading.Thread(target=writer)
+    t1.start()
+    writer_in.wait(timeout=5)
+    t2 = threading.Thread(target=reader)
+    t2.start()
+    for t in (t1, t2):
+        t.join(timeout=5)
+    assert not t1.is_alive() and not t2.is_alive()
+    # the reader arrived during write phase 0 (or 1): it is let in right after that phase
+    assert events.index("r") <= 3, events

@@ -142,3 +142,20 @@ def test_config_node_instantiates_with_the_top_level_seed() -> None:
     assert isinstance(ds, SyntheticDataset)
     assert ds.seed == 11 and ds.scene.name == "planar" and len(ds) == 870 - 2
     np.testing.assert_array_equal(ds.T_b_c, np.eye(4))
+
+
+def test_prepare_playback_builds_every_texture_up_front_and_changes_no_pixel() -> None:
+    """Before a timed run the world is built whole: playing it then generates no texture, and the frames are the
+    ones lazy generation gives."""
+    lazy = SyntheticDataset(scene="planar", color=True, max_frames=40)
+    prepared = SyntheticDataset(scene="planar", color=True, max_frames=40)
+    prepared.prepare_playback()
+    bank = prepared.renderer.bank
+    n_planes = len(prepared.renderer.planes)
+    assert len(bank._pyramids) == 2 * len(
+        {(p.plane.texture, p.width_px, p.height_px) for p in prepared.renderer.planes}
+    )
+    before = dict(bank._pyramids)
+    for i in (0, 20, 39):
+        assert _frames_equal(lazy, prepared, i)
+    assert bank._pyramids == before and n_planes > 0  # nothing generated while playing
