@@ -147,7 +147,8 @@ class GridFast:
         lo = self.edge_threshold - FAST_RADIUS
         return lo, lo, width - lo, height - lo
 
-    def _grid(self, x0: int, y0: int, x1: int, y1: int) -> _Grid:
+    def cells(self, x0: int, y0: int, x1: int, y1: int) -> _Grid:
+        """The grid of cells over the distribution area (x0, y0, x1, y1) (see ``region``)."""
         # ORB-SLAM's grid: nCols = floor(width / W) cells of ceil(width / nCols) px (at least one cell, where
         # ORB-SLAM would divide by zero on a level narrower than W); cell (i, j) detects in
         # [edge + j * wCell, edge + (j + 1) * wCell) horizontally, likewise vertically.
@@ -170,7 +171,7 @@ class GridFast:
         region = (x0, y0, x1, y1)
         if x1 - x0 <= 2 * FAST_RADIUS or y1 - y0 <= 2 * FAST_RADIUS:
             return LevelCorners(np.zeros((0, 2), np.int32), np.zeros(0, np.float32), region, 1.0)
-        grid = self._grid(x0, y0, x1, y1)
+        grid = self.cells(x0, y0, x1, y1)
         n_cells = grid.n_rows * grid.n_cols
         if strategy == "auto":
             sparse = self.backend == "opencv" and weak_hint <= SPARSE_WEAK_SHARE

@@ -10,12 +10,18 @@ Descriptors come from ``cv2.ORB.compute`` on our keypoints. With provided keypoi
 from level to level, float32 sizes), blurs each level with a 7x7 Gaussian of sigma 2 (BORDER_REFLECT_101),
 and samples its learned 256-pair pattern (``bit_pattern_31_``, the one ORB-SLAM uses) rotated by the
 keypoint's ``angle`` around round(pt / scale_factor ** octave) on level ``octave``: exactly ORB-SLAM's
-``computeDescriptors``. We hand OpenCV each level image with its keypoints at octave 0, which is the same
-computation without rebuilding the pyramid per call; tests/unit/orb/test_descriptors.py checks that the
-bits equal OpenCV's own multi-level computation and that they are invariant to a 90 deg rotation.
+``computeDescriptors``. All levels' keypoints go to one ``compute`` call on the full image, each at octave =
+its level; tests/unit/orb/test_descriptors.py checks that the bits are OpenCV's multi-level computation and
+that they are invariant to a 90 deg rotation.
 
-The levels are independent, so they are processed by ``n_threads`` worker threads (OpenCV and the numba
+The levels are independent, so their keypoints are found by ``n_threads`` worker threads (OpenCV and the numba
 kernels release the GIL); the output is assembled in level order and does not depend on the thread count.
+
+The GIL: each call into OpenCV or a compiled kernel releases it and takes it back, and taking it back waits up
+to a switch interval whenever another thread is running Python (local mapping, in the threaded runner). With
+one such release per keypoint (a ``cv2.KeyPoint`` constructor), per level and per numpy step, extraction took
+39 ms instead of 5 beside a thread running Python; with the compiled level kernel (level_kernel.py) and one
+descriptor call per image, 12 ms (``python benchmarks/extraction_gil.py``).
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from slamkit.errors import CalibrationError, ConfigError
 from slamkit.features import Features
 from slamkit.interfaces import Camera
 from slamkit_orb.grid_fast import FAST_BACKENDS, FAST_RADIUS, FastBackend, GridFast
+from slamkit_orb.level_kernel import level_keypoints
 from slamkit_orb.orientation import circular_patch_extent, intensity_centroid_angles
 from slamkit_orb.pyramid import build_pyramid, features_per_level, level_scales, level_sizes
 from slamkit_orb.quadtree import distribute_quadtree
@@ -58,11 +65,12 @@ class LevelKeypoints:
 
 @dataclass(frozen=True)
 class _LevelResult:
+    """One level's oriented keypoints (descriptors come after, for all levels at once)."""
+
     level: int
     xy: NDArray[np.int32]
     response: NDArray[np.float32]
     angle_deg: NDArray[np.float32]
-    descriptors: NDArray[np.uint8]
 
 
 def _int_param(value: object, key: str, low: int, high: int | None = None) -> int:
@@ -179,8 +187,13 @@ class OrbSlamExtractor:
         return np.ascontiguousarray(image)
 
     def _level(self, level: int, level_image: NDArray[np.uint8]) -> _LevelResult | None:
-        """Corners, quadtree selection, orientation and descriptors of one level (runs in a worker thread:
-        OpenCV and the numba kernels release the GIL)."""
+        """Corners, quadtree selection and orientation of one level (runs in a worker thread: OpenCV and the
+        numba kernels release the GIL)."""
+        if self.fast_backend == "compiled":  # the same steps in one GIL-free call (level_kernel.py)
+            xy, response, angle, self._weak_hint[level] = level_keypoints(
+                self._grid, level_image, int(self.level_budget[level]), self._u_max
+            )
+            return _LevelResult(level, xy, response, angle) if response.size else None
         # FAST strategy from the share of weak cells this level had last frame (any strategy gives the same
         # corners; this only picks the faster, see grid_fast.py).
         corners = self._grid.detect(level_image, "auto", float(self._weak_hint[level]))
@@ -197,36 +210,29 @@ class OrbSlamExtractor:
             int(self.level_budget[level]),
         )
         xy = np.ascontiguousarray(corners.xy[keep])
-        response = corners.response[keep]
-        angle = intensity_centroid_angles(level_image, xy, self._u_max)
-        descriptors, has = self._describe_level(level_image, xy, angle, response, level)
-        return _LevelResult(level, xy[has], response[has], angle[has], descriptors)
+        return _LevelResult(level, xy, corners.response[keep], intensity_centroid_angles(level_image, xy, self._u_max))
 
-    def _describe_level(
-        self,
-        level_image: NDArray[np.uint8],
-        xy: NDArray[np.int32],
-        angle: NDArray[np.float32],
-        response: NDArray[np.float32],
-        level: int,
+    def _describe(
+        self, image: NDArray[np.uint8], xy: NDArray[np.int32], level: NDArray[np.int32], angle: NDArray[np.float32]
     ) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
-        """(n, 32) uint8 rBRIEF descriptors of one level's keypoints and the indices that got one.
+        """(n, 32) uint8 rBRIEF descriptors of all keypoints and the indices that got one.
 
-        OpenCV's ORB.compute is given the level image itself with the keypoints at octave 0: it blurs that
-        image (7x7, sigma 2) and samples the rotated pattern around each keypoint. Because our level image is
-        the one OpenCV's own pyramid holds at this level (pyramid.py), this equals computing on the full image
-        with octave = level, without rebuilding and blurring the whole pyramid for every level
-        (tests/unit/orb/test_descriptors.py checks the equality). Keypoints lie >= edge_threshold px inside
-        the level, so OpenCV's border filter keeps them all; class_id carries the index regardless.
+        One ``ORB.compute`` on the full image with each keypoint at octave = its level and at its level
+        position times the level's scale: OpenCV builds the same pyramid as pyramid.py, blurs each level (7x7,
+        sigma 2) and samples the rotated pattern around round(pt / scale ** octave) = the level position
+        (tests/unit/orb/test_descriptors.py). All the KeyPoints come from one binding call and get their angle,
+        octave and index as attributes: every cv2 call (a KeyPoint constructor too) releases and re-takes the
+        GIL, which costs up to a switch interval each while another thread runs Python, and one call per
+        keypoint or per level made extraction several times slower beside local mapping. Keypoints lie >=
+        edge_threshold px inside their level, so OpenCV's border filter keeps them all; class_id maps back.
         """
-        size = float(self.patch_size * self.level_scale[level])
-        keypoints = [
-            cv2.KeyPoint(float(u), float(v), size, float(a), float(r), 0, i)
-            for i, (u, v, a, r) in enumerate(
-                zip(xy[:, 0].tolist(), xy[:, 1].tolist(), angle.tolist(), response.tolist(), strict=True)
-            )
-        ]
-        out_keypoints, descriptors = self._descriptor().compute(level_image, keypoints)
+        uv = xy.astype(np.float32) * self.level_scale[level][:, None]
+        keypoints = cv2.KeyPoint.convert(uv, float(self.patch_size), 0.0, 0, 0)  # type: ignore[call-overload]  # stubs: no ndarray
+        for i, (keypoint, a, o) in enumerate(zip(keypoints, angle.tolist(), level.tolist(), strict=True)):
+            keypoint.angle = a
+            keypoint.octave = o
+            keypoint.class_id = i
+        out_keypoints, descriptors = self._descriptor().compute(image, keypoints)
         if descriptors is None or len(out_keypoints) == 0:
             return np.zeros((0, _DESCRIPTOR_BYTES), np.uint8), np.zeros(0, np.int64)
         index = np.fromiter((kp.class_id for kp in out_keypoints), dtype=np.int64, count=len(out_keypoints))
@@ -261,13 +267,12 @@ class OrbSlamExtractor:
                 np.zeros(0, np.float32),
                 np.zeros((0, _DESCRIPTOR_BYTES), np.uint8),
             )
-        return LevelKeypoints(
-            np.concatenate([r.xy for r in found]),
-            np.concatenate([np.full(r.xy.shape[0], r.level, dtype=np.int32) for r in found]),
-            np.concatenate([r.response for r in found]),
-            np.concatenate([r.angle_deg for r in found]),
-            np.concatenate([r.descriptors for r in found]),
-        )
+        xy = np.concatenate([r.xy for r in found])
+        level = np.concatenate([np.full(r.xy.shape[0], r.level, dtype=np.int32) for r in found])
+        angle = np.concatenate([r.angle_deg for r in found])
+        descriptors, has = self._describe(image, xy, level, angle)
+        response = np.concatenate([r.response for r in found])
+        return LevelKeypoints(xy[has], level[has], response[has], angle[has], descriptors)
 
     def extract(self, image: NDArray[np.uint8], camera: Camera | None = None) -> Features:
         """image: (H, W) uint8 grey -> Features.

@@ -1,0 +1,119 @@
+"""One pyramid level's keypoints in a single compiled call: FAST, ORB-SLAM's cell selection, the quadtree and
+the orientation, without the GIL.
+
+The same steps as the extractor's Python path (grid_fast.GridFast.detect with the "whole" strategy, then
+quadtree.distribute_quadtree and orientation.intensity_centroid_angles), with the glue between them compiled
+too: the result is identical (tests/unit/orb/test_level_kernel.py), the difference is how often the thread
+gives up and takes back the GIL. The Python path releases it at every kernel call and at every numpy operation
+on a large array, about 140 times per 640x480 frame; while another thread runs Python code (local mapping),
+each of those takes up to a GIL switch interval to come back, and a 6 ms extraction took 34 ms beside a thread
+that only ran Python (benchmarks/extraction_gil.py). Here a level costs one release for these steps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from slamkit_orb.fast9 import FAST_RADIUS, _fast9
+from slamkit_orb.grid_fast import GridFast
+from slamkit_orb.orientation import intensity_centroid_angles
+from slamkit_orb.quadtree import distribute_quadtree
+
+_MIN_SIDE = 2 * FAST_RADIUS + 1
+
+
+@njit(cache=True, nogil=True)
+def _level_keypoints(  # pragma: no cover - compiled
+    image: NDArray[np.uint8],
+    min_threshold: int,
+    ini_threshold: int,
+    x0: int,
+    y0: int,
+    x1: int,
+    y1: int,
+    edge: int,
+    n_cols: int,
+    n_rows: int,
+    w_cell: int,
+    h_cell: int,
+    budget: int,
+    u_max: NDArray[np.int64],
+) -> tuple[NDArray[np.int32], NDArray[np.float32], NDArray[np.float32], float]:
+    """-> xy (K, 2) int32 level px, response (K,) float32, angle (K,) float32 degrees, weak_share."""
+    xy_all, response_all = _fast9(image, min_threshold, x0, y0, x1, y1)
+    n = xy_all.shape[0]
+    n_cells = n_rows * n_cols
+    cell = np.empty(n, np.int64)
+    has_strong = np.zeros(n_cells, np.bool_)
+    for i in range(n):
+        col = (np.int64(xy_all[i, 0]) - edge) // w_cell
+        row = (np.int64(xy_all[i, 1]) - edge) // h_cell
+        cell[i] = row * n_cols + col
+        if response_all[i] >= ini_threshold:
+            has_strong[cell[i]] = True
+    n_keep = 0
+    keep = np.empty(n, np.int64)
+    for i in range(n):
+        if response_all[i] >= ini_threshold or not has_strong[cell[i]]:
+            keep[n_keep] = i
+            n_keep += 1
+    n_strong_cells = 0
+    for c in range(n_cells):
+        n_strong_cells += has_strong[c]
+    weak_share = 1.0 - n_strong_cells / n_cells
+    xs = np.empty(n_keep, np.float64)
+    ys = np.empty(n_keep, np.float64)
+    response = np.empty(n_keep, np.float32)
+    for k in range(n_keep):
+        i = keep[k]
+        xs[k] = xy_all[i, 0] - x0
+        ys[k] = xy_all[i, 1] - y0
+        response[k] = response_all[i]
+    chosen = distribute_quadtree(xs, ys, response, x1 - x0, y1 - y0, budget)
+    m = chosen.shape[0]
+    xy = np.empty((m, 2), np.int32)
+    out_response = np.empty(m, np.float32)
+    for k in range(m):
+        i = keep[chosen[k]]
+        xy[k, 0] = xy_all[i, 0]
+        xy[k, 1] = xy_all[i, 1]
+        out_response[k] = response_all[i]
+    angle = intensity_centroid_angles(image, xy, u_max)
+    return xy, out_response, angle, weak_share
+
+
+def level_keypoints(
+    grid: GridFast, level_image: NDArray[np.uint8], budget: int, u_max: NDArray[np.int64]
+) -> tuple[NDArray[np.int32], NDArray[np.float32], NDArray[np.float32], float]:
+    """The keypoints ORB-SLAM keeps on one level, oriented.
+
+    grid: the level's FAST grid (thresholds, cells, border); level_image: (h, w) uint8; budget: the level's
+    share of the features; u_max: the orientation patch (orientation.circular_patch_extent). Returns xy (K, 2)
+    int32 level px in ascending corner order, response (K,) float32 FAST scores, angle (K,) float32 degrees in
+    [0, 360), and the share of grid cells without a corner at the initial threshold (1.0 when the level is too
+    small for FAST). Equals GridFast.detect(..., "whole") -> distribute_quadtree -> intensity_centroid_angles.
+    """
+    image = np.ascontiguousarray(level_image)
+    h, w = image.shape
+    x0, y0, x1, y1 = grid.region(w, h)
+    if x1 - x0 <= 2 * FAST_RADIUS or y1 - y0 <= 2 * FAST_RADIUS or x1 - x0 < _MIN_SIDE or y1 - y0 < _MIN_SIDE:
+        return np.zeros((0, 2), np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32), 1.0
+    cells = grid.cells(x0, y0, x1, y1)
+    return _level_keypoints(
+        image,
+        grid.min_threshold,
+        grid.ini_threshold,
+        x0,
+        y0,
+        x1,
+        y1,
+        cells.edge,
+        cells.n_cols,
+        cells.n_rows,
+        cells.w_cell,
+        cells.h_cell,
+        int(budget),
+        u_max,
+    )

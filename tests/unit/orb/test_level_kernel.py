@@ -1,0 +1,88 @@
+"""The compiled level kernel gives exactly what the Python path gives: GridFast's "whole" selection, the quadtree
+and the orientation, level by level; and the extractor's output does not depend on the FAST backend."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+from slamkit_orb.grid_fast import GridFast
+from slamkit_orb.level_kernel import level_keypoints
+from slamkit_orb.orbslam_extractor import OrbSlamExtractor
+from slamkit_orb.orientation import circular_patch_extent, intensity_centroid_angles
+from slamkit_orb.pyramid import build_pyramid, features_per_level, level_sizes
+from slamkit_orb.quadtree import distribute_quadtree
+
+U8 = NDArray[np.uint8]
+U_MAX = circular_patch_extent(15)
+
+
+def _python_path(
+    grid: GridFast, image: U8, budget: int
+) -> tuple[NDArray[np.int32], NDArray[np.float32], NDArray[np.float32], float]:
+    corners = grid.detect(image, "whole")
+    if corners.response.size == 0:
+        return np.zeros((0, 2), np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32), corners.weak_share
+    x0, y0, x1, y1 = corners.region
+    keep = distribute_quadtree(
+        (corners.xy[:, 0] - x0).astype(np.float64),
+        (corners.xy[:, 1] - y0).astype(np.float64),
+        corners.response,
+        x1 - x0,
+        y1 - y0,
+        budget,
+    )
+    xy = np.ascontiguousarray(corners.xy[keep])
+    return xy, corners.response[keep], intensity_centroid_angles(image, xy, U_MAX), corners.weak_share
+
+
+def _room_frames() -> list[U8]:
+    from slamkit.io.synthetic import SyntheticDataset
+
+    dataset = SyntheticDataset(scene="room", depth=False, imu=False)
+    return [np.asarray(dataset[i].image, np.uint8) for i in (0, 400)]
+
+
+def _low_contrast(seed: int) -> U8:
+    """Mostly flat with faint blobs: many weak cells, so the fallback threshold matters."""
+    rng = np.random.default_rng(seed)
+    image = np.full((480, 640), 120, np.uint8)
+    for _ in range(60):
+        x, y, r = int(rng.integers(20, 620)), int(rng.integers(20, 460)), int(rng.integers(3, 12))
+        cv2.circle(image, (x, y), r, int(rng.choice([108, 132, 160])), -1)
+    return image
+
+
+@pytest.mark.parametrize("budget_scale", [1.0, 0.1])
+def test_every_level_equals_the_python_path(budget_scale: float) -> None:
+    grid = GridFast(19, 30, 20, 7)
+    images = [*_room_frames(), _low_contrast(3)]
+    for image in images:
+        h, w = image.shape
+        budgets = features_per_level(max(1, int(1000 * budget_scale)), 1.2, 8)
+        for level, level_image in enumerate(build_pyramid(image, level_sizes(w, h, 1.2, 8))):
+            got = level_keypoints(grid, level_image, int(budgets[level]), U_MAX)
+            want = _python_path(grid, level_image, int(budgets[level]))
+            for a, b in zip(got[:3], want[:3], strict=True):
+                np.testing.assert_array_equal(a, b)
+            assert got[3] == pytest.approx(want[3], abs=1e-12)
+            assert got[0].shape[0] <= budgets[level]
+
+
+@pytest.mark.parametrize("shape", [(40, 40), (10, 300), (480, 640)])
+def test_small_and_blank_levels_give_nothing(shape: tuple[int, int]) -> None:
+    xy, response, angle, weak = level_keypoints(GridFast(19, 30, 20, 7), np.zeros(shape, np.uint8), 100, U_MAX)
+    assert xy.shape == (0, 2) and response.size == 0 and angle.size == 0 and weak == 1.0
+
+
+def test_extractor_output_does_not_depend_on_the_fast_backend(shared_datasets: Path) -> None:
+    kitti = cv2.imread(str(shared_datasets / "kitti" / "sequences" / "07" / "image_0" / "000000.png"), 0)
+    for image, n in [(_room_frames()[1], 1000), (np.asarray(kitti, np.uint8), 2000), (_low_contrast(5), 1000)]:
+        a = OrbSlamExtractor(n_features=n, fast_backend="compiled").extract(image)
+        b = OrbSlamExtractor(n_features=n, fast_backend="opencv").extract(image)
+        assert len(a) > 0
+        for field in ("uv_px", "level", "angle_deg", "response", "descriptors"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
