@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
+
+from slamkit.map.point_table import SYNCED_ATTRIBUTES
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,3 +29,18 @@ def shared_datasets() -> Path:
     if path is None:
         pytest.skip("../shared/datasets is not beside this checkout (real-data test skipped)")
     return path
+
+
+def _assert_point_table_matches_points(store: Any) -> None:
+    """Every point in the map reads back from the store's point table exactly as from the object."""
+    ids = np.array(store.point_ids(), np.int64)
+    assert ids.size > 0
+    for name, _, _ in SYNCED_ATTRIBUTES:
+        from_objects = np.array([getattr(store.get_point(int(p)), name) for p in ids])
+        np.testing.assert_array_equal(store.point_rows(ids, name), from_objects, err_msg=name)
+
+
+@pytest.fixture
+def assert_point_table_matches_points() -> Callable[[Any], None]:
+    """assert_point_table_matches_points(store): the point table tracking gathers from equals the points."""
+    return _assert_point_table_matches_points

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from slamkit.features import Features
 from slamkit.interfaces import BowDescription, Camera
+from slamkit.map.point_table import SYNCED_ATTRIBUTES
 
 F64 = NDArray[np.float64]
 
@@ -80,3 +81,32 @@ class MapPoint:
 
     def found_ratio(self) -> float:
         return self.n_found / max(self.n_visible, 1)
+
+    def __getstate__(self) -> dict[str, object]:
+        state = dict(self.__dict__)
+        state.pop("_table", None)  # a copy (pickle, deepcopy) belongs to no store
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+
+
+def _synced_attribute(name: str) -> property:
+    """A MapPoint attribute that, once the point is in a store, writes every new value through to the store's
+    PointTable (slamkit/map/point_table.py), from which tracking gathers thousands of points per frame."""
+    slot = "_" + name
+
+    def get(self: MapPoint) -> object:
+        return self.__dict__[slot]
+
+    def put(self: MapPoint, value: object) -> None:
+        self.__dict__[slot] = value
+        table = self.__dict__.get("_table")
+        if table is not None:
+            table.set(self.id, name, value)
+
+    return property(get, put, doc=f"MapPoint.{name} (mirrored in the store's point table)")
+
+
+for _name, _width, _dtype in SYNCED_ATTRIBUTES:
+    setattr(MapPoint, _name, _synced_attribute(_name))

@@ -4,11 +4,16 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from contextlib import AbstractContextManager
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.graphs import CovisibilityGraph, SpanningTree, essential_graph_edges
 from slamkit.map.lock import ReadWriteLock
+from slamkit.map.point_table import SYNCED_ATTRIBUTES, PointTable
 
 
 class InMemoryMapStore:
@@ -28,6 +33,7 @@ class InMemoryMapStore:
         self._lock = ReadWriteLock()
         self._keyframes: dict[int, KeyFrame] = {}
         self._points: dict[int, MapPoint] = {}
+        self._table = PointTable()  # the points' geometry as arrays by id (tracking's gathers)
         self._next_kf_id = 0
         self._next_point_id = 0
         self._epoch = 0
@@ -111,14 +117,27 @@ class InMemoryMapStore:
         if self._origin is not None and keyframe.id < self._origin:
             self._origin = keyframe.id
 
+    def point_rows(self, point_ids: NDArray[np.int64], attribute: str) -> NDArray[Any]:
+        """(K, ...) array of one attribute of K points that are all in the map: "xyz_w" (K, 3) m, "normal_w"
+        (K, 3), "d_min_m" / "d_max_m" (K,) m, "descriptor" (K, B) uint8. One indexing of the point table, which
+        every change of those attributes reaches (see slamkit/map/point_table.py)."""
+        return self._table.rows(np.asarray(point_ids, np.int64), attribute)
+
     def add_point(self, point: MapPoint) -> None:
         if point.id in self._points:
             raise ValueError(f"map point {point.id} is already in the map")
+        self._table.put(point.id, {name: getattr(point, name) for name, _, _ in SYNCED_ATTRIBUTES})
+        point.__dict__["_table"] = self._table  # from now on its attribute writes reach the table
         self._points[point.id] = point
+
+    def _forget_point(self, point_id: int) -> MapPoint:
+        point = self._points.pop(point_id)
+        point.__dict__.pop("_table", None)
+        return point
 
     def remove_point(self, point_id: int) -> None:
         """Erase a point and its observations from every keyframe that saw it."""
-        point = self._points.pop(point_id)
+        point = self._forget_point(point_id)
         for kf_id, idx in point.observations.items():
             kf = self._keyframes.get(kf_id)
             if kf is not None and kf.point_ids[idx] == point_id:
@@ -138,7 +157,7 @@ class InMemoryMapStore:
                 continue
             point.observations.pop(keyframe_id, None)
             if not point.observations:
-                del self._points[int(pid)]
+                self._forget_point(int(pid))
             elif point.ref_kf_id == keyframe_id:
                 point.ref_kf_id = min(point.observations)
             kf.point_ids[idx] = -1

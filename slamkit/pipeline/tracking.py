@@ -16,8 +16,6 @@ from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from enum import StrEnum
 from itertools import chain
-from operator import attrgetter
-from typing import Any
 
 import cv2
 import numpy as np
@@ -325,7 +323,7 @@ class Tracker:
         frame.outlier[:] = False
         if idx.size < 3:
             return 0
-        xyz = _rows(self._points(frame.point_ids[idx]), "xyz_w", 3, np.float64)
+        xyz = self.store.point_rows(frame.point_ids[idx], "xyz_w")
         feats = frame.features
         problem = PoseOnlyProblem(
             T_c_w_init=T_init,
@@ -361,9 +359,8 @@ class Tracker:
         if valid.size == 0:
             return False
         pids = last.point_ids[valid]
-        points = self._points(pids)
-        xyz = _rows(points, "xyz_w", 3, np.float64)
-        desc = _rows(points, "descriptor", frame.features.descriptors.shape[1], np.uint8)
+        xyz = self.store.point_rows(pids, "xyz_w")
+        desc = self.store.point_rows(pids, "descriptor")
         uv, z = project_pinhole(T_pred, xyz, frame.camera.K)
         inside = (z > 0) & np.all(np.isfinite(uv), axis=1)
         inside &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
@@ -494,30 +491,30 @@ class Tracker:
         feats = frame.features
         K = frame.camera.K
         assert frame.T_c_w is not None
-        points = self._points(candidates)
-        xyz = _rows(points, "xyz_w", 3, np.float64)
+        store = self.store
+        xyz = store.point_rows(candidates, "xyz_w")
         uv, z = project_pinhole(frame.T_c_w, xyz, K)
         in_image = (z > 0) & np.all(np.isfinite(uv), axis=1)
         in_image &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
         s = np.flatnonzero(in_image)
         if s.size == 0:
             return
-        near = [points[i] for i in s]
+        near = candidates[s]
         test = frustum_test(
             frame.T_c_w,
             K,
             frame.bounds,
             xyz[s],
-            _rows(near, "normal_w", 3, np.float64),
-            _scalars(near, "d_min_m"),
-            _scalars(near, "d_max_m"),
+            store.point_rows(near, "normal_w"),
+            store.point_rows(near, "d_min_m"),
+            store.point_rows(near, "d_max_m"),
             cfg.local_map_min_view_cos,
             feats.scale_factor,
             feats.n_levels,
         )
         v = np.flatnonzero(test.visible)
-        visible = [near[i] for i in v]
-        for point in visible:
+        visible = near[v]
+        for point in self._points(visible):
             point.n_visible += 1
         recent = frame.index < self.last_reloc_frame_index + 2
         th = cfg.local_map_search_radius_relocalized_px if recent else cfg.local_map_search_radius_px
@@ -528,7 +525,7 @@ class Tracker:
             frame.point_ids >= 0,
             frame.bounds,
             test.uv_px[v],
-            _rows(visible, "descriptor", feats.descriptors.shape[1], np.uint8),
+            store.point_rows(visible, "descriptor"),
             radius,
             level - 1,
             level,
@@ -664,16 +661,3 @@ class Tracker:
         )
         frame.point_ids[m.feature] = np.array(pids, np.int64)[q[m.query]]
         return len(m)
-
-
-def _rows(points: list[MapPoint], attribute: str, width: int, dtype: type) -> NDArray[Any]:
-    """(K, width) array of one vector attribute of K map points (one concatenation, no per-row stacking)."""
-    if not points:
-        return np.zeros((0, width), dtype)
-    flat = np.concatenate(list(map(attrgetter(attribute), points)))
-    return flat.astype(dtype, copy=False).reshape(len(points), width)
-
-
-def _scalars(points: list[MapPoint], attribute: str) -> F64:
-    """(K,) float64 of one scalar attribute of K map points."""
-    return np.fromiter(map(attrgetter(attribute), points), np.float64, len(points))

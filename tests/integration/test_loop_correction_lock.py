@@ -4,6 +4,7 @@ OptimizeEssentialGraph locks the map only to write its result), so tracking goes
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -43,7 +44,9 @@ class _ReadabilityProbe:
         return result
 
 
-def test_the_map_stays_readable_while_the_essential_graph_is_optimized() -> None:
+def test_the_map_stays_readable_while_the_essential_graph_is_optimized(
+    assert_point_table_matches_points: Callable[[Any], None],
+) -> None:
     cfg = compose_config(["runner=sequential", "runner.progress=false", "dataset.depth=false"])
     runner, dataset = build_runner(cfg)
     assert isinstance(runner, SequentialRunner) and runner.loop_closer is not None
@@ -57,3 +60,6 @@ def test_the_map_stays_readable_while_the_essential_graph_is_optimized() -> None
     assert probe.readable_during_eg == [True]
     # the batched point moves keep the corrected map as accurate as before (room: ~0.1% of the 13.4 m path)
     assert metrics["kf_ate_rmse_pct_of_path"] < 0.3
+    # every change the run made to a point's geometry (BA, fusion, refresh, the loop correction's moves) reached
+    # the point table tracking gathers from
+    assert_point_table_matches_points(runner.store)

@@ -257,10 +257,22 @@ def long_loop_scene() -> Scene:
     planes = corridor_ring("ring", (12.0, 7.0), 2.6, 3.0)
     # crates along the outer walls: depth structure, so the two-view geometry is not one plane
     # (x, y, depth from the wall, height): a storage area by the start on the south wall, then single crates
-    crates = [(1.2, -7.0, 0.9, 1.6), (2.4, -7.0, 0.5, 0.9), (3.5, -7.0, 1.1, 1.2), (4.7, -7.0, 0.6, 2.0),
-              (5.9, -7.0, 0.8, 1.0), (-8.0, -7.0, 0.7, 0.8), (-3.5, -7.0, 0.7, 1.4), (12.0, -3.5, 0.7, 1.1),
-              (12.0, 3.0, 0.7, 0.8), (7.0, 7.0, 0.7, 1.4), (0.5, 7.0, 0.7, 1.1), (-6.0, 7.0, 0.7, 0.8),
-              (-12.0, 2.5, 0.7, 1.4), (-12.0, -3.0, 0.7, 1.1)]
+    crates = [
+        (1.2, -7.0, 0.9, 1.6),
+        (2.4, -7.0, 0.5, 0.9),
+        (3.5, -7.0, 1.1, 1.2),
+        (4.7, -7.0, 0.6, 2.0),
+        (5.9, -7.0, 0.8, 1.0),
+        (-8.0, -7.0, 0.7, 0.8),
+        (-3.5, -7.0, 0.7, 1.4),
+        (12.0, -3.5, 0.7, 1.1),
+        (12.0, 3.0, 0.7, 0.8),
+        (7.0, 7.0, 0.7, 1.4),
+        (0.5, 7.0, 0.7, 1.1),
+        (-6.0, 7.0, 0.7, 0.8),
+        (-12.0, 2.5, 0.7, 1.4),
+        (-12.0, -3.0, 0.7, 1.1),
+    ]
     for i, (x, y, depth, height) in enumerate(crates):
         if abs(abs(y) - 7.0) < 1e-9:  # against the south or north wall
             planes += box(f"crate{i}", (x, y - np.sign(y) * depth / 2), (1.0, depth, height))
