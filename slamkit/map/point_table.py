@@ -73,6 +73,10 @@ class PointTable:
         """One attribute of a point already in the table."""
         self._arrays[name][point_id] = value
 
+    def assign(self, point_ids: NDArray[np.int64], name: str, values: NDArray[Any]) -> None:
+        """Rows ``point_ids`` (K,) of attribute ``name`` := values (K, ...) (points already in the table)."""
+        self._arrays[name][point_ids] = values
+
     def rows(self, point_ids: NDArray[np.int64], name: str) -> NDArray[Any]:
         """(K, ...) copy of attribute ``name`` of the points ``point_ids`` (K,), which must be in the map."""
         if not self._arrays:

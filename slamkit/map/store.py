@@ -123,6 +123,22 @@ class InMemoryMapStore:
         every change of those attributes reaches (see slamkit/map/point_table.py)."""
         return self._table.rows(np.asarray(point_ids, np.int64), attribute)
 
+    def assign_points(self, points: list[MapPoint], attribute: str, values: NDArray[Any]) -> None:
+        """points[i].<attribute> = values[i] for points of this map, with their point-table rows written in one
+        indexing (bulk updates: refresh, bundle adjustment, loop correction). values: (K, ...) for K points;
+        each point gets its own row of a private copy."""
+        if len(points) != len(values):
+            raise ValueError(f"assign_points: {len(points)} points but {len(values)} values of {attribute}")
+        if not points:
+            return
+        own = np.array(values, copy=True)
+        slot = "_" + attribute
+        for point, value in zip(points, own, strict=True):
+            if point.__dict__.get("_table") is not self._table:
+                raise ValueError(f"assign_points: map point {point.id} is not in this map")
+            point.__dict__[slot] = value.item() if own.ndim == 1 else value
+        self._table.assign(np.array([p.id for p in points], np.int64), attribute, own)
+
     def add_point(self, point: MapPoint) -> None:
         if point.id in self._points:
             raise ValueError(f"map point {point.id} is already in the map")

@@ -51,6 +51,7 @@ def snapshot_bundle(
     intr = np.array([intrinsics_of(store.get_keyframe(int(k)).camera.K) for k in kf_ids]).reshape(-1, 4)
     # one pass over the observations (point order, then keyframe id order): the Python part of the snapshot
     points = [store.get_point(int(p)) for p in point_ids]
+    point_id_array = np.array([p.id for p in points], np.int64)
     obs_pose_l: list[int] = []
     obs_point_l: list[int] = []
     obs_kf_l: list[int] = []
@@ -63,7 +64,7 @@ def snapshot_bundle(
                 obs_point_l.append(j)
                 obs_kf_l.append(kf_id)
                 obs_feat_l.append(feat)
-    all_xyz = np.array([p.xyz_w for p in points], np.float64).reshape(-1, 3)
+    all_xyz = store.point_rows(point_id_array, "xyz_w").reshape(-1, 3)
     obs_pose_a = np.array(obs_pose_l, np.int64)
     obs_point_all = np.array(obs_point_l, np.int64)
     # A point behind every camera that sees it (or seen by none of these keyframes) cannot be optimized: it is
@@ -147,9 +148,8 @@ def commit_bundle(store: InMemoryMapStore, snap: BundleSnapshot, result: BundleR
     for i, kf_id in enumerate(snap.kf_ids):
         if not snap.problem.pose_fixed[i] and store.has_keyframe(int(kf_id)):
             store.get_keyframe(int(kf_id)).T_c_w = result.T_c_w[i].copy()
-    for j, pid in enumerate(snap.point_ids):
-        if store.has_point(int(pid)):
-            store.get_point(int(pid)).xyz_w = result.xyz_w[j].copy()
+    alive = [j for j, pid in enumerate(snap.point_ids.tolist()) if store.has_point(pid)]
+    store.assign_points([store.get_point(int(snap.point_ids[j])) for j in alive], "xyz_w", result.xyz_w[alive])
     removed = 0
     for e in np.flatnonzero(result.outlier):
         pid = int(snap.point_ids[snap.problem.obs_point[e]])

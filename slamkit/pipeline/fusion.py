@@ -53,14 +53,15 @@ def fuse_points(
         return 0
     feats = kf.features
     bounds = ImageBounds.of(kf.camera)
+    ids = np.array([p.id for p in points], np.int64)
     test = frustum_test(
         kf.T_c_w,
         kf.camera.K,
         bounds,
-        np.array([p.xyz_w for p in points], np.float64),
-        np.array([p.normal_w for p in points], np.float64),
-        np.array([p.d_min_m for p in points], np.float64),
-        np.array([p.d_max_m for p in points], np.float64),
+        store.point_rows(ids, "xyz_w"),
+        store.point_rows(ids, "normal_w"),
+        store.point_rows(ids, "d_min_m"),
+        store.point_rows(ids, "d_max_m"),
         0.5,
         feats.scale_factor,
         feats.n_levels,
@@ -75,7 +76,7 @@ def fuse_points(
         np.zeros(len(feats), bool),
         bounds,
         test.uv_px[q],
-        np.array([points[i].descriptor for i in q.tolist()], np.uint8),
+        store.point_rows(ids[q], "descriptor"),
         radius,
         level - 1,
         level,

@@ -486,10 +486,10 @@ def same_node_matches(
 
 
 def _median_depth(kf: KeyFrame, store: InMemoryMapStore) -> float:
-    xyz = [store.get_point(p).xyz_w for p in kf.point_ids[kf.point_ids >= 0].tolist() if store.has_point(p)]
-    if not xyz:
+    ids = np.array([p for p in kf.point_ids[kf.point_ids >= 0].tolist() if store.has_point(p)], np.int64)
+    if not ids.size:
         return float("nan")
-    return float(np.median(np.array(xyz) @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3]))
+    return float(np.median(store.point_rows(ids, "xyz_w") @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3]))
 
 
 def _fundamental_21(kf1: KeyFrame, kf2: KeyFrame) -> F64:

@@ -63,10 +63,8 @@ def _move_points(store: InMemoryMapStore, moves: dict[int, tuple[list[int], F64]
         if not pids:
             continue
         points = store.get_points(pids)
-        xyz = np.array([p.xyz_w for p in points], np.float64).reshape(-1, 3)
-        moved = xyz @ M[:3, :3].T + M[:3, 3]
-        for point, xyz_new in zip(points, moved, strict=True):
-            point.xyz_w = xyz_new.copy()
+        xyz = store.point_rows(np.array([p.id for p in points], np.int64), "xyz_w").reshape(-1, 3)
+        store.assign_points(points, "xyz_w", xyz @ M[:3, :3].T + M[:3, 3])
 
 
 def apply_loop_correction(store: InMemoryMapStore, corr: LoopCorrection) -> set[int]:

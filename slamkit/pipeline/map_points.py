@@ -10,6 +10,7 @@ the arithmetic, instead of a numpy round trip per point. ``update_normal_and_dep
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 import numba
 import numpy as np
@@ -149,10 +150,17 @@ class _Gathered:
             self.n_levels[q] = feats.n_levels
 
 
-def _apply(points: list[MapPoint], g: _Gathered, normals: bool, descriptors: bool) -> None:
+def _apply(
+    points: list[MapPoint], g: _Gathered, normals: bool, descriptors: bool, store: InMemoryMapStore | None = None
+) -> None:
+    """Recompute and set the points' normals/depth ranges and descriptors; with ``store`` (the points' map) the
+    new values are written in bulk (store.assign_points), else point by point."""
     if not points:
         return
-    xyz = np.array([p.xyz_w for p in points], np.float64).reshape(-1, 3)
+    if store is not None:
+        xyz = store.point_rows(np.array([p.id for p in points], np.int64), "xyz_w")
+    else:
+        xyz = np.array([p.xyz_w for p in points], np.float64).reshape(-1, 3)
     if g.desc.shape[1] % 8:
         raise ValueError(f"descriptors must have a multiple of 8 bytes, got {g.desc.shape[1]}")
     normal, has_normal, d_min, d_max, best = _refresh_kernel(
@@ -165,15 +173,23 @@ def _apply(points: list[MapPoint], g: _Gathered, normals: bool, descriptors: boo
         g.scale_factor,
         g.n_levels,
     )
-    for q, point in enumerate(points):
-        if normals and point.observations:
-            if has_normal[q]:
-                point.normal_w = normal[q].copy()
-            if g.ref_row[q] >= 0:
-                point.d_max_m = float(d_max[q])
-                point.d_min_m = float(d_min[q])
-        if descriptors and best[q] >= 0:
-            point.descriptor = g.desc[best[q]].copy()
+    observed = np.array([bool(p.observations) for p in points])
+    updates: list[tuple[str, NDArray[np.int64], NDArray[Any]]] = []
+    if normals:
+        with_normal = np.flatnonzero(observed & has_normal)
+        with_ref = np.flatnonzero(observed & (g.ref_row >= 0))
+        updates += [("normal_w", with_normal, normal[with_normal])]
+        updates += [("d_max_m", with_ref, d_max[with_ref]), ("d_min_m", with_ref, d_min[with_ref])]
+    if descriptors:
+        with_best = np.flatnonzero(best >= 0)
+        updates += [("descriptor", with_best, g.desc[best[with_best]])]
+    for name, rows, values in updates:
+        chosen = [points[q] for q in rows.tolist()]
+        if store is not None:
+            store.assign_points(chosen, name, values)
+        else:
+            for point, value in zip(chosen, values, strict=True):
+                setattr(point, name, value.copy() if value.ndim else float(value))
 
 
 def refresh_points(
@@ -187,7 +203,7 @@ def refresh_points(
         return
     kf_ids = {k for p in points for k in p.observations}
     keyframes = {k: store.get_keyframe(k) for k in kf_ids if store.has_keyframe(k)}
-    _apply(points, _Gathered(points, keyframes), normals, descriptors)
+    _apply(points, _Gathered(points, keyframes), normals, descriptors, store)
 
 
 def update_normal_and_depth(point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
