@@ -7,7 +7,8 @@ too: the result is identical (tests/unit/orb/test_level_kernel.py), the differen
 gives up and takes back the GIL. The Python path releases it at every kernel call and at every numpy operation
 on a large array, about 140 times per 640x480 frame; while another thread runs Python code (local mapping),
 each of those takes up to a GIL switch interval to come back, and a 6 ms extraction took 34 ms beside a thread
-that only ran Python (benchmarks/extraction_gil.py). Here a level costs one release for these steps.
+that only ran Python (benchmarks/extraction_gil.py). Here a level costs one release for these steps, and
+``levels_keypoints`` does several levels in one call (the extractor makes one call per thread).
 """
 
 from __future__ import annotations
@@ -82,6 +83,68 @@ def _level_keypoints(  # pragma: no cover - compiled
         out_response[k] = response_all[i]
     angle = intensity_centroid_angles(image, xy, u_max)
     return xy, out_response, angle, weak_share
+
+
+@njit(cache=True, nogil=True)
+def _levels_keypoints(  # pragma: no cover - compiled
+    images: tuple[NDArray[np.uint8], ...],
+    params: NDArray[np.int64],
+    u_max: NDArray[np.int64],
+) -> tuple[NDArray[np.int32], NDArray[np.float32], NDArray[np.float32], NDArray[np.int64], NDArray[np.float64]]:
+    """_level_keypoints on several levels in one call. params (L, 13): per level min/ini threshold, region x0 y0
+    x1 y1, grid edge n_cols n_rows w_cell h_cell, budget, and 1 if the level is large enough for FAST. Returns
+    the levels' xy, response, angle concatenated in order, counts (L,) and weak shares (L,)."""
+    n_levels = params.shape[0]
+    counts = np.zeros(n_levels, np.int64)
+    weak = np.ones(n_levels, np.float64)
+    parts_xy = []
+    parts_response = []
+    parts_angle = []
+    for k in range(n_levels):
+        p = params[k]
+        if p[12] == 0:
+            continue
+        xy, response, angle, weak_share = _level_keypoints(
+            images[k], p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10], p[11], u_max
+        )
+        counts[k] = xy.shape[0]
+        weak[k] = weak_share
+        parts_xy.append(xy)
+        parts_response.append(response)
+        parts_angle.append(angle)
+    total = counts.sum()
+    xy_all = np.empty((total, 2), np.int32)
+    response_all = np.empty(total, np.float32)
+    angle_all = np.empty(total, np.float32)
+    at = 0
+    for j in range(len(parts_xy)):
+        m = parts_xy[j].shape[0]
+        xy_all[at : at + m] = parts_xy[j]
+        response_all[at : at + m] = parts_response[j]
+        angle_all[at : at + m] = parts_angle[j]
+        at += m
+    return xy_all, response_all, angle_all, counts, weak
+
+
+def levels_keypoints(
+    grid: GridFast, level_images: list[NDArray[np.uint8]], budgets: list[int], u_max: NDArray[np.int64]
+) -> tuple[NDArray[np.int32], NDArray[np.float32], NDArray[np.float32], NDArray[np.int64], NDArray[np.float64]]:
+    """``level_keypoints`` of several levels in one GIL-free call (one GIL hand-over instead of one per level).
+
+    Returns xy (K, 2) int32, response (K,), angle (K,) of all the levels in the given order, counts (L,) per
+    level and weak shares (L,).
+    """
+    images = tuple(np.ascontiguousarray(img) for img in level_images)
+    params = np.zeros((len(images), 13), np.int64)
+    for k, (image, budget) in enumerate(zip(images, budgets, strict=True)):
+        h, w = image.shape
+        x0, y0, x1, y1 = grid.region(w, h)
+        ok = x1 - x0 > 2 * FAST_RADIUS and y1 - y0 > 2 * FAST_RADIUS and x1 - x0 >= _MIN_SIDE and y1 - y0 >= _MIN_SIDE
+        if ok:
+            c = grid.cells(x0, y0, x1, y1)
+            params[k, :6] = (grid.min_threshold, grid.ini_threshold, x0, y0, x1, y1)
+            params[k, 6:] = (c.edge, c.n_cols, c.n_rows, c.w_cell, c.h_cell, int(budget), 1)
+    return _levels_keypoints(images, params, u_max)
 
 
 def level_keypoints(

@@ -14,14 +14,16 @@ keypoint's ``angle`` around round(pt / scale_factor ** octave) on level ``octave
 its level; tests/unit/orb/test_descriptors.py checks that the bits are OpenCV's multi-level computation and
 that they are invariant to a 90 deg rotation.
 
-The levels are independent, so their keypoints are found by ``n_threads`` worker threads (OpenCV and the numba
-kernels release the GIL); the output is assembled in level order and does not depend on the thread count.
+The levels are independent: with the compiled FAST backend they are dealt out to ``n_threads`` groups of about
+equal area, one compiled call per group (the calling thread takes one, pool threads the others); with the opencv
+backend each level is a task of its own. The output is assembled in level order and does not depend on the
+thread count.
 
 The GIL: each call into OpenCV or a compiled kernel releases it and takes it back, and taking it back waits up
 to a switch interval whenever another thread is running Python (local mapping, in the threaded runner). With
 one such release per keypoint (a ``cv2.KeyPoint`` constructor), per level and per numpy step, extraction took
 39 ms instead of 5 beside a thread running Python; with the compiled level kernel (level_kernel.py) and one
-descriptor call per image, 12 ms (``python benchmarks/extraction_gil.py``).
+descriptor call per image, 11 ms (``python benchmarks/extraction_gil.py``).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from slamkit.errors import CalibrationError, ConfigError
 from slamkit.features import Features
 from slamkit.interfaces import Camera
 from slamkit_orb.grid_fast import FAST_BACKENDS, FAST_RADIUS, FastBackend, GridFast
-from slamkit_orb.level_kernel import level_keypoints
+from slamkit_orb.level_kernel import levels_keypoints
 from slamkit_orb.orientation import circular_patch_extent, intensity_centroid_angles
 from slamkit_orb.pyramid import build_pyramid, features_per_level, level_scales, level_sizes
 from slamkit_orb.quadtree import distribute_quadtree
@@ -187,13 +189,9 @@ class OrbSlamExtractor:
         return np.ascontiguousarray(image)
 
     def _level(self, level: int, level_image: NDArray[np.uint8]) -> _LevelResult | None:
-        """Corners, quadtree selection and orientation of one level (runs in a worker thread: OpenCV and the
-        numba kernels release the GIL)."""
-        if self.fast_backend == "compiled":  # the same steps in one GIL-free call (level_kernel.py)
-            xy, response, angle, self._weak_hint[level] = level_keypoints(
-                self._grid, level_image, int(self.level_budget[level]), self._u_max
-            )
-            return _LevelResult(level, xy, response, angle) if response.size else None
+        """Corners, quadtree selection and orientation of one level with the opencv FAST backend, step by step
+        (runs in a worker thread: OpenCV and the numba kernels release the GIL). The compiled backend does the
+        same in level_kernel.py (_compiled_levels)."""
         # FAST strategy from the share of weak cells this level had last frame (any strategy gives the same
         # corners; this only picks the faster, see grid_fast.py).
         corners = self._grid.detect(level_image, "auto", float(self._weak_hint[level]))
@@ -239,6 +237,41 @@ class OrbSlamExtractor:
         order = np.argsort(index, kind="stable")
         return np.asarray(descriptors, np.uint8)[order], index[order]
 
+    def _level_group(self, levels: list[int], pyramid: list[NDArray[np.uint8]]) -> list[_LevelResult | None]:
+        """The keypoints of some levels in one compiled call (level_kernel.levels_keypoints)."""
+        xy, response, angle, counts, weak = levels_keypoints(
+            self._grid, [pyramid[k] for k in levels], [int(self.level_budget[k]) for k in levels], self._u_max
+        )
+        out: list[_LevelResult | None] = []
+        start = 0
+        for level, count, weak_share in zip(levels, counts.tolist(), weak.tolist(), strict=True):
+            self._weak_hint[level] = weak_share
+            part = slice(start, start + count)
+            out.append(_LevelResult(level, xy[part], response[part], angle[part]) if count else None)
+            start += count
+        return out
+
+    def _compiled_levels(
+        self, pyramid: list[NDArray[np.uint8]], pool: ThreadPoolExecutor | None
+    ) -> list[_LevelResult | None]:
+        """Every level's keypoints, in level order, with one compiled call per thread: the levels are dealt out
+        to ``n_threads`` groups of about equal area (the calling thread works on the first)."""
+        n_groups = 1 if pool is None else min(self.n_threads, len(pyramid))
+        groups: list[list[int]] = [[] for _ in range(n_groups)]
+        area = [0] * n_groups
+        for level in sorted(range(len(pyramid)), key=lambda k: -pyramid[k].size):  # largest first, to the least loaded
+            g = area.index(min(area))
+            groups[g].append(level)
+            area[g] += pyramid[level].size
+        groups = [sorted(g) for g in groups if g]
+        futures = [pool.submit(self._level_group, g, pyramid) for g in groups[1:]] if pool is not None else []
+        by_level: dict[int, _LevelResult | None] = dict(
+            zip(groups[0], self._level_group(groups[0], pyramid), strict=True)
+        )
+        for group, future in zip(groups[1:], futures, strict=True):
+            by_level.update(zip(group, future.result(), strict=True))
+        return [by_level[level] for level in range(len(pyramid))]
+
     def _executor(self) -> ThreadPoolExecutor | None:
         if self.n_threads < 2:
             return None
@@ -252,10 +285,11 @@ class OrbSlamExtractor:
         h, w = image.shape
         pyramid = build_pyramid(image, level_sizes(w, h, self.scale_factor, self.n_levels))
         pool = self._executor()
-        if pool is None:
+        if self.fast_backend == "compiled":
+            results = self._compiled_levels(pyramid, pool)
+        elif pool is None:
             results = [self._level(level, img) for level, img in enumerate(pyramid)]
         else:
-            # Largest levels first so the workers finish together; results are put back in level order.
             futures = [pool.submit(self._level, level, img) for level, img in enumerate(pyramid)]
             results = [f.result() for f in futures]
         found = [r for r in results if r is not None and r.xy.shape[0] > 0]

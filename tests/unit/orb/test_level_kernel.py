@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 from slamkit_orb.grid_fast import GridFast
-from slamkit_orb.level_kernel import level_keypoints
+from slamkit_orb.level_kernel import level_keypoints, levels_keypoints
 from slamkit_orb.orbslam_extractor import OrbSlamExtractor
 from slamkit_orb.orientation import circular_patch_extent, intensity_centroid_angles
 from slamkit_orb.pyramid import build_pyramid, features_per_level, level_sizes
@@ -72,17 +72,36 @@ def test_every_level_equals_the_python_path(budget_scale: float) -> None:
             assert got[0].shape[0] <= budgets[level]
 
 
+def test_a_group_of_levels_in_one_call_equals_level_by_level() -> None:
+    grid = GridFast(19, 30, 20, 7)
+    image = _room_frames()[1]
+    levels = build_pyramid(image, level_sizes(640, 480, 1.2, 8))
+    budgets = features_per_level(1000, 1.2, 8)
+    chosen = [0, 3, 4, 7]
+    tiny = np.zeros((12, 12), np.uint8)  # too small for FAST: a level with nothing
+    xy, response, angle, counts, weak = levels_keypoints(
+        grid, [levels[k] for k in chosen] + [tiny], [int(budgets[k]) for k in chosen] + [5], U_MAX
+    )
+    each = [level_keypoints(grid, levels[k], int(budgets[k]), U_MAX) for k in chosen]
+    np.testing.assert_array_equal(counts, [e[0].shape[0] for e in each] + [0])
+    np.testing.assert_array_equal(xy, np.concatenate([e[0] for e in each]))
+    np.testing.assert_array_equal(response, np.concatenate([e[1] for e in each]))
+    np.testing.assert_array_equal(angle, np.concatenate([e[2] for e in each]))
+    np.testing.assert_array_equal(weak, [e[3] for e in each] + [1.0])
+
+
 @pytest.mark.parametrize("shape", [(40, 40), (10, 300), (480, 640)])
 def test_small_and_blank_levels_give_nothing(shape: tuple[int, int]) -> None:
     xy, response, angle, weak = level_keypoints(GridFast(19, 30, 20, 7), np.zeros(shape, np.uint8), 100, U_MAX)
     assert xy.shape == (0, 2) and response.size == 0 and angle.size == 0 and weak == 1.0
 
 
-def test_extractor_output_does_not_depend_on_the_fast_backend(shared_datasets: Path) -> None:
+@pytest.mark.parametrize("n_threads", [1, 2, 3])
+def test_extractor_output_does_not_depend_on_the_fast_backend(shared_datasets: Path, n_threads: int) -> None:
     kitti = cv2.imread(str(shared_datasets / "kitti" / "sequences" / "07" / "image_0" / "000000.png"), 0)
     for image, n in [(_room_frames()[1], 1000), (np.asarray(kitti, np.uint8), 2000), (_low_contrast(5), 1000)]:
-        a = OrbSlamExtractor(n_features=n, fast_backend="compiled").extract(image)
-        b = OrbSlamExtractor(n_features=n, fast_backend="opencv").extract(image)
+        a = OrbSlamExtractor(n_features=n, fast_backend="compiled", n_threads=n_threads).extract(image)
+        b = OrbSlamExtractor(n_features=n, fast_backend="opencv", n_threads=1).extract(image)
         assert len(a) > 0
         for field in ("uv_px", "level", "angle_deg", "response", "descriptors"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
