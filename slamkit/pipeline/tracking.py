@@ -116,6 +116,7 @@ class Tracker:
         self._bounds: dict[int, ImageBounds] = {}
         self._last_T_l_r: F64 | None = None
         self._frame_bow: BowDescription | None = None
+        self._mapping_wait_ms: float | None = None  # time the last keyframe decision spent in on_mapping_busy
         self.reset_guard: Callable[[], AbstractContextManager[None]] = contextlib.nullcontext
         # the threaded runner says no while local mapping is parked for loop closing
         self.keyframes_allowed: Callable[[], bool] = lambda: True
@@ -255,7 +256,11 @@ class Tracker:
         outcome = TrackingOutcome(
             frame.index, frame.timestamp_s, TrackingState.OK, frame.T_c_w.copy(), len(frame.features), inliers, method
         )
-        if self._need_new_keyframe(frame, inliers, mapping_idle):
+        self._mapping_wait_ms = None
+        wants_keyframe = self._need_new_keyframe(frame, inliers, mapping_idle)
+        if self._mapping_wait_ms is not None:
+            timings["mapping_wait_ms"] = self._mapping_wait_ms
+        if wants_keyframe:
             kf = new_keyframe(self.store, frame)
             kf.point_ids = frame.point_ids.copy()
             outcome.new_keyframes = [kf]
@@ -562,7 +567,11 @@ class Tracker:
                     return False  # condition 4
         if mapping_idle or frame.index >= self.last_kf_frame_index + cfg.keyframe_max_frames_idle:
             return True  # condition 2
-        return self.on_mapping_busy()
+        t0 = time.perf_counter()
+        insert = self.on_mapping_busy()
+        # the threaded runner playing as fast as possible holds tracking here until local mapping is free
+        self._mapping_wait_ms = (time.perf_counter() - t0) * 1e3
+        return insert
 
     # ---- V-C: relocalization ---------------------------------------------------------------------------
 
