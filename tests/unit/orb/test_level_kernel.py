@@ -12,31 +12,11 @@ from numpy.typing import NDArray
 from slamkit_orb.grid_fast import GridFast
 from slamkit_orb.level_kernel import level_keypoints, levels_keypoints
 from slamkit_orb.orbslam_extractor import OrbSlamExtractor
-from slamkit_orb.orientation import circular_patch_extent, intensity_centroid_angles
+from slamkit_orb.orientation import circular_patch_extent
 from slamkit_orb.pyramid import build_pyramid, features_per_level, level_sizes
-from slamkit_orb.quadtree import distribute_quadtree
 
 U8 = NDArray[np.uint8]
 U_MAX = circular_patch_extent(15)
-
-
-def _python_path(
-    grid: GridFast, image: U8, budget: int
-) -> tuple[NDArray[np.int32], NDArray[np.float32], NDArray[np.float32], float]:
-    corners = grid.detect(image, "whole")
-    if corners.response.size == 0:
-        return np.zeros((0, 2), np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32), corners.weak_share
-    x0, y0, x1, y1 = corners.region
-    keep = distribute_quadtree(
-        (corners.xy[:, 0] - x0).astype(np.float64),
-        (corners.xy[:, 1] - y0).astype(np.float64),
-        corners.response,
-        x1 - x0,
-        y1 - y0,
-        budget,
-    )
-    xy = np.ascontiguousarray(corners.xy[keep])
-    return xy, corners.response[keep], intensity_centroid_angles(image, xy, U_MAX), corners.weak_share
 
 
 def _room_frames() -> list[U8]:
@@ -56,20 +36,30 @@ def _low_contrast(seed: int) -> U8:
     return image
 
 
-@pytest.mark.parametrize("budget_scale", [1.0, 0.1])
-def test_every_level_equals_the_python_path(budget_scale: float) -> None:
+@pytest.mark.parametrize("n_features", [1000, 100])
+def test_every_level_equals_the_python_path(n_features: int) -> None:
+    """Against the extractor's step-by-step path (GridFast, quadtree, orientation: its opencv-backend code)."""
     grid = GridFast(19, 30, 20, 7)
-    images = [*_room_frames(), _low_contrast(3)]
-    for image in images:
+    stepwise = OrbSlamExtractor(n_features=n_features, fast_backend="opencv", n_threads=1)
+    for image in [*_room_frames(), _low_contrast(3)]:
         h, w = image.shape
-        budgets = features_per_level(max(1, int(1000 * budget_scale)), 1.2, 8)
         for level, level_image in enumerate(build_pyramid(image, level_sizes(w, h, 1.2, 8))):
-            got = level_keypoints(grid, level_image, int(budgets[level]), U_MAX)
-            want = _python_path(grid, level_image, int(budgets[level]))
-            for a, b in zip(got[:3], want[:3], strict=True):
-                np.testing.assert_array_equal(a, b)
-            assert got[3] == pytest.approx(want[3], abs=1e-12)
-            assert got[0].shape[0] <= budgets[level]
+            budget = int(stepwise.level_budget[level])
+            xy, response, angle, _ = level_keypoints(grid, level_image, budget, U_MAX)
+            want = stepwise._level(level, level_image)
+            if want is None:
+                assert xy.shape[0] == 0
+                continue
+            np.testing.assert_array_equal(xy, want.xy)
+            np.testing.assert_array_equal(response, want.response)
+            np.testing.assert_array_equal(angle, want.angle_deg)
+            assert xy.shape[0] <= budget
+
+
+def test_weak_share_is_the_grids() -> None:
+    grid = GridFast(19, 30, 20, 7)
+    for image in [_room_frames()[0], _low_contrast(3)]:
+        assert level_keypoints(grid, image, 500, U_MAX)[3] == grid.detect(image, "whole").weak_share
 
 
 def test_a_group_of_levels_in_one_call_equals_level_by_level() -> None:
