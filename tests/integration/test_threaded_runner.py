@@ -146,7 +146,17 @@ def test_ctrl_c_stops_a_threaded_run_with_exit_code_130(tmp_path: Path) -> None:
         "runner.progress=false",
         f"hydra.run.dir={out}",
     ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    # Ctrl-C's default action in the child even when this test runs as a background job (a non-interactive
+    # shell starts those with SIGINT ignored, the child would inherit that and Python would not raise
+    # KeyboardInterrupt at all)
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     assert proc.stdout is not None
     lines = []
     for line in proc.stdout:  # wait until tracking runs on an initialised map
