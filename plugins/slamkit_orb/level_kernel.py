@@ -22,8 +22,6 @@ from slamkit_orb.grid_fast import GridFast
 from slamkit_orb.orientation import intensity_centroid_angles
 from slamkit_orb.quadtree import distribute_quadtree
 
-_MIN_SIDE = 2 * FAST_RADIUS + 1
-
 
 @njit(cache=True, nogil=True)
 def _level_keypoints(  # pragma: no cover - compiled
@@ -126,6 +124,19 @@ def _levels_keypoints(  # pragma: no cover - compiled
     return xy_all, response_all, angle_all, counts, weak
 
 
+def _level_params(grid: GridFast, image: NDArray[np.uint8], budget: int) -> NDArray[np.int64]:
+    """(13,) int64 kernel parameters of one level (see _levels_keypoints); the last is 0 when the level is too
+    small for FAST (its detection area 2 * FAST_RADIUS px or less on a side)."""
+    params = np.zeros(13, np.int64)
+    h, w = image.shape
+    x0, y0, x1, y1 = grid.region(w, h)
+    if x1 - x0 > 2 * FAST_RADIUS and y1 - y0 > 2 * FAST_RADIUS:
+        c = grid.cells(x0, y0, x1, y1)
+        params[:6] = (grid.min_threshold, grid.ini_threshold, x0, y0, x1, y1)
+        params[6:] = (c.edge, c.n_cols, c.n_rows, c.w_cell, c.h_cell, int(budget), 1)
+    return params
+
+
 def levels_keypoints(
     grid: GridFast, level_images: list[NDArray[np.uint8]], budgets: list[int], u_max: NDArray[np.int64]
 ) -> tuple[NDArray[np.int32], NDArray[np.float32], NDArray[np.float32], NDArray[np.int64], NDArray[np.float64]]:
@@ -135,16 +146,8 @@ def levels_keypoints(
     level and weak shares (L,).
     """
     images = tuple(np.ascontiguousarray(img) for img in level_images)
-    params = np.zeros((len(images), 13), np.int64)
-    for k, (image, budget) in enumerate(zip(images, budgets, strict=True)):
-        h, w = image.shape
-        x0, y0, x1, y1 = grid.region(w, h)
-        ok = x1 - x0 > 2 * FAST_RADIUS and y1 - y0 > 2 * FAST_RADIUS and x1 - x0 >= _MIN_SIDE and y1 - y0 >= _MIN_SIDE
-        if ok:
-            c = grid.cells(x0, y0, x1, y1)
-            params[k, :6] = (grid.min_threshold, grid.ini_threshold, x0, y0, x1, y1)
-            params[k, 6:] = (c.edge, c.n_cols, c.n_rows, c.w_cell, c.h_cell, int(budget), 1)
-    return _levels_keypoints(images, params, u_max)
+    params = np.array([_level_params(grid, img, b) for img, b in zip(images, budgets, strict=True)], np.int64)
+    return _levels_keypoints(images, params.reshape(len(images), 13), u_max)
 
 
 def level_keypoints(
@@ -158,25 +161,5 @@ def level_keypoints(
     [0, 360), and the share of grid cells without a corner at the initial threshold (1.0 when the level is too
     small for FAST). Equals GridFast.detect(..., "whole") -> distribute_quadtree -> intensity_centroid_angles.
     """
-    image = np.ascontiguousarray(level_image)
-    h, w = image.shape
-    x0, y0, x1, y1 = grid.region(w, h)
-    if x1 - x0 <= 2 * FAST_RADIUS or y1 - y0 <= 2 * FAST_RADIUS or x1 - x0 < _MIN_SIDE or y1 - y0 < _MIN_SIDE:
-        return np.zeros((0, 2), np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32), 1.0
-    cells = grid.cells(x0, y0, x1, y1)
-    return _level_keypoints(
-        image,
-        grid.min_threshold,
-        grid.ini_threshold,
-        x0,
-        y0,
-        x1,
-        y1,
-        cells.edge,
-        cells.n_cols,
-        cells.n_rows,
-        cells.w_cell,
-        cells.h_cell,
-        int(budget),
-        u_max,
-    )
+    xy, response, angle, _, weak = levels_keypoints(grid, [level_image], [budget], u_max)
+    return xy, response, angle, float(weak[0])

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from slamkit.features import Features
 from slamkit.interfaces import BowDescription, Camera
-from slamkit.map.point_table import SYNCED_ATTRIBUTES
+from slamkit.map.point_table import SYNCED_ATTRIBUTES, PointTable
 
 F64 = NDArray[np.float64]
 
@@ -110,3 +110,22 @@ def _synced_attribute(name: str) -> property:
 
 for _name, _width, _dtype in SYNCED_ATTRIBUTES:
     setattr(MapPoint, _name, _synced_attribute(_name))
+
+
+def mirror_in(point: MapPoint, table: PointTable | None) -> None:
+    """From now on ``point``'s synced attributes are written through to ``table`` (None: to nothing)."""
+    if table is None:
+        point.__dict__.pop("_table", None)
+    else:
+        point.__dict__["_table"] = table
+
+
+def mirror_of(point: MapPoint) -> PointTable | None:
+    """The table ``point`` writes through to, if any."""
+    table: PointTable | None = point.__dict__.get("_table")
+    return table
+
+
+def set_unmirrored(point: MapPoint, attribute: str, value: object) -> None:
+    """Set a synced attribute on the object only: for bulk updates that write the table rows themselves."""
+    point.__dict__["_" + attribute] = value

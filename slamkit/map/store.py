@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
-from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.entities import KeyFrame, MapPoint, mirror_in, mirror_of, set_unmirrored
 from slamkit.map.graphs import CovisibilityGraph, SpanningTree, essential_graph_edges
 from slamkit.map.lock import ReadWriteLock
 from slamkit.map.point_table import SYNCED_ATTRIBUTES, PointTable
@@ -132,23 +132,22 @@ class InMemoryMapStore:
         if not points:
             return
         own = np.array(values, copy=True)
-        slot = "_" + attribute
         for point, value in zip(points, own, strict=True):
-            if point.__dict__.get("_table") is not self._table:
+            if mirror_of(point) is not self._table:
                 raise ValueError(f"assign_points: map point {point.id} is not in this map")
-            point.__dict__[slot] = value.item() if own.ndim == 1 else value
+            set_unmirrored(point, attribute, value.item() if own.ndim == 1 else value)
         self._table.assign(np.array([p.id for p in points], np.int64), attribute, own)
 
     def add_point(self, point: MapPoint) -> None:
         if point.id in self._points:
             raise ValueError(f"map point {point.id} is already in the map")
         self._table.put(point.id, {name: getattr(point, name) for name, _, _ in SYNCED_ATTRIBUTES})
-        point.__dict__["_table"] = self._table  # from now on its attribute writes reach the table
+        mirror_in(point, self._table)  # from now on its attribute writes reach the table
         self._points[point.id] = point
 
     def _forget_point(self, point_id: int) -> MapPoint:
         point = self._points.pop(point_id)
-        point.__dict__.pop("_table", None)
+        mirror_in(point, None)
         return point
 
     def remove_point(self, point_id: int) -> None:
