@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.features import Features
+from slamkit.features import Observations
 from slamkit.interfaces import BowDescription, Camera
 from slamkit.map.point_table import SYNCED_ATTRIBUTES, PointTable
 
@@ -32,7 +32,7 @@ class KeyFrame:
     timestamp_s: float
     T_c_w: F64
     camera: Camera
-    features: Features
+    features: Observations
     point_ids: NDArray[np.int64]
     bow: BowDescription | None = None
 
