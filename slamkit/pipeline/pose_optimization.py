@@ -26,6 +26,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.optim.kannala_brandt import kb_jacobian, kb_project
 from slamkit.problems import CAMERA_KANNALA_BRANDT, CAMERA_PINHOLE, PoseOnlyProblem, PoseOnlyResult
 
 F64 = NDArray[np.float64]
@@ -69,20 +70,6 @@ def _exp_times(h: F64, T: F64) -> F64:  # pragma: no cover - numba
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _kb_scale(x: float, y: float, z: float, cam: F64) -> tuple[float, float, float, float]:  # pragma: no cover
-    """Kannala-Brandt terms of a camera point: r = |(x, y)|, s = theta_d / r (1 / z on the axis), theta_d,
-    d theta_d / d theta (k1..k4 = cam[4:8])."""
-    r = np.sqrt(x * x + y * y)
-    theta = np.arctan2(r, z)
-    t2 = theta * theta
-    k1, k2, k3, k4 = cam[4], cam[5], cam[6], cam[7]
-    theta_d = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
-    dtheta_d = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
-    s = theta_d / r if r > 0.0 else 1.0 / z
-    return r, s, theta_d, dtheta_d
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
 def _residual(
     T: F64, X: F64, uv: F64, cam: F64, fisheye: bool, i: int
 ) -> tuple[float, float, float, float, float]:  # pragma: no cover - numba
@@ -93,8 +80,8 @@ def _residual(
     y = T[1, 0] * X[i, 0] + T[1, 1] * X[i, 1] + T[1, 2] * X[i, 2] + T[1, 3]
     z = T[2, 0] * X[i, 0] + T[2, 1] * X[i, 1] + T[2, 2] * X[i, 2] + T[2, 3]
     if fisheye:
-        _, s, _, _ = _kb_scale(x, y, z, cam)
-        return x, y, z, fx * s * x + cx - uv[i, 0], fy * s * y + cy - uv[i, 1]
+        u, v = kb_project(x, y, z, cam)
+        return x, y, z, u - uv[i, 0], v - uv[i, 1]
     iz = 1.0 / z
     return x, y, z, fx * x * iz + cx - uv[i, 0], fy * y * iz + cy - uv[i, 1]
 
@@ -121,18 +108,10 @@ def _cost(
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _kb_jacobian_rows(x: float, y: float, z: float, cam: F64, J: F64) -> None:  # pragma: no cover - numba
-    """J (2, 6) = d r / d xi of a Kannala-Brandt observation: rows A = d uv / d p_c (as KannalaBrandtCamera.
-    project_image_jacobian), d r / d omega = cross(p_c, A_row), d r / d v = A_row."""
-    fx, fy = cam[0], cam[1]
-    r, s, theta_d, dtheta_d = _kb_scale(x, y, z, cam)
-    R2 = r * r + z * z
-    a = 0.0 if r <= 1e-12 * abs(z) else dtheta_d * z / (r * r * R2) - theta_d / (r * r * r)
-    if r <= 1e-12 * abs(z):
-        s = 1.0 / z
-    ds_dz = -dtheta_d / R2
+    """J (2, 6) = d r / d xi of a Kannala-Brandt observation: rows A = d uv / d p_c, d r / d omega = cross(p_c, A_row),
+    d r / d v = A_row."""
     A = np.empty((2, 3))
-    A[0, 0], A[0, 1], A[0, 2] = fx * (s + x * x * a), fx * x * y * a, fx * x * ds_dz
-    A[1, 0], A[1, 1], A[1, 2] = fy * x * y * a, fy * (s + y * y * a), fy * y * ds_dz
+    kb_jacobian(x, y, z, cam, A)
     for row in range(2):
         J[row, 0] = y * A[row, 2] - z * A[row, 1]
         J[row, 1] = z * A[row, 0] - x * A[row, 2]
