@@ -14,6 +14,7 @@ level (so any correct solver flags them); ``truth.outlier`` marks them.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -349,6 +350,14 @@ def make_bundle_problem(
 
 
 # ---- fisheye (Kannala-Brandt) problems ------------------------------------------------------------------
+
+
+@overload
+def with_kannala_brandt(problem: PoseOnlyProblem, truth: PoseTruth, k: F64 = ...) -> PoseOnlyProblem: ...
+
+
+@overload
+def with_kannala_brandt(problem: BundleProblem, truth: BundleTruth, k: F64 = ...) -> BundleProblem: ...
 
 
 def with_kannala_brandt(
