@@ -1,4 +1,5 @@
-"""Plain feature data: what a FeatureExtractor returns for one image."""
+"""Plain feature data: what a FeatureExtractor returns for one image (``Features``), and the per-keypoint observation
+record a front end builds from it for a frame (``Observations``)."""
 
 from __future__ import annotations
 

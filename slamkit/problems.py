@@ -45,7 +45,7 @@ class PoseOnlyProblem:
 
     T_c_w_init: (4, 4) initial pose.
     xyz_w: (N, 3) m, fixed points in the world frame.
-    uv_px: (N, 2) undistorted observations.
+    uv_px: (N, 2) observations in the camera model's image (undistorted for "pinhole", raw for "kannala_brandt").
     u_right_px: (N,) right-image u for stereo/RGB-D observations, NaN for monocular ones.
     level: (N,) int pyramid level of each observation; information = 1 / scale_factor**(2 level).
     intrinsics: (4,) fx, fy, cx, cy; bf: baseline * fx (m px), needed only for stereo observations.
@@ -100,7 +100,7 @@ class BundleProblem:
     intrinsics: (K, 4) fx, fy, cx, cy per keyframe; bf: (K,) baseline * fx per keyframe (0 for mono).
     xyz_w: (M, 3) m initial points; point_fixed: (M,) bool.
     obs_pose: (E,) int index into poses; obs_point: (E,) int index into points.
-    uv_px: (E, 2) undistorted observations; u_right_px: (E,) NaN for monocular; level: (E,) int.
+    uv_px: (E, 2) observations in the camera model's image; u_right_px: (E,) NaN for monocular; level: (E,) int.
     iterations_first / iterations_second: ORB-SLAM optimizes 5 iterations, removes observations failing
         the chi-square gate (or with the point behind the camera), then optimizes 10 more without them.
     robust: use the Huber kernel (delta = sqrt(chi2)).
