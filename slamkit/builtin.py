@@ -1,5 +1,5 @@
-"""The core's own components (dataset readers), registered through the ``slamkit`` entry-point group
-exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/``."""
+"""The core's own components (dataset readers, front ends), registered through the ``slamkit`` entry-point group
+exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/`` and ``conf/frontend/``."""
 
 from __future__ import annotations
 
@@ -41,5 +41,11 @@ def slamkit_components() -> list[ComponentSpec]:
         ),
         ComponentSpec(
             "dataset", "video", "slamkit.io.video.VideoDataset", description="a video file with a camera from config"
+        ),
+        ComponentSpec(
+            "frontend",
+            "mono",
+            "slamkit.frontend.mono.MonocularFrontEnd",
+            description="monocular: ORB features, their bearings from the camera model, no depth",
         ),
     ]

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.features import Features
+from slamkit.features import Observations
 from slamkit.interfaces import BowDescription, Camera
 from slamkit.map.point_table import SYNCED_ATTRIBUTES, PointTable
 
@@ -22,8 +22,9 @@ F64 = NDArray[np.float64]
 class KeyFrame:
     """A keyframe (ORB-SLAM III-C).
 
-    T_c_w: (4, 4) pose, world -> camera. features: every ORB feature of the image (undistorted keypoints
-    included). point_ids: (N,) int64, the map point observed by each feature, -1 for none.
+    T_c_w: (4, 4) pose, world -> camera. features: the observation record of every keypoint of the image
+    (slamkit.features.Observations: pixel, point in the pipeline's image, bearing, right coordinate, depth).
+    point_ids: (N,) int64, the map point observed by each feature, -1 for none.
     bow: the bag of words of the features, once a place recognizer has described it.
     """
 
@@ -32,7 +33,7 @@ class KeyFrame:
     timestamp_s: float
     T_c_w: F64
     camera: Camera
-    features: Features
+    features: Observations
     point_ids: NDArray[np.int64]
     bow: BowDescription | None = None
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.sim3 import Sim3
@@ -22,15 +22,24 @@ from slamkit.plugins import ComponentRegistry
 
 N = 40
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
-EMPTY = Features(
-    np.zeros((0, 2), np.float32),
-    np.zeros((0, 2), np.float32),
-    np.zeros(0, np.int32),
-    np.zeros(0, np.float32),
-    np.zeros(0, np.float32),
-    np.zeros((0, 32), np.uint8),
-    1.2,
-    8,
+
+
+def _record(features: Features) -> Observations:
+    """The monocular observation record of hand-made features (bearings through CAMERA)."""
+    return Observations.monocular(features, CAMERA.unproject_image(features.uv_undist_px.astype(np.float64)))
+
+
+EMPTY = _record(
+    Features(
+        np.zeros((0, 2), np.float32),
+        np.zeros((0, 2), np.float32),
+        np.zeros(0, np.int32),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.float32),
+        np.zeros((0, 32), np.uint8),
+        1.2,
+        8,
+    )
 )
 
 
