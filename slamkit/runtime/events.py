@@ -194,9 +194,7 @@ class RunEvents:
         self.run_id = uuid.uuid4().int >> 65  # unique within the process (and beyond), fits an int64
         self.map_id = 0
 
-    def started(
-        self, dataset: Dataset, run_dir: Path | None, config: Mapping[str, Any] | None, threaded: bool
-    ) -> None:
+    def started(self, dataset: Dataset, run_dir: Path | None, config: Mapping[str, Any] | None, threaded: bool) -> None:
         self.dispatcher.start(threaded)
         self.dispatcher.emit(
             "slamkit_run_started",

@@ -252,9 +252,7 @@ class ThreadedRunner:
             self._run_events.finished(self.log, ended_by)
         return self.log
 
-    def _run(
-        self, dataset: Dataset, camera: Camera, on_frame: Callable[[TrackingOutcome], None] | None = None
-    ) -> None:
+    def _run(self, dataset: Dataset, camera: Camera, on_frame: Callable[[TrackingOutcome], None] | None = None) -> None:
         self._prepare(dataset, camera)
         frames: Iterable[FrameData] = self._preloaded(dataset) if self.preload else dataset
         start = time.perf_counter()
