@@ -193,6 +193,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
     out_dir = _output_dir()
     try:
         runner, dataset = build_runner(cfg)
+        config = OmegaConf.to_container(cfg, resolve=True)
     except Exception as exc:
         error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
         metrics = write_failed_job(out_dir, cfg, error, "build")
@@ -202,7 +203,6 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         return metrics
     log.info("dataset %s: %d frames -> %s", getattr(dataset, "name", "?"), len(dataset), out_dir)
     start = time.perf_counter()
-    config = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(config, dict)
     try:
         # the outputs plugin writes the run directory when the run finishes, also when it fails
@@ -212,6 +212,8 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         if not isinstance(exc, Exception) or not _is_multirun():
             raise
         log.error("job failed while running: %s", error)
+        if not (out_dir / "metrics.json").is_file():  # the outputs plugin itself failed
+            return write_failed_job(out_dir, cfg, error, "outputs")
         return _written_metrics(out_dir)
     metrics = _written_metrics(out_dir)
     log.info(

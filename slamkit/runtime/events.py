@@ -195,19 +195,17 @@ class RunEvents:
         self.map_id = 0
 
     def started(self, dataset: Dataset, run_dir: Path | None, config: Mapping[str, Any] | None, threaded: bool) -> None:
-        self.dispatcher.start(threaded)
-        self.dispatcher.emit(
-            "slamkit_run_started",
-            RunStarted(
-                run_id=self.run_id,
-                runner=self.runner,
-                dataset=str(getattr(dataset, "name", "?")),
-                n_frames=len(dataset),
-                run_dir=run_dir,
-                config=dict(config or {}),
-                ground_truth=getattr(dataset, "ground_truth", None),
-            ),
+        event = RunStarted(
+            run_id=self.run_id,
+            runner=self.runner,
+            dataset=str(getattr(dataset, "name", "?")),
+            n_frames=len(dataset),
+            run_dir=run_dir,
+            config=dict(config or {}),
+            ground_truth=getattr(dataset, "ground_truth", None),
         )
+        self.dispatcher.start(threaded)
+        self.dispatcher.emit("slamkit_run_started", event)
 
     def map_events(self, out: TrackingOutcome, map_reset: bool) -> None:
         """Right after tracking a frame: count a map reset, and fire map_created when the frame initialised a map
