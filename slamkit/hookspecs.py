@@ -108,7 +108,9 @@ class SlamkitHookSpecs:
     def slamkit_frame_tracked(self, event: FrameTracked) -> None:
         """Tracking finished a frame: its state, how it was tracked, its pose, matches and timings.
 
-        Fired for every frame tracking received, in frame order, from tracking's side of the runner.
+        Fired for every frame tracking received, in frame order. The threaded runner fires it right after
+        tracking; the sequential runner after local mapping (and loop closing) processed the keyframes the frame
+        made, which is when it records the frame's pose relative to its reference keyframe (``T_c_r``).
         """
 
     @hookspec
