@@ -83,7 +83,8 @@ class _Listener:
 class EventDispatcher:
     """Calls the plugins' lifecycle hook implementations.
 
-    hooks: the plugin manager's hook relay (``ComponentRegistry.hook``; None: nobody listens). critical: names
+    hooks: the plugin manager's hook relay (``ComponentRegistry.hook``; None: nobody listens); the listeners are
+    the implementations registered when the dispatcher is built, called in registration order. critical: names
     of plugins whose failure fails the run (the run's own outputs); any other listener that raises is logged with
     its plugin's name and not called again during the run.
 
@@ -147,9 +148,10 @@ class EventDispatcher:
             log.error("%s", message)
 
     def _deliver_queued(self) -> None:
-        assert self._queue is not None
+        inbox = self._queue
+        assert inbox is not None
         while True:
-            item = self._queue.get()
+            item = inbox.get()
             if item is _STOP:
                 return
             self._deliver(*item)
