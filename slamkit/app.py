@@ -1,10 +1,11 @@
-"""The job behind ``slamkit run``: build the configured components, run SLAM on the dataset, write the run
-directory (trajectory.tum, keyframes.tum, metrics.json, config.yaml, trajectory.png)."""
+"""The job behind ``slamkit run``: build the configured components and the runner, and run SLAM on the dataset.
+
+The run directory (trajectory.tum, keyframes.tum, metrics.json, config.yaml, frames.csv, loops.json,
+trajectory.png) is written by the built-in outputs plugin on the lifecycle hooks (slamkit/eval/outputs.py); the
+metrics are computed in slamkit/eval/run_metrics.py."""
 
 from __future__ import annotations
 
-import csv
-import dataclasses
 import json
 import logging
 import time
@@ -16,19 +17,19 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from slamkit.errors import ConfigError, SlamkitError
+from slamkit.errors import ConfigError
+from slamkit.eval.outputs import PLUGIN_NAME as OUTPUTS_PLUGIN
 from slamkit.interfaces import Dataset, Optimizer
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import PipelineConfig
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
-from slamkit.pipeline.tracking import Tracker, TrackingState
+from slamkit.pipeline.tracking import Tracker
 from slamkit.plugins import ComponentRegistry
 from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
-from slamkit.runtime.log import RunLog
+from slamkit.runtime.events import EventDispatcher
 from slamkit.runtime.sequential import SequentialRunner
 from slamkit.runtime.threaded import ThreadedRunner
-from slamkit.sensors import Trajectory
 
 log = logging.getLogger("slamkit")
 
@@ -54,193 +55,6 @@ def _output_dir() -> Path:
     from hydra.core.hydra_config import HydraConfig
 
     return Path(HydraConfig.get().runtime.output_dir)
-
-
-def path_length_m(traj: Trajectory) -> float:
-    """Sum of the distances between consecutive camera centres, m."""
-    if len(traj) < 2:
-        return 0.0
-    return float(np.linalg.norm(np.diff(traj.positions_m, axis=0), axis=1).sum())
-
-
-def _percentile(values: list[float], q: float) -> float | None:
-    return float(np.percentile(values, q)) if values else None
-
-
-#: An accepted loop is false when the true camera centres of its two keyframes are further apart than this, or
-#: their optical axes differ by more than FALSE_LOOP_MAX_ANGLE_DEG: they do not see the same place.
-FALSE_LOOP_MAX_DISTANCE_M = 2.0
-FALSE_LOOP_MAX_ANGLE_DEG = 60.0
-
-
-def count_false_loops(run: RunLog, store: InMemoryMapStore, gt: Trajectory | None) -> int | None:
-    """Accepted loops whose two keyframes were not truly at the same place (by the ground truth)."""
-    if gt is None:
-        return None
-    false = 0
-    for loop in run.loops:
-        if loop.loop_kf_id is None:
-            continue
-        stamps = [loop.kf_id, loop.loop_kf_id]
-        times = [store.get_keyframe(k).timestamp_s if store.has_keyframe(k) else None for k in stamps]
-        if None in times:
-            continue
-        idx = [int(np.argmin(np.abs(gt.t_s - t))) for t in times if t is not None]
-        a, b = gt.T_w_c[idx[0]], gt.T_w_c[idx[1]]
-        dist = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
-        cos = float(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))
-        if dist > FALSE_LOOP_MAX_DISTANCE_M or np.degrees(np.arccos(cos)) > FALSE_LOOP_MAX_ANGLE_DEG:
-            false += 1
-    return false
-
-
-def loop_summaries(run: RunLog) -> dict[str, float | int | None]:
-    """Scalar summaries of the closed loops (None when no loop closed), for sweep reports:
-    ``essential_graph_edges_max`` (edges of the largest essential graph optimized, ORB-SLAM Table VI's "edges"),
-    ``essential_graph_ms_total`` (time building and optimizing essential graphs, ms) and
-    ``loop_correction_ms_total`` (whole loop corrections: propagation, fusion, essential graph, ms)."""
-    closed = [lp for lp in run.loops if lp.loop_kf_id is not None]
-    if not closed:
-        return {"essential_graph_edges_max": None, "essential_graph_ms_total": None, "loop_correction_ms_total": None}
-    return {
-        "essential_graph_edges_max": max(lp.essential_graph_edges for lp in closed),
-        "essential_graph_ms_total": float(sum(lp.timings_ms.get("essential_graph_ms", 0.0) for lp in closed)),
-        "loop_correction_ms_total": float(sum(lp.timings_ms.get("correction_ms", 0.0) for lp in closed)),
-    }
-
-
-def run_metrics(
-    run: RunLog, store: InMemoryMapStore, frames: Trajectory, keyframes: Trajectory, dataset: Dataset
-) -> dict[str, Any]:
-    """metrics.json of a run: counts, timings, and accuracy against the ground truth when there is one."""
-    track_ms = [o.timings_ms["track_ms"] for o in run.tracking if "track_ms" in o.timings_ms]
-    extract_ms = [o.timings_ms["extract_ms"] for o in run.tracking if "extract_ms" in o.timings_ms]
-    mapping_ms = [sum(m.timings_ms.values()) for m in run.mapping]
-    ba_ms = [m.timings_ms.get("local_ba_ms", 0.0) for m in run.mapping]
-    states = [o.state for o in run.tracking]
-    init_frame = next((o.frame_index for o in run.tracking if o.method == "initialize" and o.state == "ok"), None)
-    metrics: dict[str, Any] = {
-        "dataset": getattr(dataset, "name", "?"),
-        "frames": len(run.tracking),
-        # frames with an estimated pose: tracked frames plus the initialisation's reference frame (keyframe 0)
-        "frames_tracked": len(frames),
-        "frames_lost": int(sum(s == TrackingState.LOST for s in states)),
-        "initialized_at_frame": init_frame,
-        "resets": run.resets,
-        "keyframes": store.n_keyframes(),
-        "map_points": store.n_points(),
-        "tracking_ms_median": _percentile(track_ms, 50),
-        "tracking_ms_p95": _percentile(track_ms, 95),
-        "extract_ms_median": _percentile(extract_ms, 50),
-        "local_mapping_ms_median": _percentile(mapping_ms, 50),
-        "local_ba_ms_median": _percentile(ba_ms, 50),
-        "wall_s": run.wall_s,
-        "runner": run.runner,
-        "frames_dropped": run.frames_dropped,
-        "realtime_factor": run.realtime_factor,
-        "preloaded_mb": run.preloaded_mb,
-        "relocalizations": sum(o.method == "relocalization" and o.state == TrackingState.OK for o in run.tracking),
-        "loops_closed": sum(loop.loop_kf_id is not None for loop in run.loops),
-        "loop_closing_ms_median": _percentile([sum(lp.timings_ms.values()) for lp in run.loops], 50),
-        "essential_graph_edges": [lp.essential_graph_edges for lp in run.loops if lp.loop_kf_id is not None],
-        "essential_graph_ms": [
-            lp.timings_ms.get("essential_graph_ms") for lp in run.loops if lp.loop_kf_id is not None
-        ],
-    }
-    metrics.update(loop_summaries(run))
-    gt = dataset.ground_truth
-    if gt is not None and run.tracking:
-        # the ground truth over the frames this run processed (max_frames/skip may cut the sequence)
-        t0, t1 = run.tracking[0].timestamp_s, run.tracking[-1].timestamp_s
-        span = (gt.t_s >= t0 - 1e-6) & (gt.t_s <= t1 + 1e-6)
-        gt = Trajectory(gt.t_s[span], gt.T_w_c[span])
-    if gt is not None and len(gt) >= 2:
-        metrics["path_length_m"] = path_length_m(gt)
-        metrics["path_length_source"] = "ground_truth"
-        from slamkit.errors import EvaluationError
-        from slamkit.eval.metrics import compute_ate
-
-        for name, traj in (("", frames), ("kf_", keyframes)):
-            try:
-                ate = compute_ate(gt, traj, align="sim3", max_diff_s=0.01)
-            except (EvaluationError, SlamkitError) as exc:
-                metrics[f"{name}ate_error"] = str(exc)
-                continue
-            metrics[f"{name}ate_rmse_m"] = ate.rmse_m
-            metrics[f"{name}ate_matched_poses"] = ate.matched_poses
-            metrics[f"{name}ate_rmse_pct_of_path"] = 100.0 * ate.rmse_m / max(metrics["path_length_m"], 1e-12)
-        metrics["ate_align"] = "sim3"
-        metrics["loops_false"] = count_false_loops(run, store, dataset.ground_truth)
-    else:
-        metrics["path_length_m"] = path_length_m(frames)
-        metrics["path_length_source"] = "estimate (no ground truth; arbitrary scale for monocular)"
-    return metrics
-
-
-def write_run_logs(out_dir: Path, run: RunLog) -> None:
-    """frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe
-    (candidates, consistency, BoW matches, Sim3 inliers and scale, corrections), so a user can see why a loop
-    was or was not closed."""
-    with (out_dir / "frames.csv").open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["frame", "timestamp_s", "state", "method", "features", "inliers", "track_ms", "message"])
-        for o in run.tracking:
-            writer.writerow(
-                [
-                    o.frame_index,
-                    f"{o.timestamp_s:.6f}",
-                    o.state.value,
-                    o.method,
-                    o.n_features,
-                    o.inliers,
-                    f"{o.timings_ms.get('track_ms', float('nan')):.2f}",
-                    o.message,
-                ]
-            )
-    loops = [dataclasses.asdict(lp) for lp in run.loops if lp.candidates or lp.pending or lp.loop_kf_id is not None]
-    (out_dir / "loops.json").write_text(json.dumps(loops, indent=2, default=float) + "\n")
-
-
-def write_outputs(
-    out_dir: Path, cfg: DictConfig, runner: Runner, dataset: Dataset, status: str, error: str | None
-) -> dict[str, Any]:
-    """Write what the run has (also after a failure) and return the metrics."""
-    from slamkit.io.trajectory_io import write_trajectory
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    frames = runner.recorder.frames(runner.store)
-    keyframes = runner.recorder.keyframes(runner.store)
-    write_trajectory(out_dir / "trajectory.tum", frames, "tum")
-    write_trajectory(out_dir / "keyframes.tum", keyframes, "tum")
-    (out_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
-    metrics = run_metrics(runner.log, runner.store, frames, keyframes, dataset)
-    metrics["status"] = status
-    metrics["seed"] = int(cfg.seed)
-    if error:
-        metrics["error"] = error
-    if runner.log.failed_thread is not None:
-        metrics["failed_thread"] = runner.log.failed_thread
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float) + "\n")
-    write_run_logs(out_dir, runner.log)
-    gt = dataset.ground_truth
-    if len(frames) >= 3:
-        try:
-            from slamkit.eval.metrics import compute_ate
-            from slamkit.eval.plot import plot_trajectories
-
-            if gt is not None and len(gt) >= 3:
-                ate = compute_ate(gt, frames, align="sim3")
-                plot_trajectories(
-                    out_dir / "trajectory.png",
-                    ate.gt_matched,
-                    ate.est_aligned,
-                    f"{metrics['dataset']}: ATE {ate.rmse_m:.4f} m (sim3)",
-                )
-            else:
-                plot_trajectories(out_dir / "trajectory.png", None, frames, str(metrics["dataset"]))
-        except SlamkitError as exc:
-            log.warning("no trajectory plot: %s", exc)
-    return metrics
 
 
 def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> tuple[Runner, Dataset]:
@@ -288,6 +102,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     if place is not None:
         loop_closer = LoopCloser(pipeline.loop_closing, store, background_optimizer, place, rng)
     progress = bool(cfg.runner.get("progress", True))
+    events = EventDispatcher(registry.hook, critical={OUTPUTS_PLUGIN})
     runner: Runner
     if kind == "threaded":
         runner = ThreadedRunner(
@@ -301,9 +116,10 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             preload=bool(cfg.runner.get("preload", False)),
             background_niceness=_int_setting(cfg.runner, "background_niceness", 0, 19, 0),
             gil_switch_interval_s=_switch_interval_s(cfg.runner),
+            events=events,
         )
     else:
-        runner = SequentialRunner(tracker, mapper, store, progress=progress, loop_closer=loop_closer)
+        runner = SequentialRunner(tracker, mapper, store, progress=progress, loop_closer=loop_closer, events=events)
     return runner, dataset
 
 
@@ -369,6 +185,12 @@ def write_failed_job(out_dir: Path, cfg: DictConfig, error: str, stage: str) -> 
     return metrics
 
 
+def _written_metrics(out_dir: Path) -> dict[str, Any]:
+    """The metrics.json the outputs plugin wrote."""
+    metrics: dict[str, Any] = json.loads((out_dir / "metrics.json").read_text())
+    return metrics
+
+
 def run_job(cfg: DictConfig) -> dict[str, Any]:
     """Hydra task function of ``slamkit run``. A failing job writes metrics.json with ``status: failed`` and
     ``error``; in a multirun it then returns (logged as an error) so the other jobs of the sweep go on, in a
@@ -376,6 +198,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
     out_dir = _output_dir()
     try:
         runner, dataset = build_runner(cfg)
+        config = OmegaConf.to_container(cfg, resolve=True)
     except Exception as exc:
         error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
         metrics = write_failed_job(out_dir, cfg, error, "build")
@@ -385,17 +208,19 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         return metrics
     log.info("dataset %s: %d frames -> %s", getattr(dataset, "name", "?"), len(dataset), out_dir)
     start = time.perf_counter()
+    assert isinstance(config, dict)
     try:
-        runner.run(dataset, dataset.camera)
+        # the outputs plugin writes the run directory when the run finishes, also when it fails
+        runner.run(dataset, dataset.camera, run_dir=out_dir, config={str(k): v for k, v in config.items()})
     except BaseException as exc:
         error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        metrics = write_outputs(out_dir, cfg, runner, dataset, status, error or type(exc).__name__)
         if not isinstance(exc, Exception) or not _is_multirun():
             raise
         log.error("job failed while running: %s", error)
-        return metrics
-    metrics = write_outputs(out_dir, cfg, runner, dataset, "ok", None)
+        if not (out_dir / "metrics.json").is_file():  # the outputs plugin itself failed
+            return write_failed_job(out_dir, cfg, error, "outputs")
+        return _written_metrics(out_dir)
+    metrics = _written_metrics(out_dir)
     log.info(
         "done in %.1f s: %s",
         time.perf_counter() - start,

@@ -124,7 +124,9 @@ class ComponentRegistry:
             self._pm.unregister(name=name)
             self.failures.append(
                 PluginFailure(
-                    name, distribution, "implements no slamkit hook (slamkit_components, slamkit_cli_commands)"
+                    name,
+                    distribution,
+                    "implements no slamkit hook (slamkit_components, slamkit_cli_commands, lifecycle hooks)",
                 )
             )
             return
@@ -141,6 +143,12 @@ class ComponentRegistry:
     def _implements_any_hook(self, name: str) -> bool:
         plugin = self._pm.get_plugin(name)
         return any(caller.get_hookimpls() for caller in self._pm.get_hookcallers(plugin) or [])
+
+    @property
+    def hook(self) -> pluggy.HookRelay:
+        """The plugin manager's hook relay: the runners fire the lifecycle hooks through it
+        (slamkit.runtime.events.EventDispatcher)."""
+        return self._pm.hook
 
     def add_cli_commands(self, subparsers: Any) -> None:
         """Let every plugin add its subcommands (hook ``slamkit_cli_commands``)."""

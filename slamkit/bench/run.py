@@ -74,12 +74,10 @@ def _stats(values: Sequence[float]) -> dict[str, float | int | None]:
 
 def summarize_run(runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: float) -> dict[str, Any]:
     """The bench record of a finished (or failed) run: stage statistics, counts, memory, accuracy."""
-    from slamkit.app import run_metrics
+    from slamkit.eval.run_metrics import runner_metrics
 
     log = runner.log
-    frames = runner.recorder.frames(runner.store)
-    keyframes = runner.recorder.keyframes(runner.store)
-    metrics = run_metrics(log, runner.store, frames, keyframes, dataset)
+    metrics = runner_metrics(runner, dataset)  # the numbers metrics.json has
     tracked = [o for o in log.tracking if o.state == "ok" and o.method != "initialize"]
     tracking = {s: _stats([o.timings_ms[s] for o in tracked if s in o.timings_ms]) for s in _TRACKING_STAGES}
     mapping_stages = sorted({k for m in log.mapping for k in m.timings_ms})

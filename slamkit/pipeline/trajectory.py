@@ -3,6 +3,7 @@ keyframe, so the final trajectory follows every later correction of the keyframe
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,26 +43,36 @@ class TrajectoryRecorder:
     def record(self, frame_index: int, timestamp_s: float, T_c_w: F64, ref_kf_id: int, T_ref_w: F64) -> None:
         self._records.append(_Record(frame_index, timestamp_s, ref_kf_id, T_c_w @ invert_T(T_ref_w)))
 
+    def record_relative(self, frame_index: int, timestamp_s: float, ref_kf_id: int, T_c_r: F64) -> None:
+        """Record a frame by its pose relative to its reference keyframe, (4, 4) T_c_r = T_c_w @ T_w_r."""
+        self._records.append(_Record(frame_index, timestamp_s, ref_kf_id, T_c_r))
+
     def on_culled(self, culled: CulledKeyFrame) -> None:
         self._culled[culled.kf_id] = culled
 
-    def _keyframe_pose(self, store: InMemoryMapStore, kf_id: int, depth: int = 0) -> F64 | None:
+    def _keyframe_pose(self, keyframe_poses: Mapping[int, F64], kf_id: int, depth: int = 0) -> F64 | None:
         """Current T_c_w of a keyframe, following culled keyframes to their parents."""
-        if store.has_keyframe(kf_id):
-            return store.get_keyframe(kf_id).T_c_w
+        pose = keyframe_poses.get(kf_id)
+        if pose is not None:
+            return pose
         culled = self._culled.get(kf_id)
         if culled is None:
             return None
         if culled.parent_id is None or depth > 10_000:
             return culled.T_c_w
-        parent = self._keyframe_pose(store, culled.parent_id, depth + 1)
+        parent = self._keyframe_pose(keyframe_poses, culled.parent_id, depth + 1)
         return culled.T_c_w if parent is None else culled.T_kf_parent @ parent
 
     def frames(self, store: InMemoryMapStore) -> Trajectory:
         """Every recorded frame's pose T_w_c (frames whose keyframe cannot be resolved are left out)."""
+        return self.frames_at({k: store.get_keyframe(k).T_c_w for k in store.keyframe_ids()})
+
+    def frames_at(self, keyframe_poses: Mapping[int, F64]) -> Trajectory:
+        """Every recorded frame's pose T_w_c, given the map's keyframes' current poses (kf_id -> (4, 4) T_c_w;
+        frames whose keyframe cannot be resolved are left out)."""
         t, poses = [], []
         for rec in self._records:
-            T_r_w = self._keyframe_pose(store, rec.ref_kf_id)
+            T_r_w = self._keyframe_pose(keyframe_poses, rec.ref_kf_id)
             if T_r_w is None:
                 continue
             t.append(rec.timestamp_s)

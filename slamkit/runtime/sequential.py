@@ -1,11 +1,14 @@
 """The deterministic runner: tracking, then local mapping of each new keyframe, in one thread and in a fixed
-order. With a fixed seed, two runs give the same trajectory bit for bit."""
+order. With a fixed seed, two runs give the same trajectory bit for bit. Lifecycle hooks are called inline, from
+this thread, right after the step that produced each event (slamkit/runtime/events.py)."""
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
@@ -15,6 +18,7 @@ from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
 from slamkit.pipeline.trajectory import TrajectoryRecorder
+from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
 from slamkit.sensors import FrameData
 
@@ -31,7 +35,9 @@ class SequentialRunner:
         store: InMemoryMapStore,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
+        events: EventDispatcher | None = None,
     ) -> None:
+        """events: fires the plugins' lifecycle hooks (None: nobody listens)."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -39,14 +45,28 @@ class SequentialRunner:
         self.recorder = TrajectoryRecorder()
         self.progress = progress
         self.log = RunLog()
+        self.events = events
+        self._run_events = RunEvents(None, "sequential", store)
 
     def run(
-        self, dataset: Dataset, camera: Camera, on_frame: Callable[[TrackingOutcome], None] | None = None
+        self,
+        dataset: Dataset,
+        camera: Camera,
+        on_frame: Callable[[TrackingOutcome], None] | None = None,
+        run_dir: Path | None = None,
+        config: Mapping[str, Any] | None = None,
     ) -> RunLog:
-        """Process every frame; results accumulate in ``self.log`` and ``self.recorder`` even if it raises."""
+        """Process every frame; results accumulate in ``self.log`` and ``self.recorder`` even if it raises.
+
+        run_dir / config: where the run's files go and its resolved config, handed to the lifecycle hooks
+        (``slamkit_run_started``; the built-in outputs plugin writes the run directory from its events).
+        """
+        self._run_events = RunEvents(self.events, "sequential", self.store)
+        self._run_events.started(dataset, run_dir, config, threaded=False)
         start = time.perf_counter()
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
         first_t: float | None = None
+        ended_by: BaseException | None = None
         try:
             for data in dataset:
                 first_t = data.timestamp_s if first_t is None else first_t
@@ -59,9 +79,13 @@ class SequentialRunner:
                 bar.set_postfix_str(
                     f"{out.state.value} kf={self.store.n_keyframes()} mp={self.store.n_points()}", refresh=False
                 )
+        except BaseException as exc:
+            ended_by = exc
+            raise
         finally:
             bar.close()
             self.log.wall_s = time.perf_counter() - start
+            self._run_events.finished(self.log, ended_by)
         return self.log
 
     def step(self, data: FrameData, camera: Camera) -> None:
@@ -70,16 +94,21 @@ class SequentialRunner:
         out = self.tracker.step(data, camera, mapping_idle=True)
         map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
         log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
+        self._run_events.map_events(out, map_was_reset)
         for kf in out.new_keyframes:
             mapped = self.mapper.step(kf, already_in_map=out.already_in_map)
             self.log.mapping.append(mapped)
             for culled in mapped.culled_keyframes:
                 self.recorder.on_culled(culled)
+            self._run_events.keyframe_mapped(mapped)
             if self.loop_closer is not None and self.store.has_keyframe(kf.id):
                 self.log.loops.append(self.loop_closer.step(kf))
+                self._run_events.loop_checked(self.log.loops[-1])
+        ref, T_ref_w = None, None
         if out.state == TrackingState.OK and out.T_c_w is not None:
             ref = self.tracker.reference_kf_id
             if ref is not None and self.store.has_keyframe(ref):
-                self.recorder.record(
-                    out.frame_index, out.timestamp_s, out.T_c_w, ref, self.store.get_keyframe(ref).T_c_w
-                )
+                T_ref_w = self.store.get_keyframe(ref).T_c_w
+                self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref, T_ref_w)
+        # after the frame's keyframes were mapped: its pose is recorded against its reference keyframe as it is now
+        self._run_events.frame_tracked(out, map_was_reset, ref, T_ref_w)

@@ -10,7 +10,9 @@ meets a half-done local-mapping step. A map reset by tracking parks and empties 
 
 Any thread's exception stops the run: tracking stops taking frames, the other workers stop, and ``run`` raises
 PipelineThreadError naming the thread with its traceback; ``self.log`` and ``self.recorder`` keep everything done so
-far so the caller can write it. Not deterministic (thread timing decides which frames become keyframes); the
+far, and ``slamkit_run_finished`` still fires, so the outputs plugin writes it. Lifecycle hooks run on a fourth
+thread, the event dispatcher's (slamkit/runtime/events.py): the pipeline threads only queue their events, so a
+listener's cost never lands on tracking. Not deterministic (thread timing decides which frames become keyframes); the
 SequentialRunner is the reproducible mode.
 """
 
@@ -21,7 +23,8 @@ import logging
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
@@ -33,6 +36,7 @@ from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
 from slamkit.pipeline.trajectory import TrajectoryRecorder
+from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
 from slamkit.runtime.source import END, FrameSource
@@ -59,6 +63,7 @@ class ThreadedRunner:
     process lower their scheduling priority, so tracking gets the cores first (slamkit/runtime/priority.py; 0:
     equal priority). Not applied when playing as fast as possible (see ``run``).
     gil_switch_interval_s: the interpreter's GIL switch interval during the run (None: unchanged).
+    events: fires the plugins' lifecycle hooks, from its own thread (None: nobody listens).
     """
 
     def __init__(
@@ -73,6 +78,7 @@ class ThreadedRunner:
         preload: bool = False,
         background_niceness: int = 0,
         gil_switch_interval_s: float | None = None,
+        events: EventDispatcher | None = None,
     ) -> None:
         self.tracker = tracker
         self.mapper = mapper
@@ -86,6 +92,8 @@ class ThreadedRunner:
         self.background_niceness = background_niceness
         self.gil_switch_interval_s = gil_switch_interval_s
         self.log = RunLog(runner="threaded")
+        self.events = events
+        self._run_events = RunEvents(None, "threaded", store)
         self._fault: ThreadFault | None = None
         self._fault_lock = threading.Lock()
         # keyframes tracking made that local mapping has not inserted yet: tracked frames may refer to them
@@ -130,6 +138,7 @@ class ThreadedRunner:
         self._pending_keyframes.pop(kf.id, None)
         for culled in outcome.culled_keyframes:
             self.recorder.on_culled(culled)
+        self._run_events.keyframe_mapped(outcome)
         if self._closing is not None and self.store.has_keyframe(kf.id):
             self._closing.submit(kf)
 
@@ -140,6 +149,7 @@ class ThreadedRunner:
             if not self.store.has_keyframe(kf.id):
                 return  # culled by local mapping before loop closing reached it
             self.log.loops.append(self.loop_closer.step(kf))
+            self._run_events.loop_checked(self.log.loops[-1])
 
     @contextlib.contextmanager
     def _parked(
@@ -199,26 +209,50 @@ class ThreadedRunner:
         out = self.tracker.step(data, camera, mapping_idle=self._mapping.idle() and not self._mapping.stopping())
         map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
         log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
+        self._run_events.map_events(out, map_was_reset)
         if out.new_keyframes and not self._mapping.idle():
             self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
         for kf in out.new_keyframes:
             self._pending_keyframes[kf.id] = kf
             self._mapping.submit((kf, out.already_in_map))
+        ref_id, T_ref_w = None, None
         if out.state == TrackingState.OK and out.T_c_w is not None:
             ref_id = self.tracker.reference_kf_id
             ref = self._keyframe_pose(ref_id) if ref_id is not None else None
             if ref is not None and ref_id is not None:
-                self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref_id, ref.T_c_w)
+                T_ref_w = ref.T_c_w
+                self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref_id, T_ref_w)
+        self._run_events.frame_tracked(out, map_was_reset, ref_id, T_ref_w)
         return out
 
     def run(
-        self, dataset: Dataset, camera: Camera, on_frame: Callable[[TrackingOutcome], None] | None = None
+        self,
+        dataset: Dataset,
+        camera: Camera,
+        on_frame: Callable[[TrackingOutcome], None] | None = None,
+        run_dir: Path | None = None,
+        config: Mapping[str, Any] | None = None,
     ) -> RunLog:
         """Process the dataset; results accumulate in ``self.log`` and ``self.recorder`` even if it raises.
 
+        run_dir / config: where the run's files go and its resolved config, handed to the lifecycle hooks
+        (``slamkit_run_started``; the built-in outputs plugin writes the run directory from its events).
         Raises PipelineThreadError when a pipeline thread failed; KeyboardInterrupt passes through after the
-        threads stopped.
+        threads stopped. ``slamkit_run_finished`` fires in every case, after the pipeline threads stopped.
         """
+        self._run_events = RunEvents(self.events, "threaded", self.store)
+        self._run_events.started(dataset, run_dir, config, threaded=True)
+        ended_by: BaseException | None = None
+        try:
+            self._run(dataset, camera, on_frame)
+        except BaseException as exc:
+            ended_by = exc
+            raise
+        finally:
+            self._run_events.finished(self.log, ended_by)
+        return self.log
+
+    def _run(self, dataset: Dataset, camera: Camera, on_frame: Callable[[TrackingOutcome], None] | None = None) -> None:
         self._prepare(dataset, camera)
         frames: Iterable[FrameData] = self._preloaded(dataset) if self.preload else dataset
         start = time.perf_counter()
@@ -257,7 +291,6 @@ class ThreadedRunner:
             self.log.wall_s = time.perf_counter() - start
         if self._fault is not None:
             raise self._fault.as_error()
-        return self.log
 
     def _track_frames(self, camera: Camera, bar: tqdm[Any], on_frame: Callable[[TrackingOutcome], None] | None) -> None:
         """The tracking loop: take frames from the source until the end, a fault or a stop."""

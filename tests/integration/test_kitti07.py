@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from slamkit.app import build_runner, run_metrics
+from slamkit.app import build_runner
 from slamkit.config import compose_config
+from slamkit.eval.run_metrics import runner_metrics
 
 
 @pytest.mark.slow
@@ -27,9 +28,7 @@ def test_kitti07_slice_tracks_97_percent_with_ate_under_half_percent(shared_data
     )
     runner, dataset = build_runner(cfg)
     runner.run(dataset, dataset.camera)
-    metrics = run_metrics(
-        runner.log, runner.store, runner.recorder.frames(runner.store), runner.recorder.keyframes(runner.store), dataset
-    )
+    metrics = runner_metrics(runner, dataset)
     assert metrics["frames"] == 160
     assert metrics["frames_tracked"] >= 0.97 * metrics["frames"]
     assert 85.0 < metrics["path_length_m"] < 95.0

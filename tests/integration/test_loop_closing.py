@@ -7,8 +7,9 @@ from typing import Any
 
 import pytest
 
-from slamkit.app import build_runner, run_metrics
+from slamkit.app import build_runner
 from slamkit.config import compose_config
+from slamkit.eval.run_metrics import runner_metrics
 from slamkit.pipeline.loop_closing import LoopOutcome
 
 
@@ -17,9 +18,7 @@ def run_with_loops(*overrides: str) -> tuple[dict[str, Any], list[LoopOutcome]]:
     cfg = compose_config(["runner=sequential", "runner.progress=false", *overrides])
     runner, dataset = build_runner(cfg)
     runner.run(dataset, dataset.camera)
-    metrics = run_metrics(
-        runner.log, runner.store, runner.recorder.frames(runner.store), runner.recorder.keyframes(runner.store), dataset
-    )
+    metrics = runner_metrics(runner, dataset)
     return metrics, runner.log.loops
 
 

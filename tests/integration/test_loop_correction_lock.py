@@ -9,8 +9,9 @@ from typing import Any
 
 import pytest
 
-from slamkit.app import build_runner, run_metrics
+from slamkit.app import build_runner
 from slamkit.config import compose_config
+from slamkit.eval.run_metrics import runner_metrics
 from slamkit.problems import EssentialGraphProblem, EssentialGraphResult
 from slamkit.runtime.sequential import SequentialRunner
 
@@ -53,9 +54,7 @@ def test_the_map_stays_readable_while_the_essential_graph_is_optimized(
     probe = _ReadabilityProbe(runner.loop_closer.optimizer, runner.store)
     runner.loop_closer.optimizer = probe
     runner.run(dataset, dataset.camera)
-    metrics = run_metrics(
-        runner.log, runner.store, runner.recorder.frames(runner.store), runner.recorder.keyframes(runner.store), dataset
-    )
+    metrics = runner_metrics(runner, dataset)
     assert metrics["loops_closed"] == 1 and metrics["loops_false"] == 0
     assert probe.readable_during_eg == [True]
     # the batched point moves keep the corrected map as accurate as before (room: ~0.1% of the 13.4 m path)

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slamkit.app import build_runner, run_metrics
+from slamkit.app import build_runner
 from slamkit.config import compose_config
+from slamkit.eval.run_metrics import runner_metrics
 from slamkit.io.base import SequenceDataset
 from slamkit.pipeline.tracking import TrackingState
 from slamkit.sensors import FrameData
@@ -19,9 +20,7 @@ def run_synthetic(*overrides: str) -> tuple[dict, object]:
     cfg = compose_config([*BASE, *overrides])
     runner, dataset = build_runner(cfg)
     runner.run(dataset, dataset.camera)
-    frames = runner.recorder.frames(runner.store)
-    keyframes = runner.recorder.keyframes(runner.store)
-    return run_metrics(runner.log, runner.store, frames, keyframes, dataset), runner
+    return runner_metrics(runner, dataset), runner
 
 
 def test_room_initialises_early_tracks_every_frame_and_is_accurate() -> None:

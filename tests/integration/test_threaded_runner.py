@@ -15,8 +15,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from slamkit.app import build_runner, run_metrics
+from slamkit.app import build_runner
 from slamkit.config import compose_config
+from slamkit.eval.run_metrics import runner_metrics
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.runtime.threaded import ThreadedRunner
 from slamkit.runtime.workers import PipelineThreadError
@@ -51,8 +52,7 @@ def _fail_on_call(n: int, message: str):  # type: ignore[no-untyped-def]
 def test_threaded_run_tracks_the_room_as_accurately_as_the_sequential_one() -> None:
     runner, dataset = _runner()
     log = runner.run(dataset, dataset.camera)
-    frames = runner.recorder.frames(runner.store)
-    metrics = run_metrics(log, runner.store, frames, runner.recorder.keyframes(runner.store), dataset)
+    metrics = runner_metrics(runner, dataset)
     assert metrics["runner"] == "threaded" and metrics["frames_dropped"] == 0
     assert metrics["frames"] == 150
     assert metrics["frames_tracked"] >= 150 - 12  # initialises at frame ~10, then tracks every frame

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from slamkit.app import loop_summaries
+from slamkit.eval.run_metrics import loop_summaries
 from slamkit.pipeline.loop_closing import LoopOutcome
 from slamkit.runtime.log import RunLog
 
