@@ -17,8 +17,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from slamkit.errors import ConfigError, SlamkitError
-from slamkit.interfaces import Dataset, Optimizer
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import Dataset, MapStore, Optimizer
 from slamkit.pipeline.config import PipelineConfig
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
@@ -73,7 +72,7 @@ FALSE_LOOP_MAX_DISTANCE_M = 2.0
 FALSE_LOOP_MAX_ANGLE_DEG = 60.0
 
 
-def count_false_loops(run: RunLog, store: InMemoryMapStore, gt: Trajectory | None) -> int | None:
+def count_false_loops(run: RunLog, store: MapStore, gt: Trajectory | None) -> int | None:
     """Accepted loops whose two keyframes were not truly at the same place (by the ground truth)."""
     if gt is None:
         return None
@@ -110,7 +109,7 @@ def loop_summaries(run: RunLog) -> dict[str, float | int | None]:
 
 
 def run_metrics(
-    run: RunLog, store: InMemoryMapStore, frames: Trajectory, keyframes: Trajectory, dataset: Dataset
+    run: RunLog, store: MapStore, frames: Trajectory, keyframes: Trajectory, dataset: Dataset
 ) -> dict[str, Any]:
     """metrics.json of a run: counts, timings, and accuracy against the ground truth when there is one."""
     track_ms = [o.timings_ms["track_ms"] for o in run.tracking if "track_ms" in o.timings_ms]
@@ -252,7 +251,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     components = build_components(cfg, registry)
     dataset: Dataset = components["dataset"]
     pipeline = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline, resolve=True))  # type: ignore[arg-type]
-    store: InMemoryMapStore = components["map"]
+    store: MapStore = components["map"]
     rng = np.random.default_rng(int(cfg.seed))
     place = components.get("place")  # None: no relocalization, no loop closing
     init_extractor = None

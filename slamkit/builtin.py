@@ -1,5 +1,5 @@
-"""The core's own components (dataset readers), registered through the ``slamkit`` entry-point group
-exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/``."""
+"""The core's own components (dataset readers, the in-memory map store), registered through the ``slamkit``
+entry-point group exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/`` and ``conf/map/``."""
 
 from __future__ import annotations
 
@@ -41,5 +41,11 @@ def slamkit_components() -> list[ComponentSpec]:
         ),
         ComponentSpec(
             "dataset", "video", "slamkit.io.video.VideoDataset", description="a video file with a camera from config"
+        ),
+        ComponentSpec(
+            "map",
+            "memory",
+            "slamkit.map.store.InMemoryMapStore",
+            description="the map's entities and graphs in memory behind one readers-writer lock (the default)",
         ),
     ]

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import invert_T
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import MapStore
 from slamkit.pipeline.local_mapping import CulledKeyFrame
 from slamkit.sensors import Trajectory
 
@@ -45,7 +45,7 @@ class TrajectoryRecorder:
     def on_culled(self, culled: CulledKeyFrame) -> None:
         self._culled[culled.kf_id] = culled
 
-    def _keyframe_pose(self, store: InMemoryMapStore, kf_id: int, depth: int = 0) -> F64 | None:
+    def _keyframe_pose(self, store: MapStore, kf_id: int, depth: int = 0) -> F64 | None:
         """Current T_c_w of a keyframe, following culled keyframes to their parents."""
         if store.has_keyframe(kf_id):
             return store.get_keyframe(kf_id).T_c_w
@@ -57,7 +57,7 @@ class TrajectoryRecorder:
         parent = self._keyframe_pose(store, culled.parent_id, depth + 1)
         return culled.T_c_w if parent is None else culled.T_kf_parent @ parent
 
-    def frames(self, store: InMemoryMapStore) -> Trajectory:
+    def frames(self, store: MapStore) -> Trajectory:
         """Every recorded frame's pose T_w_c (frames whose keyframe cannot be resolved are left out)."""
         t, poses = [], []
         for rec in self._records:
@@ -71,7 +71,7 @@ class TrajectoryRecorder:
         return Trajectory(np.array(t), np.stack(poses))
 
     @staticmethod
-    def keyframes(store: InMemoryMapStore) -> Trajectory:
+    def keyframes(store: MapStore) -> Trajectory:
         """The map's keyframes, T_w_c in time order."""
         kfs = sorted((store.get_keyframe(k) for k in store.keyframe_ids()), key=lambda k: k.timestamp_s)
         if not kfs:

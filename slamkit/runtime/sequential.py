@@ -9,8 +9,7 @@ from collections.abc import Callable
 
 from tqdm import tqdm
 
-from slamkit.interfaces import Camera, Dataset
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
@@ -28,7 +27,7 @@ class SequentialRunner:
         self,
         tracker: Tracker,
         mapper: LocalMapper,
-        store: InMemoryMapStore,
+        store: MapStore,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
     ) -> None:
