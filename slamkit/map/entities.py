@@ -48,6 +48,10 @@ class KeyFrame:
     def __post_init__(self) -> None:
         replace_fields(self, T_c_w=frozen_copy(self.T_c_w, np.float64), point_ids=frozen_copy(self.point_ids, np.int64))
 
+    def __setstate__(self, state: dict[str, Any]) -> None:  # copies (pickle, deepcopy) are read-only too
+        replace_fields(self, **state)
+        self.__post_init__()
+
     @property
     def T_w_c(self) -> F64:
         """(4, 4) camera -> world."""
@@ -104,6 +108,14 @@ class MapPoint:
             d_max_m=float(self.d_max_m),
             observations=obs if isinstance(obs, MappingProxyType) else MappingProxyType(dict(obs)),
         )
+
+    def __getstate__(self) -> dict[str, Any]:
+        """A copy (pickle, deepcopy) belongs to no store: it takes the observations as they are now."""
+        return {**self.__dict__, "observations": dict(self.observations)}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        replace_fields(self, **state)
+        self.__post_init__()
 
 
 # ---- for MapStore implementations only: how a store changes the entities it owns -------------------------------
