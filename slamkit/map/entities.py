@@ -12,7 +12,7 @@ entities with the helpers at the end of this module (``replace_fields``, ``froze
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
@@ -71,11 +71,7 @@ class KeyFrame:
         return int(np.count_nonzero(self.point_ids >= 0))
 
 
-def _no_observations() -> Mapping[int, int]:
-    return MappingProxyType({})
-
-
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False)
 class MapPoint:
     """A 3D point of the map (ORB-SLAM III-C).
 
@@ -92,21 +88,35 @@ class MapPoint:
     descriptor: NDArray[np.uint8]
     ref_kf_id: int
     first_kf_id: int
-    normal_w: F64 = field(default_factory=lambda: np.zeros(3))
-    d_min_m: float = 0.0
-    d_max_m: float = float("inf")
-    observations: Mapping[int, int] = field(default_factory=_no_observations)
+    normal_w: F64
+    d_min_m: float
+    d_max_m: float
+    observations: Mapping[int, int]
 
-    def __post_init__(self) -> None:
-        obs = self.observations
-        replace_fields(
-            self,
-            xyz_w=frozen_copy(self.xyz_w, np.float64),
-            descriptor=frozen_copy(self.descriptor, np.uint8),
-            normal_w=frozen_copy(self.normal_w, np.float64),
-            d_min_m=float(self.d_min_m),
-            d_max_m=float(self.d_max_m),
-            observations=obs if isinstance(obs, MappingProxyType) else MappingProxyType(dict(obs)),
+    def __init__(
+        self,
+        id: int,
+        xyz_w: F64,
+        descriptor: NDArray[np.uint8],
+        ref_kf_id: int,
+        first_kf_id: int,
+        normal_w: F64 | None = None,
+        d_min_m: float = 0.0,
+        d_max_m: float = float("inf"),
+        observations: Mapping[int, int] | None = None,
+    ) -> None:
+        # written straight into __dict__ (one call, read-only copies of the arrays): local mapping makes hundreds
+        # of points per keyframe, and a frozen dataclass's generated __init__ costs several times more
+        self.__dict__.update(
+            id=id,
+            xyz_w=frozen_copy(xyz_w, np.float64),
+            descriptor=frozen_copy(descriptor, np.uint8),
+            ref_kf_id=ref_kf_id,
+            first_kf_id=first_kf_id,
+            normal_w=_ZERO3 if normal_w is None else frozen_copy(normal_w, np.float64),
+            d_min_m=float(d_min_m),
+            d_max_m=float(d_max_m),
+            observations=_NO_OBSERVATIONS if not observations else MappingProxyType(dict(observations)),
         )
 
     def __getstate__(self) -> dict[str, Any]:
@@ -114,8 +124,7 @@ class MapPoint:
         return {**self.__dict__, "observations": dict(self.observations)}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        replace_fields(self, **state)
-        self.__post_init__()
+        MapPoint.__init__(self, **state)
 
 
 # ---- for MapStore implementations only: how a store changes the entities it owns -------------------------------
@@ -124,7 +133,7 @@ class MapPoint:
 def frozen_copy(array: Any, dtype: DTypeLike) -> NDArray[Any]:
     """A read-only copy of ``array`` as ``dtype``."""
     out = np.array(array, dtype=dtype, copy=True)
-    out.flags.writeable = False
+    out.setflags(write=False)
     return out
 
 
@@ -132,11 +141,14 @@ def frozen_view(array: NDArray[Any]) -> NDArray[Any]:
     """A read-only view of ``array``: the store keeps ``array`` and writes to it, holders of the view see the
     change but cannot write."""
     view = array.view()
-    view.flags.writeable = False
+    view.setflags(write=False)
     return view
 
 
 def replace_fields(entity: KeyFrame | MapPoint, **values: object) -> None:
     """Set fields of a frozen entity in place (the store's private means; values must already be read-only)."""
-    for name, value in values.items():
-        object.__setattr__(entity, name, value)
+    entity.__dict__.update(values)
+
+
+_ZERO3 = frozen_copy(np.zeros(3), np.float64)  # shared by the points made without a normal (it is read-only)
+_NO_OBSERVATIONS: Mapping[int, int] = MappingProxyType({})

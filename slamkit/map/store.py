@@ -297,7 +297,7 @@ class InMemoryMapStore:
         if not ids.size:
             return
         own = np.array(values, copy=True)
-        own.flags.writeable = False  # each point gets a read-only row of this private copy
+        own.setflags(write=False)  # each point gets a read-only row of this private copy
         points = self._points
         scalar = own.ndim == 1
         for pid, value in zip(ids.tolist(), own, strict=True):
