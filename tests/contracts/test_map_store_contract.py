@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from slamkit.errors import PluginError
 from slamkit.features import Features
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import BowDescription, MapStore
@@ -499,3 +500,13 @@ def test_copies_of_entities_are_read_only_and_belong_to_no_store(store: MapStore
         kf_clone.point_ids[0] = 5
     store.remove_point(pid)
     assert kf_clone.point_ids[0] == pid and store.get_keyframe(k0).point_ids[0] == -1
+
+
+def test_a_map_component_without_the_whole_protocol_is_refused_when_built(registry: ComponentRegistry) -> None:
+    """A ``map=`` component is checked against the full protocol when it is built, not at its first missing call
+    (a class with the graphs' bookkeeping but none of the store's mutations)."""
+    with pytest.raises(PluginError) as err:
+        registry.instantiate("map", {"_target_": "slamkit.map.graphs.CovisibilityGraph"})
+    msg = str(err.value)
+    assert "does not implement MapStore" in msg
+    assert all(name in msg for name in ("add_observation", "point_rows", "replace_point", "spanning_tree"))
