@@ -7,8 +7,9 @@ one numpy indexing per attribute.
 
 The in-memory store writes a point's row whenever it changes one of SYNCED_ATTRIBUTES of the point (every change
 goes through the store: entities are read-only, see entities.py), so the table is never stale. The counters
-(COUNTERS) live only here. Rows of erased points stay allocated (ids are never reused): ~130 bytes per point
-ever made.
+(COUNTERS) live only here. Rows of erased points stay allocated (ids are never reused): ~130 bytes per point id
+up to the largest in the map; with an allocator shared by several maps (an Atlas) that counts the ids the other
+maps took too.
 """
 
 from __future__ import annotations
