@@ -76,9 +76,8 @@ def test_rows_survive_the_table_growing_and_removed_points_are_let_go() -> None:
 def test_copies_of_a_point_belong_to_no_store() -> None:
     store = InMemoryMapStore()
     k = store.new_keyframe_id()
-    feats = Features(
-        *(np.zeros((4, 2), np.float32),) * 2, *(np.zeros(4, np.float32),) * 3, np.zeros((4, 32), np.uint8), 1.2, 8
-    )
+    uv, zeros = np.zeros((4, 2), np.float32), np.zeros(4, np.float32)
+    feats = Features(uv, uv, np.zeros(4, np.int32), zeros, zeros, np.zeros((4, 32), np.uint8), 1.2, 8)
     store.add_keyframe(
         KeyFrame(k, 0, 0.0, np.eye(4), PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0), feats, np.full(4, -1))
     )
