@@ -260,14 +260,19 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         node = {str(k): v for k, v in cfg.features.items()}
         node["n_features"] = round(int(node["n_features"]) * factor)
         init_extractor = registry.instantiate("features", node)
+    frontend_node = cfg.get("frontend")
+    if frontend_node is None or "_target_" not in frontend_node:
+        raise ConfigError("frontend: missing; expected a front end (frontend=mono)")
+    frontend = registry.instantiate(
+        "frontend", frontend_node, extractor=components["features"], init_extractor=init_extractor
+    )
     tracker = Tracker(
         pipeline.tracking,
-        components["features"],
+        frontend,
         components["initializer"],
         components["optimizer"],
         store,
         rng,
-        init_extractor,
         place,
         pose_optimizer=_pose_optimizer(pipeline.tracking.pose_optimization, components["optimizer"]),
     )

@@ -1,5 +1,6 @@
-"""The core's own components (dataset readers, the in-memory map store), registered through the ``slamkit``
-entry-point group exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/`` and ``conf/map/``."""
+"""The core's own components (dataset readers, front ends, the in-memory map store), registered through the
+``slamkit`` entry-point group exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/``,
+``conf/frontend/`` and ``conf/map/``."""
 
 from __future__ import annotations
 
@@ -41,6 +42,12 @@ def slamkit_components() -> list[ComponentSpec]:
         ),
         ComponentSpec(
             "dataset", "video", "slamkit.io.video.VideoDataset", description="a video file with a camera from config"
+        ),
+        ComponentSpec(
+            "frontend",
+            "mono",
+            "slamkit.frontend.mono.MonocularFrontEnd",
+            description="monocular: ORB features, their bearings from the camera model, no depth",
         ),
         ComponentSpec(
             "map",

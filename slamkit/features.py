@@ -1,4 +1,5 @@
-"""Plain feature data: what a FeatureExtractor returns for one image."""
+"""Plain feature data: what a FeatureExtractor returns for one image (``Features``), and the per-keypoint observation
+record a front end builds from it for a frame (``Observations``)."""
 
 from __future__ import annotations
 
@@ -42,3 +43,52 @@ class Features:
     def level_sigma2(self) -> NDArray[np.float64]:
         """(N,) px^2, measurement variance of each keypoint: scale_factor ** (2 * level) (ORB-SLAM)."""
         return np.power(self.scale_factor, 2.0 * self.level.astype(np.float64))
+
+
+@dataclass(frozen=True)
+class Observations(Features):
+    """The per-keypoint observation record of a frame or keyframe: one shape for every sensor.
+
+    A front end (``slamkit.interfaces.FrontEnd``) builds it from a sensor packet; Frame and KeyFrame carry it.
+    On top of the extractor's ``Features`` (raw pixel ``uv_px``, ``level``, ``angle_deg``, ``response``,
+    ``descriptors``) it holds what the camera and the sensor say about each keypoint (the model:
+    stella_vslam's ``data/frame_observation``):
+
+    uv_undist_px: (N, 2) float32 px, the point in the *pipeline's image*, where the pipeline matches and projects
+        (``Camera.project_image``): the undistorted pinhole image for a pinhole camera (ORB-SLAM2/3), the raw
+        keypoint itself for a Kannala-Brandt camera (ORB-SLAM3 keeps fisheye keypoints distorted). The name is
+        the one the pipeline has always read.
+    bearing: (N, 3) float64, the unit ray of each keypoint in the camera frame (``Camera.unproject_image``).
+    u_right_px: (N,) float32 px, the keypoint's u coordinate in the rectified right image (stereo, or virtual
+        right from depth for RGB-D: u - bf / depth); NaN where the sensor gives none (monocular).
+    depth_m: (N,) float32 m, the keypoint's depth along the optical axis (stereo or RGB-D); NaN where unknown.
+    bf: baseline times fx of the rectified pair, m px (0 for a monocular sensor).
+    """
+
+    bearing: NDArray[np.float64]
+    u_right_px: NDArray[np.float32]
+    depth_m: NDArray[np.float32]
+    bf: float = 0.0
+
+    @staticmethod
+    def monocular(features: Features, bearing: NDArray[np.float64]) -> Observations:
+        """The record of a monocular image: ``features`` and their bearings (N, 3); no right coordinate or depth."""
+        n = len(features)
+        return Observations(
+            uv_px=features.uv_px,
+            uv_undist_px=features.uv_undist_px,
+            level=features.level,
+            angle_deg=features.angle_deg,
+            response=features.response,
+            descriptors=features.descriptors,
+            scale_factor=features.scale_factor,
+            n_levels=features.n_levels,
+            bearing=np.asarray(bearing, dtype=np.float64).reshape(n, 3),
+            u_right_px=np.full(n, np.nan, np.float32),
+            depth_m=np.full(n, np.nan, np.float32),
+            bf=0.0,
+        )
+
+    def is_stereo(self) -> NDArray[np.bool_]:
+        """(N,) bool: keypoints with a right coordinate (a stereo or RGB-D measurement)."""
+        return np.isfinite(self.u_right_px)

@@ -16,7 +16,7 @@ from typing import Any, Literal, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.problems import (
     BundleProblem,
     BundleResult,
@@ -48,6 +48,11 @@ class Camera(Protocol):
         """(3, 3) intrinsic matrix of the ideal pinhole image (fx, fy, cx, cy), px."""
         ...
 
+    @property
+    def dist(self) -> F64:
+        """Distortion coefficients of the model: pinhole (5,) k1, k2, p1, p2, k3; Kannala-Brandt (4,) k1..k4."""
+        ...
+
     def project(self, xyz_c: F64) -> F64:
         """xyz_c: (N, 3) m in the camera frame (z forward) -> (N, 2) px in the raw image."""
         ...
@@ -58,6 +63,30 @@ class Camera(Protocol):
 
     def undistort_points(self, uv_px: F64) -> F64:
         """uv_px: (N, 2) raw-image px -> (N, 2) px in the ideal pinhole image with the same K."""
+        ...
+
+    # The pipeline's image: where keypoints are matched and map points projected (``Observations.uv_undist_px``).
+    # A pinhole camera's is the undistorted pinhole image (ORB-SLAM2/3); a fisheye camera's is the raw image
+    # (ORB-SLAM3's Kannala-Brandt). The pipeline never assumes a pinhole: it projects through these.
+
+    #: True when the pipeline's image is the undistorted pinhole image, False when it is the raw image.
+    image_undistorted: bool
+
+    def image_bounds(self) -> tuple[float, float, float, float]:
+        """(min_u, max_u, min_v, max_v) px: where a point of the pipeline's image counts as inside the image."""
+        ...
+
+    def project_image(self, xyz_c: F64) -> tuple[F64, NDArray[np.bool_]]:
+        """xyz_c: (N, 3) m camera frame -> (uv (N, 2) px in the pipeline's image, valid (N,) bool: in front of the
+        camera (z > 0) and within the model's field of view)."""
+        ...
+
+    def unproject_image(self, uv_px: F64) -> F64:
+        """uv_px: (N, 2) px in the pipeline's image -> (N, 3) unit bearings in the camera frame."""
+        ...
+
+    def project_image_jacobian(self, xyz_c: F64) -> F64:
+        """xyz_c: (N, 3) m camera frame -> (N, 2, 3) d uv / d xyz_c of ``project_image``, px/m."""
         ...
 
 
@@ -95,6 +124,35 @@ class FeatureExtractor(Protocol):
 
     def extract(self, image: NDArray[np.uint8], camera: Camera | None = None) -> Features:
         """image: (H, W) uint8 grey. With a camera, ``uv_undist_px`` are undistorted through it."""
+        ...
+
+
+@runtime_checkable
+class FrontEnd(Protocol):
+    """Turns a sensor packet into the frame's per-keypoint observation record (config group ``frontend``).
+
+    Monocular (``frontend=mono``) extracts features of the (left) image; stereo and RGB-D front ends fill the
+    record's ``u_right_px`` / ``depth_m`` / ``bf`` from the right image or the depth map. A front end owns its
+    feature extractor(s): ``initializing`` asks for the frames of a monocular initialisation, on which ORB-SLAM
+    extracts twice the features.
+    """
+
+    @property
+    def n_levels(self) -> int:
+        """Pyramid levels of the extractor (ORB-SLAM: 8)."""
+        ...
+
+    @property
+    def scale_factor(self) -> float:
+        """Scale between pyramid levels (ORB-SLAM: 1.2)."""
+        ...
+
+    def observe(self, data: FrameData, camera: Camera, initializing: bool = False) -> Observations:
+        """data: one packet of the dataset; camera: the (left) camera -> the record of every keypoint."""
+        ...
+
+    def warm_up(self, camera: Camera) -> None:
+        """Run the extractor(s) once on a synthetic image of the camera's size (loads compiled kernels)."""
         ...
 
 
@@ -239,6 +297,7 @@ from slamkit.map.protocol import SpanningTreeView as SpanningTreeView  # noqa: E
 #: kind (= Hydra config group) -> the protocol a component of that kind must satisfy.
 KIND_PROTOCOLS: dict[str, type] = {
     "features": FeatureExtractor,
+    "frontend": FrontEnd,
     "place": PlaceRecognizer,
     "initializer": Initializer,
     "optimizer": Optimizer,

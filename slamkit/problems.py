@@ -5,9 +5,14 @@ a backend solves it (possibly in another process: everything here pickles cheapl
 commits the result. Frames and units: ``T_c_w`` maps world points into the camera (ORB-SLAM's Tcw),
 metres; ``S_c_w`` is the same with a scale (a Sim3 as a 4x4 matrix [[s R, t], [0, 1]]); pixels are px.
 
-Intrinsics arrays hold ``(fx, fy, cx, cy)`` of the ideal (undistorted) pinhole image, px, because every
-observation handed to an optimizer is an undistorted keypoint. Stereo/RGB-D observations add the right
-image's u coordinate ``u_right_px`` (NaN for a monocular observation) and need ``bf`` = baseline * fx (m px).
+The camera model of pose and bundle problems is ``camera_model``: "pinhole" (the default) means observations are
+keypoints of the ideal (undistorted) pinhole image, and intrinsics arrays ``(fx, fy, cx, cy)`` say everything
+(ORB-SLAM2/3 undistort pinhole keypoints); "kannala_brandt" means observations are raw fisheye pixels, projected
+with the same intrinsics and the equidistant model's ``distortion`` k1..k4 (ORB-SLAM3's KannalaBrandt8):
+theta = atan2(r, z), theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8),
+u = fx theta_d x / r + cx, v = fy theta_d y / r + cy with r = |(x, y)|.
+Stereo/RGB-D observations add the rectified right image's u coordinate ``u_right_px`` (NaN for a monocular
+observation) and need ``bf`` = baseline * fx (m px); they exist for pinhole cameras only.
 
 Paper constants (defaults here) are the ORB-SLAM values; the pipeline passes the configured values.
 """
@@ -24,6 +29,11 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 B = NDArray[np.bool_]
 
+#: Values of a problem's ``camera_model``.
+CAMERA_PINHOLE = "pinhole"
+CAMERA_KANNALA_BRANDT = "kannala_brandt"
+CAMERA_MODELS = (CAMERA_PINHOLE, CAMERA_KANNALA_BRANDT)
+
 # Chi-square 95% quantiles for 2 and 3 degrees of freedom (ORB-SLAM, Optimizer.cc; paper appendix).
 CHI2_MONO_95 = 5.991
 CHI2_STEREO_95 = 7.815
@@ -35,10 +45,12 @@ class PoseOnlyProblem:
 
     T_c_w_init: (4, 4) initial pose.
     xyz_w: (N, 3) m, fixed points in the world frame.
-    uv_px: (N, 2) undistorted observations.
+    uv_px: (N, 2) observations in the camera model's image (undistorted for "pinhole", raw for "kannala_brandt").
     u_right_px: (N,) right-image u for stereo/RGB-D observations, NaN for monocular ones.
     level: (N,) int pyramid level of each observation; information = 1 / scale_factor**(2 level).
     intrinsics: (4,) fx, fy, cx, cy; bf: baseline * fx (m px), needed only for stereo observations.
+    camera_model: "pinhole" or "kannala_brandt" (see the module docstring); distortion: (4,) k1..k4 of a
+        Kannala-Brandt camera, None for a pinhole one.
     rounds / iterations_per_round: ORB-SLAM runs 4 rounds of 10 LM iterations, reclassifying outliers
         with the chi-square gates between rounds (outliers of one round may return as inliers).
     """
@@ -55,6 +67,8 @@ class PoseOnlyProblem:
     chi2_stereo: float = CHI2_STEREO_95
     rounds: int = 4
     iterations_per_round: int = 10
+    camera_model: str = CAMERA_PINHOLE
+    distortion: F64 | None = None
 
 
 @dataclass
@@ -86,10 +100,12 @@ class BundleProblem:
     intrinsics: (K, 4) fx, fy, cx, cy per keyframe; bf: (K,) baseline * fx per keyframe (0 for mono).
     xyz_w: (M, 3) m initial points; point_fixed: (M,) bool.
     obs_pose: (E,) int index into poses; obs_point: (E,) int index into points.
-    uv_px: (E, 2) undistorted observations; u_right_px: (E,) NaN for monocular; level: (E,) int.
+    uv_px: (E, 2) observations in the camera model's image; u_right_px: (E,) NaN for monocular; level: (E,) int.
     iterations_first / iterations_second: ORB-SLAM optimizes 5 iterations, removes observations failing
         the chi-square gate (or with the point behind the camera), then optimizes 10 more without them.
     robust: use the Huber kernel (delta = sqrt(chi2)).
+    camera_model: "pinhole" or "kannala_brandt" for every keyframe; distortion: (K, 4) k1..k4 per keyframe of a
+        Kannala-Brandt camera, None for pinhole ones.
     """
 
     T_c_w: F64
@@ -110,6 +126,8 @@ class BundleProblem:
     iterations_second: int = 10
     robust: bool = True
     inertial: InertialTerms | None = None
+    camera_model: str = CAMERA_PINHOLE
+    distortion: F64 | None = None
 
 
 @dataclass

@@ -1,6 +1,8 @@
 """GtsamOptimizer: the four ORB-SLAM optimizations with GTSAM factors and Levenberg-Marquardt.
 
-- Motion-only BA: GenericProjectionFactorCal3_S2 / GenericStereoFactor3D on one Pose3, points held by tight priors;
+- Motion-only BA: GenericProjectionFactorCal3_S2 / GenericStereoFactor3D on one Pose3, points held by tight priors
+  (GenericProjectionFactorCal3Fisheye for a Kannala-Brandt problem: GTSAM's Cal3Fisheye is the same equidistant
+  model, one factor per observation);
   ORB-SLAM's rounds (4 x 10 iterations, each restarting from the initial pose) with chi-square classification
   between rounds (outliers of one round may come back).
 - Bundle adjustment: projection/stereo factors, Huber with sigma = scale_factor^level; iterations_first, then the
@@ -181,11 +183,12 @@ class GtsamOptimizer:
         chi2_mono: float,
         chi2_stereo: float,
         robust: bool,
+        fisheye: F64 | None = None,
     ) -> gtsam.NonlinearFactorGraph:
         """Projection (mono) and stereo factors of the active observations.
 
         pose_of_obs: (E,) pose index (key pose_key0 + index); point_key_of_obs: (E,) point keys; intrinsics (P, 4)
-        and bf (P,) per pose.
+        and bf (P,) per pose; fisheye: (P, 4) Kannala-Brandt k1..k4 per pose (raw fisheye observations), or None.
         """
         graph = gtsam.NonlinearFactorGraph()
         levels = int(level.max()) + 1 if len(level) else 1
@@ -193,6 +196,11 @@ class GtsamOptimizer:
         stereo_models = self._models(3, levels, scale_factor, chi2_stereo, robust)
         stereo = np.isfinite(u_right)
         mono = active & ~stereo
+        if fisheye is not None:
+            self._add_fisheye_factors(
+                graph, mono, pose_of_obs, point_key_of_obs, uv, level, intrinsics, fisheye, pose_key0, mono_models
+            )
+            mono = np.zeros_like(mono)
         cal: dict[int, gtsam.Cal3_S2] = {}
         # Group mono observations by (pose, level) and insert each group in one C++ call.
         idx = np.flatnonzero(mono)
@@ -235,6 +243,33 @@ class GtsamOptimizer:
             )
         return graph
 
+    @staticmethod
+    def _add_fisheye_factors(
+        graph: gtsam.NonlinearFactorGraph,
+        mono: B,
+        pose_of_obs: I64,
+        point_key_of_obs: I64,
+        uv: F64,
+        level: I64,
+        intrinsics: F64,
+        fisheye: F64,
+        pose_key0: int,
+        models: list[gtsam.noiseModel.Base],
+    ) -> None:
+        """One GenericProjectionFactorCal3Fisheye per monocular observation (no batch utility exists for it)."""
+        cal: dict[int, gtsam.Cal3Fisheye] = {}
+        for e in np.flatnonzero(mono):
+            pose = int(pose_of_obs[e])
+            K = cal.get(pose)
+            if K is None:
+                fx, fy, cx, cy = intrinsics[pose]
+                K = cal[pose] = gtsam.Cal3Fisheye(fx, fy, 0.0, cx, cy, *(float(c) for c in fisheye[pose]))
+            graph.add(
+                gtsam.GenericProjectionFactorCal3Fisheye(
+                    uv[e], models[int(level[e])], pose_key0 + pose, int(point_key_of_obs[e]), K
+                )
+            )
+
     # ---- motion-only BA -----------------------------------------------------------------------------
 
     def optimize_pose(self, problem: PoseOnlyProblem) -> PoseOnlyResult:
@@ -270,6 +305,7 @@ class GtsamOptimizer:
                 problem.chi2_mono,
                 problem.chi2_stereo,
                 robust=True,
+                fisheye=None if problem.distortion is None else np.asarray(problem.distortion)[None, :],
             )
             graph.push_back(points)
             # Each round restarts from the initial pose (ORB-SLAM resets the vertex estimate per round).
@@ -321,6 +357,7 @@ class GtsamOptimizer:
                 problem.chi2_mono,
                 problem.chi2_stereo,
                 problem.robust,
+                None if problem.distortion is None else np.asarray(problem.distortion),
             )
             g.push_back(priors)
             return g

@@ -15,13 +15,18 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.problems import BundleProblem
+from slamkit.errors import ProblemError
+from slamkit.problems import CAMERA_PINHOLE, BundleProblem
 
 F64 = NDArray[np.float64]
 
 
 def bare_bundle_adjust(problem: BundleProblem) -> tuple[F64, F64, int]:
     """Run the bare script on ``problem`` -> (T_c_w (K, 4, 4), xyz_w (M, 3), LM iterations done)."""
+    if problem.camera_model != CAMERA_PINHOLE:
+        raise ProblemError(
+            f"BundleProblem.camera_model = {problem.camera_model!r}: the bare GTSAM script models pinhole cameras only"
+        )
     K, M = len(problem.T_c_w), len(problem.xyz_w)
     huber_m = gtsam.noiseModel.mEstimator.Huber.Create(math.sqrt(problem.chi2_mono))
     huber_s = gtsam.noiseModel.mEstimator.Huber.Create(math.sqrt(problem.chi2_stereo))

@@ -77,6 +77,7 @@ class _Stage:
         self.robust = robust
         e = np.flatnonzero(active)
         self.obs = obs.subset(e)
+        self.cam = self.obs.cam()  # (E, 8) for the fisheye kernels
         self.obs_pose = np.asarray(problem.obs_pose, dtype=np.int64)[e]
         self.obs_point = np.asarray(problem.obs_point, dtype=np.int64)[e]
         K = problem.T_c_w.shape[0]
@@ -164,6 +165,8 @@ class BundleSolver:
                 o.info,
                 o.delta,
                 st.robust,
+                st.cam,
+                o.kb is not None,
             )
         )
 
@@ -187,6 +190,8 @@ class BundleSolver:
             st.robust,
             st.nc,
             st.np_,
+            st.cam,
+            o.kb is not None,
         )
         g = np.concatenate([gc.ravel(), gp.ravel()])
         hmax = max(
@@ -257,6 +262,7 @@ def bundle_adjust(
     obs_point = np.asarray(problem.obs_point, dtype=np.int64)
     intr = np.asarray(problem.intrinsics, dtype=np.float64)[obs_pose]
     bf = np.asarray(problem.bf, dtype=np.float64)[obs_pose]
+    kb = None if problem.distortion is None else np.asarray(problem.distortion, dtype=np.float64)[obs_pose]
     obs = make_observations(
         np.asarray(problem.uv_px, dtype=np.float64),
         np.asarray(problem.u_right_px, dtype=np.float64),
@@ -265,6 +271,7 @@ def bundle_adjust(
         inv_sigma2(np.asarray(problem.level), problem.scale_factor),
         problem.chi2_mono,
         problem.chi2_stereo,
+        kb,
     )
     state = BAState(np.array(problem.T_c_w, dtype=np.float64), np.array(problem.xyz_w, dtype=np.float64))
     n_obs = obs_pose.size

@@ -5,6 +5,8 @@ which the tests check against finite differences), and one pass over the points 
 system of the Schur complement, so no (E, 6, 6)-sized temporaries are allocated per iteration.
 Layout: poses enter as all K rotations/translations; c (E,) / p (E,) map each observation to its free pose /
 free point index or -1; residual rows are (u, v, u_right) with the third row unused for monocular observations.
+Fisheye problems (``fisheye``) project with the Kannala-Brandt model (slamkit.optim.kannala_brandt), cam (E, 8) =
+fx, fy, cx, cy, k1..k4 per observation; the pinhole path reads intr (E, 4) as before.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 from numpy.typing import NDArray
+
+from slamkit.optim.kannala_brandt import kb_jacobian, kb_project
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -55,6 +59,8 @@ def ba_linearize(
     robust: bool,
     nc: int,
     npt: int,
+    cam: F64,
+    fisheye: bool,
 ) -> tuple[F64, F64, F64, F64, F64, float]:  # pragma: no cover - compiled
     """-> U (nc, 6, 6), V (npt, 3, 3), W (E, 6, 3) (zero unless both ends free), gc (nc, 6), gp (npt, 3),
     robust cost. Blocks are J^T w J and J^T w r with w = info * rho'(chi2) (IRLS Huber when ``robust``)."""
@@ -79,9 +85,14 @@ def ba_linearize(
         iz2 = iz * iz
         fx = intr[e, 0]
         fy = intr[e, 1]
-        u = fx * x * iz + intr[e, 2]
-        r[0] = u - uvr[e, 0]
-        r[1] = fy * y * iz + intr[e, 3] - uvr[e, 1]
+        if fisheye:
+            u, v = kb_project(x, y, z, cam[e])
+            r[0] = u - uvr[e, 0]
+            r[1] = v - uvr[e, 1]
+        else:
+            u = fx * x * iz + intr[e, 2]
+            r[0] = u - uvr[e, 0]
+            r[1] = fy * y * iz + intr[e, 3] - uvr[e, 1]
         rows = 2
         if stereo[e]:
             r[2] = u - bf[e] * iz - uvr[e, 2]
@@ -97,15 +108,18 @@ def ba_linearize(
         else:
             cost += chi2
             w = info[e]
-        A[0, 0] = fx * iz
-        A[0, 1] = 0.0
-        A[0, 2] = -fx * x * iz2
-        A[1, 0] = 0.0
-        A[1, 1] = fy * iz
-        A[1, 2] = -fy * y * iz2
-        A[2, 0] = fx * iz
-        A[2, 1] = 0.0
-        A[2, 2] = (bf[e] - fx * x) * iz2
+        if fisheye:
+            kb_jacobian(x, y, z, cam[e], A)  # rows 0 and 1; a fisheye observation has no third row
+        else:
+            A[0, 0] = fx * iz
+            A[0, 1] = 0.0
+            A[0, 2] = -fx * x * iz2
+            A[1, 0] = 0.0
+            A[1, 1] = fy * iz
+            A[1, 2] = -fy * y * iz2
+            A[2, 0] = fx * iz
+            A[2, 1] = 0.0
+            A[2, 2] = (bf[e] - fx * x) * iz2
         ci = c[e]
         pi = p[e]
         for a in range(rows):
@@ -315,6 +329,8 @@ def ba_cost(
     info: F64,
     delta: F64,
     robust: bool,
+    cam: F64,
+    fisheye: bool,
 ) -> float:  # pragma: no cover - compiled
     """Sum over observations of rho(chi2) (Huber when ``robust``, else chi2): the cost ba_linearize returns."""
     cost = 0.0
@@ -325,9 +341,14 @@ def ba_cost(
         y = R[k, 1, 0] * X[j, 0] + R[k, 1, 1] * X[j, 1] + R[k, 1, 2] * X[j, 2] + t[k, 1]
         z = R[k, 2, 0] * X[j, 0] + R[k, 2, 1] * X[j, 1] + R[k, 2, 2] * X[j, 2] + t[k, 2]
         iz = 1.0 / z
-        u = intr[e, 0] * x * iz + intr[e, 2]
-        r0 = u - uvr[e, 0]
-        r1 = intr[e, 1] * y * iz + intr[e, 3] - uvr[e, 1]
+        if fisheye:
+            u, v = kb_project(x, y, z, cam[e])
+            r0 = u - uvr[e, 0]
+            r1 = v - uvr[e, 1]
+        else:
+            u = intr[e, 0] * x * iz + intr[e, 2]
+            r0 = u - uvr[e, 0]
+            r1 = intr[e, 1] * y * iz + intr[e, 3] - uvr[e, 1]
         chi2 = r0 * r0 + r1 * r1
         if stereo[e]:
             r2 = u - bf[e] * iz - uvr[e, 2]
@@ -339,3 +360,12 @@ def ba_cost(
         else:
             cost += chi2
     return cost
+
+
+@numba.njit(cache=True, nogil=True)
+def kb_jacobians(p_c: F64, cam: F64) -> F64:  # pragma: no cover - compiled
+    """(E, 2, 3) d (u, v) / d p_c of Kannala-Brandt observations: p_c (E, 3) camera points, cam (E, 8)."""
+    A = np.empty((p_c.shape[0], 2, 3))
+    for e in range(p_c.shape[0]):
+        kb_jacobian(p_c[e, 0], p_c[e, 1], p_c[e, 2], cam[e], A[e])
+    return A

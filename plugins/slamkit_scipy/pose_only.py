@@ -88,6 +88,7 @@ def optimize_pose(problem: PoseOnlyProblem, settings: LMSettings, stop_behind: b
         inv_sigma2(np.asarray(problem.level), problem.scale_factor),
         problem.chi2_mono,
         problem.chi2_stereo,
+        None if problem.distortion is None else np.broadcast_to(np.asarray(problem.distortion, np.float64), (n, 4)),
     )
     T0 = np.array(problem.T_c_w_init, dtype=np.float64)
     cost_initial = robust_cost(T0, X_all, obs_all, True)

@@ -146,6 +146,8 @@ class PinholeCamera(_CameraBase):
     """
 
     model = "pinhole"
+    #: The pipeline matches and projects in the undistorted pinhole image (ORB-SLAM2/3 undistort keypoints).
+    image_undistorted = True
 
     def __init__(
         self,
@@ -258,6 +260,54 @@ class PinholeCamera(_CameraBase):
         """Plain dict (model, width, height, fx, fy, cx, cy, dist as 5 floats) for camera_from_config."""
         return {**self._intrinsics_dict(), "dist": [float(c) for c in self.dist]}
 
+    # -- the pipeline's image: the ideal pinhole image (undistorted keypoints, as ORB-SLAM2/3 do)
+
+    def image_bounds(self) -> tuple[float, float, float, float]:
+        """(min_u, max_u, min_v, max_v) px of the pipeline's image: the undistorted corners of the raw image
+        (ORB-SLAM ComputeImageBounds); the raw image's bounds when a corner has no undistortion."""
+        w, h = self.width, self.height
+        corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]])
+        und = self.undistort_points(corners)
+        if not np.all(np.isfinite(und)):
+            return 0.0, float(w), 0.0, float(h)
+        return (
+            float(min(und[0, 0], und[2, 0])),
+            float(max(und[1, 0], und[3, 0])),
+            float(min(und[0, 1], und[1, 1])),
+            float(max(und[2, 1], und[3, 1])),
+        )
+
+    def project_image(self, xyz_c: F64) -> tuple[F64, NDArray[np.bool_]]:
+        """xyz_c: (N, 3) m camera frame -> (uv (N, 2) px in the undistorted pinhole image, valid (N,) bool:
+        z > 0 and a finite pixel). u = fx x / z + cx (evaluated in this order: the pipeline's results depend
+        on it bit for bit)."""
+        z = xyz_c[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = self.fx * xyz_c[:, 0] / z + self.cx
+            v = self.fy * xyz_c[:, 1] / z + self.cy
+        uv = np.stack([u, v], axis=1)
+        valid = (z > 0) & np.isfinite(u) & np.isfinite(v)
+        return uv, valid
+
+    def unproject_image(self, uv_px: F64) -> F64:
+        """uv_px: (N, 2) px in the undistorted pinhole image -> (N, 3) float64 unit bearings (z > 0)."""
+        uv = np.asarray(uv_px, dtype=np.float64).reshape(-1, 2)
+        x, y = self._to_normalized(uv)
+        return _unit(np.stack([x, y, np.ones_like(x)], axis=1))
+
+    def project_image_jacobian(self, xyz_c: F64) -> F64:
+        """xyz_c: (N, 3) m -> (N, 2, 3) d uv / d xyz_c of ``project_image`` (px/m): rows (fx/z, 0, -fx x/z^2)
+        and (0, fy/z, -fy y/z^2). NaN where z = 0."""
+        x, y, z = np.asarray(xyz_c, dtype=np.float64).reshape(-1, 3).T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iz = 1.0 / z
+            J = np.zeros((x.size, 2, 3))
+            J[:, 0, 0] = self.fx * iz
+            J[:, 0, 2] = -self.fx * x * iz * iz
+            J[:, 1, 1] = self.fy * iz
+            J[:, 1, 2] = -self.fy * y * iz * iz
+        return J
+
 
 class KannalaBrandtCamera(_CameraBase):
     """Equidistant fisheye model of Kannala-Brandt (ORB-SLAM3's KannalaBrandt8, OpenCV's cv2.fisheye).
@@ -272,6 +322,8 @@ class KannalaBrandtCamera(_CameraBase):
     """
 
     model = "kannala_brandt"
+    #: The pipeline matches and projects in the raw image (ORB-SLAM3 keeps fisheye keypoints distorted).
+    image_undistorted = False
 
     def __init__(
         self,
@@ -384,6 +436,57 @@ class KannalaBrandtCamera(_CameraBase):
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (model, width, height, fx, fy, cx, cy, k as 4 floats) for camera_from_config."""
         return {**self._intrinsics_dict(), "k": [float(c) for c in self.k]}
+
+    # -- the pipeline's image: the raw image itself (ORB-SLAM3 matches and projects fisheye keypoints unrectified)
+
+    def image_bounds(self) -> tuple[float, float, float, float]:
+        """(min_u, max_u, min_v, max_v) px of the pipeline's image: the raw image (0, width, 0, height)."""
+        return 0.0, float(self.width), 0.0, float(self.height)
+
+    def project_image(self, xyz_c: F64) -> tuple[F64, NDArray[np.bool_]]:
+        """xyz_c: (N, 3) m camera frame -> (uv (N, 2) raw-image px, valid (N,) bool: z > 0 (ORB-SLAM3's
+        isInFrustum requires positive depth for every camera), theta <= theta_max and a finite pixel)."""
+        xyz = np.asarray(xyz_c, dtype=np.float64).reshape(-1, 3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = self._project_rays(xyz)
+        valid = (xyz[:, 2] > 0) & np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])
+        return uv, valid
+
+    def unproject_image(self, uv_px: F64) -> F64:
+        """uv_px: (N, 2) raw-image px -> (N, 3) float64 unit bearings (the same as ``unproject``)."""
+        return self.unproject(np.asarray(uv_px, dtype=np.float64).reshape(-1, 2))
+
+    def project_image_jacobian(self, xyz_c: F64) -> F64:
+        """xyz_c: (N, 3) m -> (N, 2, 3) d uv / d xyz_c of ``project_image`` (px/m).
+
+        With r = |(x, y)|, R^2 = r^2 + z^2, theta = atan2(r, z), s = theta_d / r and theta_d' = d theta_d / d theta:
+        d s / d(x, y) = (x, y) A with A = theta_d' z / (r^2 R^2) - theta_d / r^3, d s / d z = -theta_d' / R^2, so
+        d u / d p = fx (s e_x + x d s / d p) and d v / d p = fy (s e_y + y d s / d p). On the optical axis
+        (r -> 0) s -> 1 / z and the x A, y A terms vanish: the pinhole Jacobian there.
+        """
+        x, y, z = np.asarray(xyz_c, dtype=np.float64).reshape(-1, 3).T
+        k1, k2, k3, k4 = self.k
+        r2 = x * x + y * y
+        r = np.sqrt(r2)
+        R2 = r2 + z * z
+        theta = np.arctan2(r, z)
+        t2 = theta * theta
+        theta_d = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        dtheta_d = 1.0 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+        on_axis = r <= 1e-12 * np.maximum(np.abs(z), 1e-300)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rs = np.where(on_axis, 1.0, r)
+            s = np.where(on_axis, 1.0 / z, theta_d / rs)
+            A = np.where(on_axis, 0.0, dtheta_d * z / (rs * rs * R2) - theta_d / (rs * rs * rs))
+            ds_dz = -dtheta_d / R2
+        J = np.empty((x.size, 2, 3))
+        J[:, 0, 0] = self.fx * (s + x * x * A)
+        J[:, 0, 1] = self.fx * x * y * A
+        J[:, 0, 2] = self.fx * x * ds_dz
+        J[:, 1, 0] = self.fy * x * y * A
+        J[:, 1, 1] = self.fy * (s + y * y * A)
+        J[:, 1, 2] = self.fy * y * ds_dz
+        return J
 
 
 _INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
-from slamkit.features import Features
+from slamkit.features import Observations
 from slamkit.interfaces import BowDescription, Camera
 
 F64 = NDArray[np.float64]
@@ -29,11 +29,11 @@ F64 = NDArray[np.float64]
 class KeyFrame:
     """A keyframe (ORB-SLAM III-C).
 
-    T_c_w: (4, 4) pose, world -> camera (read-only). features: every ORB feature of the image (undistorted
-    keypoints included). point_ids: (N,) int64 (read-only), the map point observed by each feature, -1 for none;
-    before the keyframe is in a map, the points tracking matched (the store keeps those still in the map as its
-    observations when it adds the keyframe). bow: the bag of words of the features, once a place recognizer has
-    described it.
+    T_c_w: (4, 4) pose, world -> camera (read-only). features: the observation record of every keypoint of the
+    image (slamkit.features.Observations: pixel, point in the pipeline's image, bearing, right coordinate, depth).
+    point_ids: (N,) int64 (read-only), the map point observed by each feature, -1 for none; before the keyframe is
+    in a map, the points tracking matched (the store keeps those still in the map as its observations when it adds
+    the keyframe). bow: the bag of words of the features, once a place recognizer has described it.
     """
 
     id: int
@@ -41,7 +41,7 @@ class KeyFrame:
     timestamp_s: float
     T_c_w: F64
     camera: Camera
-    features: Features
+    features: Observations
     point_ids: NDArray[np.int64]
     bow: BowDescription | None = None
 

@@ -21,6 +21,7 @@ __all__ = [
     "essential_graph_cost",
     "essential_graph_residuals",
     "huber_cost",
+    "kannala_brandt_project",
     "pose_chi2",
     "pose_cost",
     "sim3_chi2",
@@ -41,19 +42,44 @@ def huber_cost(chi2: F64, delta2: F64 | float) -> F64:
     return out
 
 
+def kannala_brandt_project(pc: F64, intr: F64, k: F64) -> tuple[F64, F64]:
+    """Raw fisheye pixels (u (N,), v (N,)) of camera-frame points pc (N, 3) with intrinsics intr (N, 4) and
+    k1..k4 k (N, 4): the equidistant model of slamkit/problems.py (the principal point on the optical axis)."""
+    r = np.hypot(pc[:, 0], pc[:, 1])
+    theta = np.arctan2(r, pc[:, 2])
+    t2 = theta * theta
+    theta_d = theta * (1.0 + t2 * (k[:, 0] + t2 * (k[:, 1] + t2 * (k[:, 2] + t2 * k[:, 3]))))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(r > 0.0, theta_d / np.where(r > 0.0, r, 1.0), 1.0 / pc[:, 2])
+    return intr[:, 0] * s * pc[:, 0] + intr[:, 2], intr[:, 1] * s * pc[:, 1] + intr[:, 3]
+
+
 def _reprojection_chi2(
-    R: F64, t: F64, xyz: F64, uv: F64, u_right: F64, level: F64, intr: F64, bf: F64, scale_factor: float
+    R: F64,
+    t: F64,
+    xyz: F64,
+    uv: F64,
+    u_right: F64,
+    level: F64,
+    intr: F64,
+    bf: F64,
+    scale_factor: float,
+    kb: F64 | None = None,
 ) -> F64:
     """Per-observation chi2 of mono (u, v) or stereo (u, v, u_r) residuals; inf behind the camera.
 
-    R: (N, 3, 3); t: (N, 3); xyz: (N, 3) world points; intr: (N, 4); bf: (N,).
+    R: (N, 3, 3); t: (N, 3); xyz: (N, 3) world points; intr: (N, 4); bf: (N,); kb: (N, 4) k1..k4 of a
+    Kannala-Brandt camera (observations in the raw fisheye image), None for the pinhole model.
     """
     pc = np.einsum("nij,nj->ni", R, xyz) + t
     z = pc[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         inv_z = 1.0 / z
-        u = intr[:, 0] * pc[:, 0] * inv_z + intr[:, 2]
-        v = intr[:, 1] * pc[:, 1] * inv_z + intr[:, 3]
+        if kb is None:
+            u = intr[:, 0] * pc[:, 0] * inv_z + intr[:, 2]
+            v = intr[:, 1] * pc[:, 1] * inv_z + intr[:, 3]
+        else:
+            u, v = kannala_brandt_project(pc, intr, kb)
         e2 = (uv[:, 0] - u) ** 2 + (uv[:, 1] - v) ** 2
         stereo = np.isfinite(u_right)
         ur = u - bf * inv_z
@@ -76,6 +102,7 @@ def pose_chi2(problem: PoseOnlyProblem, T_c_w: F64) -> F64:
         np.broadcast_to(problem.intrinsics, (n, 4)),
         np.full(n, float(problem.bf)),
         problem.scale_factor,
+        None if problem.distortion is None else np.broadcast_to(problem.distortion, (n, 4)),
     )
 
 
@@ -104,6 +131,7 @@ def bundle_chi2(problem: BundleProblem, T_c_w: F64, xyz_w: F64) -> F64:
         problem.intrinsics[problem.obs_pose],
         problem.bf[problem.obs_pose],
         problem.scale_factor,
+        None if problem.distortion is None else np.asarray(problem.distortion)[problem.obs_pose],
     )
 
 

@@ -13,16 +13,19 @@ level (so any correct solver flags them); ``truth.outlier`` marks them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import overload
 
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.so3 import so3_exp
-from slamkit.problems import BundleProblem, EssentialGraphProblem, PoseOnlyProblem, Sim3Problem
+from slamkit.optim.costs import kannala_brandt_project
+from slamkit.problems import CAMERA_KANNALA_BRANDT, BundleProblem, EssentialGraphProblem, PoseOnlyProblem, Sim3Problem
 
 __all__ = [
     "BASELINE_M",
+    "FISHEYE_K",
     "IMAGE_SIZE",
     "INTRINSICS",
     "N_LEVELS",
@@ -39,6 +42,7 @@ __all__ = [
     "pose_errors",
     "project",
     "sim3_errors",
+    "with_kannala_brandt",
 ]
 
 F64 = NDArray[np.float64]
@@ -53,6 +57,8 @@ BASELINE_M = 0.12
 N_LEVELS = 8  # ORB-SLAM sec. III-A: 8 pyramid levels
 SCALE_FACTOR = 1.2  # ORB-SLAM sec. III-A: scale factor 1.2 between levels
 _MARGIN_PX = 10.0
+#: k1..k4 of the fisheye problems: ORB-SLAM3's TUM-VI KannalaBrandt8 calibration, with the synthetic intrinsics.
+FISHEYE_K = np.array([0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202, 0.00020293673591811182])
 _OUTLIER_SIGMAS = (15.0, 40.0)
 
 
@@ -341,6 +347,43 @@ def make_bundle_problem(
         scale_factor=SCALE_FACTOR,
     )
     return problem, BundleTruth(T_c_w=T_true, xyz_w=xyz_true, outlier=outlier)
+
+
+# ---- fisheye (Kannala-Brandt) problems ------------------------------------------------------------------
+
+
+@overload
+def with_kannala_brandt(problem: PoseOnlyProblem, truth: PoseTruth, k: F64 = ...) -> PoseOnlyProblem: ...
+
+
+@overload
+def with_kannala_brandt(problem: BundleProblem, truth: BundleTruth, k: F64 = ...) -> BundleProblem: ...
+
+
+def with_kannala_brandt(
+    problem: PoseOnlyProblem | BundleProblem, truth: PoseTruth | BundleTruth, k: F64 = FISHEYE_K
+) -> PoseOnlyProblem | BundleProblem:
+    """The same problem seen through a Kannala-Brandt lens with k1..k4 ``k`` (4,) and the same intrinsics: each
+    observation becomes the raw fisheye pixel of its true point plus the same noise and planted offset the pinhole
+    observation had. Monocular problems only (a fisheye camera has no rectified right image)."""
+    if np.any(np.isfinite(problem.u_right_px)):
+        raise ValueError("with_kannala_brandt: the problem has stereo observations; expected a monocular one")
+    if isinstance(problem, PoseOnlyProblem):
+        T = np.broadcast_to(truth.T_c_w, (len(problem.xyz_w), 4, 4))
+        xyz = problem.xyz_w  # fixed points: the truth
+        intr = np.broadcast_to(problem.intrinsics, (len(xyz), 4))
+        distortion = np.asarray(k, dtype=np.float64).copy()
+    else:
+        assert isinstance(truth, BundleTruth)
+        T = truth.T_c_w[problem.obs_pose]
+        xyz = truth.xyz_w[problem.obs_point]
+        intr = problem.intrinsics[problem.obs_pose]
+        distortion = np.tile(np.asarray(k, dtype=np.float64), (len(problem.T_c_w), 1))
+    xyz_c = np.einsum("nij,nj->ni", T[:, :3, :3], xyz) + T[:, :3, 3]
+    uv_pinhole, _ = project(T, xyz, intr)
+    u, v = kannala_brandt_project(xyz_c, intr, np.broadcast_to(distortion.reshape(-1, 4)[0], (len(xyz), 4)))
+    uv = np.stack([u, v], axis=1) + (problem.uv_px - uv_pinhole)
+    return replace(problem, uv_px=uv, camera_model=CAMERA_KANNALA_BRANDT, distortion=distortion)
 
 
 # ---- relative Sim3 -------------------------------------------------------------------------------------

@@ -16,7 +16,14 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from slamkit.errors import ProblemError
-from slamkit.problems import BundleProblem, EssentialGraphProblem, PoseOnlyProblem, Sim3Problem
+from slamkit.problems import (
+    CAMERA_MODELS,
+    CAMERA_PINHOLE,
+    BundleProblem,
+    EssentialGraphProblem,
+    PoseOnlyProblem,
+    Sim3Problem,
+)
 
 __all__ = [
     "MIN_DEPTH_M",
@@ -175,6 +182,29 @@ def _stereo(problem: str, u_right: F64, bf_per_obs: F64) -> None:
         )
 
 
+def _camera_model(problem: str, model: Any, distortion: Any, shape: tuple[int, ...], u_right: F64) -> None:
+    """``camera_model`` is a known model; a pinhole problem has no ``distortion`` (its observations are undistorted),
+    a Kannala-Brandt one has finite k1..k4 of ``shape`` and no stereo observation (no rectified right image)."""
+    if model not in CAMERA_MODELS:
+        raise ProblemError(f"{problem}.camera_model = {model!r}: expected one of {', '.join(CAMERA_MODELS)}")
+    if model == CAMERA_PINHOLE:
+        if distortion is not None:
+            raise ProblemError(
+                f"{problem}.distortion: given for a pinhole problem, whose observations are undistorted; expected None"
+            )
+        return
+    if distortion is None:
+        raise ProblemError(f"{problem}.distortion: missing; expected k1..k4 of shape {shape} for a {model} camera")
+    _float_array(problem, "distortion", distortion, shape)
+    stereo = np.isfinite(u_right)
+    if stereo.any():
+        i = int(np.argmax(stereo))
+        raise ProblemError(
+            f"{problem}.u_right_px[{i}] is a stereo observation in a {model} problem; expected NaN (a rectified "
+            "right coordinate exists for pinhole cameras only)"
+        )
+
+
 def _inertial(problem: str, inertial: object, supports_inertial: bool, backend: str) -> None:
     if inertial is not None and not supports_inertial:
         raise ProblemError(
@@ -186,7 +216,8 @@ def validate_pose_problem(problem: PoseOnlyProblem) -> None:
     """Check a motion-only BA problem; raise ProblemError naming the first defect.
 
     Requires at least one observation, finite arrays of matching lengths (u_right_px may be NaN = monocular),
-    a rigid T_c_w_init, fx, fy > 0, bf > 0 when any observation is stereo, and at least one point in front of
+    a rigid T_c_w_init, fx, fy > 0, bf > 0 when any observation is stereo, a known camera model (k1..k4 for
+    Kannala-Brandt, which has no stereo observations), and at least one point in front of
     the initial camera (points behind it are allowed: they end up classified as outliers).
     """
     p = "PoseOnlyProblem"
@@ -203,6 +234,7 @@ def validate_pose_problem(problem: PoseOnlyProblem) -> None:
     if not np.isfinite(bf) or bf < 0.0:
         raise ProblemError(f"{p}.bf = {problem.bf!r}: expected a finite number >= 0")
     _stereo(p, u_right, np.full(n, bf))
+    _camera_model(p, problem.camera_model, problem.distortion, (4,), u_right)
     _positive(p, "scale_factor", problem.scale_factor)
     _positive(p, "chi2_mono", problem.chi2_mono)
     _positive(p, "chi2_stereo", problem.chi2_stereo)
@@ -220,7 +252,8 @@ def validate_bundle_problem(problem: BundleProblem, *, supports_inertial: bool =
     """Check a bundle-adjustment problem; raise ProblemError naming the first defect.
 
     Requires K >= 1 poses, M >= 1 points and E >= 1 observations, finite arrays of consistent shapes, rigid
-    poses, indices in range, fx, fy > 0 per keyframe, bf > 0 for keyframes with stereo observations, every
+    poses, indices in range, fx, fy > 0 per keyframe, bf > 0 for keyframes with stereo observations, a known
+    camera model (k1..k4 per keyframe for Kannala-Brandt, which has no stereo observations), every
     free pose and free point observed at least once, every point in front (initial guess) of at least one
     camera observing it, at least one fixed variable (a fixed pose or point: otherwise the gauge is free), and
     no inertial terms unless ``supports_inertial``.
@@ -253,6 +286,7 @@ def validate_bundle_problem(problem: BundleProblem, *, supports_inertial: bool =
     _in_range(p, "obs_pose", obs_pose, K, "T_c_w")
     _in_range(p, "obs_point", obs_point, M, "xyz_w")
     _stereo(p, u_right, bf[obs_pose])
+    _camera_model(p, problem.camera_model, problem.distortion, (K, 4), u_right)
     _positive(p, "scale_factor", problem.scale_factor)
     _positive(p, "chi2_mono", problem.chi2_mono)
     _positive(p, "chi2_stereo", problem.chi2_stereo)

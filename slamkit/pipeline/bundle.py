@@ -4,12 +4,14 @@ optimizer: it gets arrays, see slamkit/problems.py)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.interfaces import AbortToken, MapStore, Optimizer
-from slamkit.problems import BundleProblem, BundleResult
+from slamkit.errors import ConfigError
+from slamkit.interfaces import AbortToken, Camera, MapStore, Optimizer
+from slamkit.problems import CAMERA_KANNALA_BRANDT, CAMERA_PINHOLE, BundleProblem, BundleResult
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -18,6 +20,21 @@ I64 = NDArray[np.int64]
 def intrinsics_of(K: F64) -> F64:
     """(4,) fx, fy, cx, cy of a 3x3 intrinsic matrix."""
     return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+
+
+def problem_camera(camera: Camera) -> dict[str, Any]:
+    """The camera model fields of a pose problem for observations in ``camera``'s pipeline image:
+    ``camera_model`` "pinhole" (the undistorted image: fx, fy, cx, cy say everything) or "kannala_brandt" with
+    ``distortion`` = its (4,) k1..k4 (observations are raw fisheye pixels). Raises ConfigError for a camera whose
+    pipeline image no optimization problem can model."""
+    if camera.image_undistorted:
+        return {"camera_model": CAMERA_PINHOLE, "distortion": None}
+    if camera.model == CAMERA_KANNALA_BRANDT:
+        return {"camera_model": CAMERA_KANNALA_BRANDT, "distortion": np.asarray(camera.dist, np.float64).copy()}
+    raise ConfigError(
+        f"camera model {camera.model!r}: its observations are in the raw image, which optimization problems model only "
+        f"for {CAMERA_KANNALA_BRANDT!r} cameras"
+    )
 
 
 @dataclass(frozen=True)
@@ -46,8 +63,11 @@ def snapshot_bundle(
     points, and every observation of those points by those keyframes (ORB-SLAM LocalBundleAdjustment)."""
     kf_ids = np.array(list(free_kf_ids) + list(fixed_kf_ids), np.int64)
     kf_row = {int(k): i for i, k in enumerate(kf_ids)}
-    T = np.array([store.get_keyframe(int(k)).T_c_w for k in kf_ids], np.float64).reshape(-1, 4, 4)
-    intr = np.array([intrinsics_of(store.get_keyframe(int(k)).camera.K) for k in kf_ids]).reshape(-1, 4)
+    keyframes = [store.get_keyframe(int(k)) for k in kf_ids]
+    T = np.array([kf.T_c_w for kf in keyframes], np.float64).reshape(-1, 4, 4)
+    intr = np.array([intrinsics_of(kf.camera.K) for kf in keyframes]).reshape(-1, 4)
+    bf = np.array([kf.features.bf for kf in keyframes], np.float64)
+    camera = _bundle_camera(keyframes)
     # one pass over the observations (point order, then keyframe id order): the Python part of the snapshot
     points = [store.get_point(int(p)) for p in point_ids]
     point_id_array = np.array([p.id for p in points], np.int64)
@@ -82,6 +102,7 @@ def snapshot_bundle(
     obs_feat_a = np.array(obs_feat_l, np.int64)[keep]
     E = obs_pose_a.size
     uv = np.zeros((E, 2))
+    u_right = np.zeros(E)
     level = np.zeros(E, np.int64)
     scale_factor = 1.2
     order = np.argsort(obs_kf_a, kind="stable")
@@ -91,6 +112,7 @@ def snapshot_bundle(
         rows = order[bounds[i] : bounds[i + 1]]
         feats = store.get_keyframe(kf_id).features
         uv[rows] = feats.uv_undist_px[obs_feat_a[rows]]
+        u_right[rows] = feats.u_right_px[obs_feat_a[rows]]
         level[rows] = feats.level[obs_feat_a[rows]]
         scale_factor = feats.scale_factor
     n_free = len(free_kf_ids)
@@ -101,21 +123,35 @@ def snapshot_bundle(
         T_c_w=T,
         pose_fixed=(np.arange(len(kf_ids)) >= n_free) | ~observed,
         intrinsics=intr,
-        bf=np.zeros(len(kf_ids)),
+        bf=bf,
         xyz_w=xyz,
         point_fixed=np.zeros(len(pids), bool),
         obs_pose=obs_pose_a,
         obs_point=obs_point_a,
         uv_px=uv,
-        u_right_px=np.full(E, np.nan),
+        u_right_px=u_right,
         level=level,
         scale_factor=scale_factor,
         iterations_first=iterations_first,
         iterations_second=iterations_second,
         chi2_mono=chi2_mono,
         chi2_stereo=chi2_stereo,
+        **camera,
     )
     return BundleSnapshot(problem, kf_ids, pids, obs_kf_a, obs_feat_a, tuple(dropped))
+
+
+def _bundle_camera(keyframes: list[Any]) -> dict[str, Any]:
+    """The camera model fields of a bundle problem: one model for every keyframe, distortion (K, 4) per keyframe."""
+    fields = [problem_camera(kf.camera) for kf in keyframes]
+    models = {f["camera_model"] for f in fields}
+    if len(models) > 1:
+        raise ConfigError(
+            f"bundle adjustment over keyframes of different camera models {sorted(models)}: not supported"
+        )
+    if not fields or fields[0]["distortion"] is None:
+        return {"camera_model": CAMERA_PINHOLE, "distortion": None}
+    return {"camera_model": fields[0]["camera_model"], "distortion": np.stack([f["distortion"] for f in fields])}
 
 
 def run_bundle(

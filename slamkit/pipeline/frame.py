@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.features import Features
+from slamkit.features import Observations
 from slamkit.interfaces import Camera
 from slamkit.pipeline.matching import FeatureGrid
 
@@ -19,7 +19,7 @@ GRID_CELL_PX = 10.0
 
 @dataclass(frozen=True)
 class ImageBounds:
-    """Bounds of the undistorted image, px: where a projected point counts as inside the image."""
+    """Bounds of the pipeline's image (``Camera.image_bounds``), px: where a projected point counts as inside."""
 
     min_u: float
     max_u: float
@@ -28,18 +28,9 @@ class ImageBounds:
 
     @staticmethod
     def of(camera: Camera) -> ImageBounds:
-        """For a distorted camera the undistorted corners bound the valid region (ORB-SLAM ComputeImageBounds)."""
-        w, h = camera.width, camera.height
-        corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]])
-        und = camera.undistort_points(corners)
-        if not np.all(np.isfinite(und)):
-            return ImageBounds(0.0, float(w), 0.0, float(h))
-        return ImageBounds(
-            float(min(und[0, 0], und[2, 0])),
-            float(max(und[1, 0], und[3, 0])),
-            float(min(und[0, 1], und[1, 1])),
-            float(max(und[2, 1], und[3, 1])),
-        )
+        """The camera's pipeline image: for a distorted pinhole camera the undistorted corners bound the valid
+        region (ORB-SLAM ComputeImageBounds); for a fisheye camera, the raw image."""
+        return ImageBounds(*camera.image_bounds())
 
     def contains(self, uv_px: F64) -> NDArray[np.bool_]:
         """uv_px: (N, 2) -> (N,) bool."""
@@ -52,14 +43,14 @@ class Frame:
     """A frame being tracked.
 
     T_c_w: (4, 4) world -> camera once estimated. point_ids: (N,) int64 map point per feature (-1 none).
-    outlier: (N,) bool, features whose match pose optimization rejected. grid: the undistorted keypoints
-    bucketed for window searches.
+    outlier: (N,) bool, features whose match pose optimization rejected. grid: the keypoints of the
+    pipeline's image bucketed for window searches. features: the per-keypoint observation record.
     """
 
     index: int
     timestamp_s: float
     camera: Camera
-    features: Features
+    features: Observations
     bounds: ImageBounds
     grid: FeatureGrid
     T_c_w: F64 | None = None
@@ -68,7 +59,7 @@ class Frame:
     ref_kf_id: int | None = None
 
     @staticmethod
-    def create(index: int, timestamp_s: float, camera: Camera, features: Features, bounds: ImageBounds) -> Frame:
+    def create(index: int, timestamp_s: float, camera: Camera, features: Observations, bounds: ImageBounds) -> Frame:
         n = len(features)
         grid = FeatureGrid.build(
             features.uv_undist_px,

@@ -49,7 +49,7 @@ def fuse_points(
     ids = np.array([p.id for p in points], np.int64)
     test = frustum_test(
         kf.T_c_w,
-        kf.camera.K,
+        kf.camera,
         bounds,
         store.point_rows(ids, "xyz_w"),
         store.point_rows(ids, "normal_w"),

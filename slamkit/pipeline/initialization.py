@@ -17,7 +17,7 @@ from slamkit.pipeline.bundle import commit_bundle, snapshot_bundle
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame
 from slamkit.pipeline.map_points import refresh_points
-from slamkit.pipeline.projection import match_projected
+from slamkit.pipeline.projection import match_projected, require_pinhole_image
 
 log = logging.getLogger("slamkit.tracking")
 
@@ -95,6 +95,7 @@ class MonocularInitialization:
         if ref_idx.shape[0] < cfg.init_min_matches:
             self._set_reference(frame)
             return InitAttempt(int(ref_idx.shape[0]), None, "too few matches: reference reset"), None
+        require_pinhole_image(frame.camera, "monocular initialisation (the Initializer takes undistorted pixels and K)")
         result = self.initializer.initialize(
             self.reference.features.uv_undist_px[ref_idx].astype(np.float64),
             frame.features.uv_undist_px[cur_idx].astype(np.float64),

@@ -27,7 +27,7 @@ from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent, row_distance
-from slamkit.pipeline.projection import project_pinhole
+from slamkit.pipeline.projection import project_points, require_pinhole_image
 
 log = logging.getLogger("slamkit.mapping")
 
@@ -231,7 +231,7 @@ class LocalMapper:
         ok = dist2 < 3.84 * sigma2
         # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably (an epipole at infinity,
         # kf1's centre level with kf2's image plane, is close to nothing: NaN distances are not rejected)
-        epipole = project_pinhole(kf2.T_c_w, kf1.center_w[None], kf2.camera.K)[0][0]
+        epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
         scale2 = kf2.features.level_scale()[b]
         with np.errstate(invalid="ignore"):
             ok &= ~(np.linalg.norm(uv2 - epipole, axis=1) < 10.0 * scale2)
@@ -252,6 +252,8 @@ class LocalMapper:
         """Triangulate matched features; keep those with enough parallax, in front of both cameras, within the
         chi-square reprojection gate in both, and scale-consistent (VI-C)."""
         cfg = self.cfg
+        require_pinhole_image(kf1.camera, "local mapping (triangulation)")
+        require_pinhole_image(kf2.camera, "local mapping (triangulation)")
         K1, K2 = kf1.camera.K, kf2.camera.K
         uv1 = kf1.features.uv_undist_px[i1].astype(np.float64)
         uv2 = kf2.features.uv_undist_px[i2].astype(np.float64)
@@ -264,8 +266,8 @@ class LocalMapper:
         xyz = np.where(np.isfinite(xyz), xyz, 0.0)
         sigma1 = kf1.features.level_sigma2()[i1]
         sigma2 = kf2.features.level_sigma2()[i2]
-        for T, K, uv, s2 in ((kf1.T_c_w, K1, uv1, sigma1), (kf2.T_c_w, K2, uv2, sigma2)):
-            proj, z = project_pinhole(T, xyz, K)
+        for kf, uv, s2 in ((kf1, uv1, sigma1), (kf2, uv2, sigma2)):
+            proj, z, _ = project_points(kf.T_c_w, xyz, kf.camera)
             ok &= z > 0
             err2 = np.sum((np.where(np.isfinite(proj), proj, 1e9) - uv) ** 2, axis=1)
             ok &= err2 < cfg.chi2_mono * s2
@@ -488,6 +490,8 @@ def _median_depth(kf: KeyFrame, store: MapStore) -> float:
 
 def _fundamental_21(kf1: KeyFrame, kf2: KeyFrame) -> F64:
     """F such that x2^T F x1 = 0 for undistorted pixels x1 in kf1 and x2 in kf2."""
+    require_pinhole_image(kf1.camera, "local mapping (epipolar search)")
+    require_pinhole_image(kf2.camera, "local mapping (epipolar search)")
     T21 = kf2.T_c_w @ invert_T(kf1.T_c_w)
     R21, t21 = T21[:3, :3], T21[:3, 3]
     E21 = hat(t21) @ R21

@@ -42,6 +42,7 @@ from slamkit.pipeline.loop_verification import (
     loop_window,
     project_window,
 )
+from slamkit.pipeline.projection import require_pinhole_image
 from slamkit.problems import Sim3Problem
 
 log = logging.getLogger("slamkit.loop")
@@ -242,6 +243,8 @@ class LoopCloser:
                 info["rejected"] = f"{pairs.shape[0]} BoW matches < {_MIN_BOW_MATCHES}"
                 continue
             i1, i2 = pairs[:, 0], pairs[:, 1]
+            require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
+            require_pinhole_image(cand.camera, "loop closing (Sim3 RANSAC and optimization)")
             xyz1, xyz2 = self._points_c(kf, i1), self._points_c(cand, i2)
             uv1 = kf.features.uv_undist_px[i1].astype(np.float64)
             uv2 = cand.features.uv_undist_px[i2].astype(np.float64)

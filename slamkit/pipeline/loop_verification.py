@@ -175,7 +175,7 @@ def project_window(
     # where the window's points and their scale-invariance distances live.
     test = frustum_test(
         S_k_w.to_se3(),
-        kf.camera.K,
+        kf.camera,
         bounds,
         np.stack([p.xyz_w for p in points]),
         np.stack([p.normal_w for p in points]),

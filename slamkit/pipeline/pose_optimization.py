@@ -16,7 +16,8 @@ The LM step is g2o's (and slamkit_scipy.lm's): initial damping tau * max diag(H)
 damped solves per iteration until one lowers the cost. Residual r = projection - observation (px), information
 1 / scale_factor^(2 level), left perturbation T <- exp(xi) T with xi = [omega, v].
 ``optimize_pose`` takes and returns the optimizer interface's PoseOnlyProblem / PoseOnlyResult, so it can stand
-in for ``Optimizer.optimize_pose``; only monocular observations are supported (tracking is monocular).
+in for ``Optimizer.optimize_pose``. Camera models: the pinhole of the undistorted image and Kannala-Brandt (raw
+fisheye pixels, ``problem.distortion`` = k1..k4); only monocular observations are supported so far.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
+from slamkit.optim.kannala_brandt import kb_jacobian, kb_project
+from slamkit.problems import CAMERA_KANNALA_BRANDT, CAMERA_PINHOLE, PoseOnlyProblem, PoseOnlyResult
 
 F64 = NDArray[np.float64]
 
@@ -69,12 +71,17 @@ def _exp_times(h: F64, T: F64) -> F64:  # pragma: no cover - numba
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _residual(
-    T: F64, X: F64, uv: F64, fx: float, fy: float, cx: float, cy: float, i: int
+    T: F64, X: F64, uv: F64, cam: F64, fisheye: bool, i: int
 ) -> tuple[float, float, float, float, float]:  # pragma: no cover - numba
-    """Camera point (x, y, z) of point i at pose T and its residual (ru, rv), px."""
+    """Camera point (x, y, z) of point i at pose T and its residual (ru, rv), px. cam: (8,) fx, fy, cx, cy and
+    k1..k4 of the Kannala-Brandt model when ``fisheye`` (else the pinhole model of the undistorted image)."""
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     x = T[0, 0] * X[i, 0] + T[0, 1] * X[i, 1] + T[0, 2] * X[i, 2] + T[0, 3]
     y = T[1, 0] * X[i, 0] + T[1, 1] * X[i, 1] + T[1, 2] * X[i, 2] + T[1, 3]
     z = T[2, 0] * X[i, 0] + T[2, 1] * X[i, 1] + T[2, 2] * X[i, 2] + T[2, 3]
+    if fisheye:
+        u, v = kb_project(x, y, z, cam)
+        return x, y, z, u - uv[i, 0], v - uv[i, 1]
     iz = 1.0 / z
     return x, y, z, fx * x * iz + cx - uv[i, 0], fy * y * iz + cy - uv[i, 1]
 
@@ -89,22 +96,35 @@ def _rho(chi2: float, delta: float, robust: bool) -> float:  # pragma: no cover 
 
 @numba.njit(cache=True, nogil=True)
 def _cost(
-    T: F64, X: F64, uv: F64, info: F64, delta: F64, use: NDArray[np.bool_], K4: F64, robust: bool
+    T: F64, X: F64, uv: F64, info: F64, delta: F64, use: NDArray[np.bool_], cam: F64, fisheye: bool, robust: bool
 ) -> float:  # pragma: no cover - numba
     f = 0.0
     for i in range(X.shape[0]):
         if use[i]:
-            _, _, _, ru, rv = _residual(T, X, uv, K4[0], K4[1], K4[2], K4[3], i)
+            _, _, _, ru, rv = _residual(T, X, uv, cam, fisheye, i)
             f += _rho(info[i] * (ru * ru + rv * rv), delta[i], robust)
     return f
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _kb_jacobian_rows(x: float, y: float, z: float, cam: F64, J: F64) -> None:  # pragma: no cover - numba
+    """J (2, 6) = d r / d xi of a Kannala-Brandt observation: rows A = d uv / d p_c, d r / d omega = cross(p_c, A_row),
+    d r / d v = A_row."""
+    A = np.empty((2, 3))
+    kb_jacobian(x, y, z, cam, A)
+    for row in range(2):
+        J[row, 0] = y * A[row, 2] - z * A[row, 1]
+        J[row, 1] = z * A[row, 0] - x * A[row, 2]
+        J[row, 2] = x * A[row, 1] - y * A[row, 0]
+        J[row, 3], J[row, 4], J[row, 5] = A[row, 0], A[row, 1], A[row, 2]
+
+
 @numba.njit(cache=True, nogil=True)
 def _linearize(
-    T: F64, X: F64, uv: F64, info: F64, delta: F64, use: NDArray[np.bool_], K4: F64, robust: bool
+    T: F64, X: F64, uv: F64, info: F64, delta: F64, use: NDArray[np.bool_], cam: F64, fisheye: bool, robust: bool
 ) -> tuple[F64, F64, float]:  # pragma: no cover - numba
     """H = sum J^T w J (6, 6), g = sum J^T w r (6,), robust cost; w = info * rho'(chi2) (IRLS)."""
-    fx, fy, cx, cy = K4[0], K4[1], K4[2], K4[3]
+    fx, fy = cam[0], cam[1]
     H = np.zeros((6, 6))
     g = np.zeros(6)
     J = np.zeros((2, 6))
@@ -112,21 +132,24 @@ def _linearize(
     for i in range(X.shape[0]):
         if not use[i]:
             continue
-        x, y, z, ru, rv = _residual(T, X, uv, fx, fy, cx, cy, i)
+        x, y, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
         chi2 = info[i] * (ru * ru + rv * rv)
         w = info[i]
         if robust and chi2 > delta[i] * delta[i]:
             w *= delta[i] / np.sqrt(max(chi2, 1e-300))
         f += _rho(chi2, delta[i], robust)
-        iz = 1.0 / z
-        iz2 = iz * iz
-        # d r / d p_c rows a0 = (fx/z, 0, -fx x/z^2), a1 = (0, fy/z, -fy y/z^2); d r / d omega = cross(p_c, a)
-        a00, a02 = fx * iz, -fx * x * iz2
-        a11, a12 = fy * iz, -fy * y * iz2
-        J[0, 0], J[0, 1], J[0, 2] = y * a02, z * a00 - x * a02, -y * a00
-        J[0, 3], J[0, 4], J[0, 5] = a00, 0.0, a02
-        J[1, 0], J[1, 1], J[1, 2] = y * a12 - z * a11, -x * a12, x * a11
-        J[1, 3], J[1, 4], J[1, 5] = 0.0, a11, a12
+        if fisheye:
+            _kb_jacobian_rows(x, y, z, cam, J)
+        else:
+            iz = 1.0 / z
+            iz2 = iz * iz
+            # d r / d p_c rows a0 = (fx/z, 0, -fx x/z^2), a1 = (0, fy/z, -fy y/z^2); d r / d omega = cross(p_c, a)
+            a00, a02 = fx * iz, -fx * x * iz2
+            a11, a12 = fy * iz, -fy * y * iz2
+            J[0, 0], J[0, 1], J[0, 2] = y * a02, z * a00 - x * a02, -y * a00
+            J[0, 3], J[0, 4], J[0, 5] = a00, 0.0, a02
+            J[1, 0], J[1, 1], J[1, 2] = y * a12 - z * a11, -x * a12, x * a11
+            J[1, 3], J[1, 4], J[1, 5] = 0.0, a11, a12
         for a in range(6):
             ga = w * (J[0, a] * ru + J[1, a] * rv)
             g[a] += ga
@@ -176,7 +199,8 @@ def _levenberg_marquardt(
     info: F64,
     delta: F64,
     use: NDArray[np.bool_],
-    K4: F64,
+    cam: F64,
+    fisheye: bool,
     robust: bool,
     iterations: int,
     tau: float,
@@ -193,7 +217,7 @@ def _levenberg_marquardt(
     f = 0.0
     for _ in range(iterations):
         if stale:
-            H, g, f = _linearize(T, X, uv, info, delta, use, K4, robust)
+            H, g, f = _linearize(T, X, uv, info, delta, use, cam, fisheye, robust)
             stale = False
         if lam < 0.0:
             hmax = 0.0
@@ -214,7 +238,7 @@ def _levenberg_marquardt(
             if predicted <= rel_tol * f:
                 break  # the model promises less than the tolerance: converged
             T_new = _exp_times(h, T)
-            f_new = _cost(T_new, X, uv, info, delta, use, K4, robust)
+            f_new = _cost(T_new, X, uv, info, delta, use, cam, fisheye, robust)
             rho = (f - f_new) / predicted if predicted > 0.0 else -1.0
             if rho > 0.0 and np.isfinite(f_new):
                 lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
@@ -239,7 +263,8 @@ def _optimize_pose_kernel(
     uv: F64,
     info: F64,
     chi2_max: F64,
-    K4: F64,
+    cam: F64,
+    fisheye: bool,
     rounds: int,
     iterations: int,
     tau: float,
@@ -249,22 +274,22 @@ def _optimize_pose_kernel(
     n = X.shape[0]
     delta = np.sqrt(chi2_max)
     inlier = np.ones(n, np.bool_)
-    cost_initial = _cost(T0, X, uv, info, delta, inlier, K4, True)
+    cost_initial = _cost(T0, X, uv, info, delta, inlier, cam, fisheye, True)
     T = T0.copy()
     total = 0
     for it in range(rounds):
         T, done = _levenberg_marquardt(
-            T0.copy(), X, uv, info, delta, inlier, K4, it < 2, iterations, tau, max_trials, rel_tol
+            T0.copy(), X, uv, info, delta, inlier, cam, fisheye, it < 2, iterations, tau, max_trials, rel_tol
         )
         total += done
         any_in = False
         for i in range(n):
-            _, _, z, ru, rv = _residual(T, X, uv, K4[0], K4[1], K4[2], K4[3], i)
+            _, _, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
             inlier[i] = (info[i] * (ru * ru + rv * rv) <= chi2_max[i]) and z > 0.0
             any_in = any_in or inlier[i]
         if not any_in:
             break
-    cost_final = _cost(T, X, uv, info, delta, inlier, K4, True)
+    cost_final = _cost(T, X, uv, info, delta, inlier, cam, fisheye, True)
     return T, inlier, total, cost_initial, cost_final
 
 
@@ -290,14 +315,23 @@ def optimize_pose(problem: PoseOnlyProblem) -> PoseOnlyResult:
         raise ValueError("pose problem: xyz_w, uv_px and T_c_w_init must be finite")
     info = np.power(float(problem.scale_factor), -2.0 * level.astype(np.float64))
     chi2_max = np.full(n, float(problem.chi2_mono))
-    K4 = np.ascontiguousarray(problem.intrinsics, np.float64)
+    fisheye = problem.camera_model == CAMERA_KANNALA_BRANDT
+    if problem.camera_model not in (CAMERA_PINHOLE, CAMERA_KANNALA_BRANDT):
+        raise ValueError(f"pose problem: camera_model {problem.camera_model!r} is not supported here")
+    cam = np.zeros(8)
+    cam[:4] = np.asarray(problem.intrinsics, np.float64)
+    if fisheye:
+        if problem.distortion is None or np.shape(problem.distortion) != (4,):
+            raise ValueError("pose problem: a kannala_brandt problem needs distortion k1..k4 of shape (4,)")
+        cam[4:] = np.asarray(problem.distortion, np.float64)
     T, inliers, iterations, c0, c1 = _optimize_pose_kernel(
         T0,
         X,
         uv,
         info,
         chi2_max,
-        K4,
+        cam,
+        fisheye,
         int(problem.rounds),
         int(problem.iterations_per_round),
         LM_TAU,

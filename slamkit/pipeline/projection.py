@@ -1,6 +1,7 @@
 """Guided matching by projection (ORB-SLAM ORBmatcher::SearchByProjection and the local-map frustum test).
 
-All positions are in the undistorted pinhole image (``Features.uv_undist_px``, camera ``K``).
+All positions are in the camera's pipeline image (``Observations.uv_undist_px``; ``Camera.project_image``): the
+undistorted pinhole image for a pinhole camera, the raw image for a Kannala-Brandt one.
 """
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.errors import ConfigError
 from slamkit.features import Features
+from slamkit.interfaces import Camera
 from slamkit.pipeline.frame import ImageBounds
 from slamkit.pipeline.map_points import predict_level
 from slamkit.pipeline.matching import (
@@ -25,14 +28,24 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 
-def project_pinhole(T_c_w: F64, xyz_w: F64, K: F64) -> tuple[F64, F64]:
-    """xyz_w: (N, 3) m -> (uv (N, 2) px in the ideal pinhole image, z (N,) m depth in the camera)."""
+def project_points(T_c_w: F64, xyz_w: F64, camera: Camera) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """xyz_w: (N, 3) m world points seen from pose T_c_w through ``camera`` -> (uv (N, 2) px in the camera's
+    pipeline image, z (N,) m depth in the camera, valid (N,) bool: in front and inside the model's field of view).
+    """
     xyz_c = xyz_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
-    z = xyz_c[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = K[0, 0] * xyz_c[:, 0] / z + K[0, 2]
-        v = K[1, 1] * xyz_c[:, 1] / z + K[1, 2]
-    return np.stack([u, v], axis=1), z
+    uv, valid = camera.project_image(xyz_c)
+    return uv, xyz_c[:, 2], valid
+
+
+def require_pinhole_image(camera: Camera, step: str) -> None:
+    """Raise ConfigError when ``camera``'s pipeline image is not the undistorted pinhole image: for the steps that
+    still compute with K on undistorted pixels (two-view initialisation, triangulation, Sim3 loop verification),
+    which would otherwise give wrong geometry for a fisheye camera's raw pixels."""
+    if not camera.image_undistorted:
+        raise ConfigError(
+            f"{step}: the camera is {camera.model}, whose keypoints stay raw fisheye pixels; this step works on "
+            "undistorted pinhole pixels only so far"
+        )
 
 
 @dataclass(frozen=True)
@@ -116,7 +129,7 @@ class FrustumTest:
 
 def frustum_test(
     T_c_w: F64,
-    K: F64,
+    camera: Camera,
     bounds: ImageBounds,
     xyz_w: F64,
     normal_w: F64,
@@ -129,13 +142,13 @@ def frustum_test(
     """ORB-SLAM Frame::isInFrustum for many points: (1) projects inside the image with positive depth,
     (3) distance within [0.8 d_min, 1.2 d_max], (2) viewing angle v.n >= min_view_cos (cos 60 deg),
     (4) predicted pyramid level from the distance. Filter (5), the descriptor match, is ``match_projected``."""
-    uv, z = project_pinhole(T_c_w, xyz_w, K)
+    uv, _, valid = project_points(T_c_w, xyz_w, camera)
     center = -T_c_w[:3, :3].T @ T_c_w[:3, 3]
     ray = xyz_w - center
     dist = np.linalg.norm(ray, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         view_cos = np.einsum("ij,ij->i", ray, normal_w) / dist
-    ok = (z > 0) & np.all(np.isfinite(uv), axis=1)
+    ok = valid.copy()
     ok &= bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
     ok &= (dist >= 0.8 * d_min_m) & (dist <= 1.2 * d_max_m)
     ok &= view_cos >= min_view_cos

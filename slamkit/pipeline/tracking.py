@@ -22,24 +22,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import SE3, invert_T
-from slamkit.interfaces import (
-    BowDescription,
-    Camera,
-    FeatureExtractor,
-    Initializer,
-    MapStore,
-    Optimizer,
-    PlaceRecognizer,
-)
+from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.pipeline.bundle import intrinsics_of
+from slamkit.pipeline.bundle import intrinsics_of, problem_camera
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
 from slamkit.pipeline.initialization import MonocularInitialization, create_initial_map, new_keyframe
 from slamkit.pipeline.map_points import predict_level
 from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
-from slamkit.pipeline.projection import frustum_test, match_projected, project_pinhole, radius_by_viewing_cos
+from slamkit.pipeline.projection import frustum_test, match_projected, project_points, radius_by_viewing_cos
 from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
 from slamkit.sensors import FrameData
 
@@ -92,22 +84,20 @@ class Tracker:
     def __init__(
         self,
         cfg: TrackingConfig,
-        extractor: FeatureExtractor,
+        frontend: FrontEnd,
         initializer: Initializer,
         optimizer: Optimizer,
         store: MapStore,
         rng: np.random.Generator,
-        init_extractor: FeatureExtractor | None = None,
         place: PlaceRecognizer | None = None,
         pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
     ) -> None:
-        """pose_optimizer: motion-only BA of tracking; default the compiled one of
+        """frontend: turns each packet into the frame's observation record (it holds the feature extractors).
+        pose_optimizer: motion-only BA of tracking; default the compiled one of
         slamkit.pipeline.pose_optimization (same algorithm as ``Optimizer.optimize_pose``, a few hundred times
         cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend."""
         self.cfg = cfg
-        self.extractor = extractor
-        # ORB-SLAM extracts twice the features on frames used for monocular initialisation
-        self.init_extractor = init_extractor or extractor
+        self.frontend = frontend
         self.optimizer = optimizer
         self.optimize_pose = pose_optimizer or motion_only_ba
         self.store = store
@@ -133,23 +123,17 @@ class Tracker:
     # ---- public ------------------------------------------------------------------------------
 
     def warm_up(self, camera: Camera) -> None:
-        """Run the feature extractors once on a textured image of the camera's size and throw the result away.
-
-        The first extraction loads the compiled kernels (numba's on-disk cache) and starts thread pools: 20-30
-        ms once, which a timed run should not spend on its first frame. Changes no state of the tracker."""
-        rng = np.random.default_rng(0)
-        noise = rng.integers(0, 256, size=(camera.height, camera.width), dtype=np.uint8)
-        blurred = np.asarray(cv2.GaussianBlur(noise, (0, 0), 2.0), dtype=np.float64)
-        # stretched back to 0..255: blurring leaves little contrast, and FAST must find corners
-        image = np.clip((blurred - blurred.mean()) * 8.0 + 128.0, 0, 255).astype(np.uint8)
-        for extractor in {id(e): e for e in (self.init_extractor, self.extractor)}.values():
-            extractor.extract(image, camera)
+        """Run the front end's feature extractors once on a synthetic image and throw the result away (the first
+        extraction loads compiled kernels: 20-30 ms a timed run should not spend on its first frame). Changes no
+        state of the tracker."""
+        self.frontend.warm_up(camera)
 
     def step(self, data: FrameData, camera: Camera, mapping_idle: bool = True) -> TrackingOutcome:
         """Track one frame. camera: the dataset's (left) camera."""
         t0 = time.perf_counter()
         initializing = self.state == TrackingState.NOT_INITIALIZED
-        features = (self.init_extractor if initializing else self.extractor).extract(data.image, camera)
+        # ORB-SLAM extracts twice the features on frames used for monocular initialisation: the front end's job
+        features = self.frontend.observe(data, camera, initializing)
         t1 = time.perf_counter()
         frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
         timings = {"extract_ms": (t1 - t0) * 1e3}
@@ -336,14 +320,16 @@ class Tracker:
             T_c_w_init=T_init,
             xyz_w=xyz,
             uv_px=feats.uv_undist_px[idx].astype(np.float64),
-            u_right_px=np.full(idx.size, np.nan),
+            u_right_px=feats.u_right_px[idx].astype(np.float64),
             level=feats.level[idx].astype(np.int64),
             intrinsics=intrinsics_of(frame.camera.K),
+            bf=feats.bf,
             scale_factor=feats.scale_factor,
             chi2_mono=self.cfg.pose_chi2_mono,
             chi2_stereo=self.cfg.pose_chi2_stereo,
             rounds=self.cfg.pose_rounds,
             iterations_per_round=self.cfg.pose_iterations_per_round,
+            **problem_camera(frame.camera),
         )
         result = self.optimize_pose(problem)
         frame.T_c_w = result.T_c_w
@@ -368,8 +354,7 @@ class Tracker:
         pids = last.point_ids[valid]
         xyz = self.store.point_rows(pids, "xyz_w")
         desc = self.store.point_rows(pids, "descriptor")
-        uv, z = project_pinhole(T_pred, xyz, frame.camera.K)
-        inside = (z > 0) & np.all(np.isfinite(uv), axis=1)
+        uv, _, inside = project_points(T_pred, xyz, frame.camera)
         inside &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
         q = np.flatnonzero(inside)
         last_level = last.features.level[valid[q]].astype(np.int64)
@@ -494,12 +479,10 @@ class Tracker:
         of the visible ones."""
         cfg = self.cfg
         feats = frame.features
-        K = frame.camera.K
         assert frame.T_c_w is not None
         store = self.store
         xyz = store.point_rows(candidates, "xyz_w")
-        uv, z = project_pinhole(frame.T_c_w, xyz, K)
-        in_image = (z > 0) & np.all(np.isfinite(uv), axis=1)
+        uv, _, in_image = project_points(frame.T_c_w, xyz, frame.camera)
         in_image &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
         s = np.flatnonzero(in_image)
         if s.size == 0:
@@ -507,7 +490,7 @@ class Tracker:
         near = candidates[s]
         test = frustum_test(
             frame.T_c_w,
-            K,
+            frame.camera,
             frame.bounds,
             xyz[s],
             store.point_rows(near, "normal_w"),
@@ -591,8 +574,17 @@ class Tracker:
             pairs = self.place.match(kf.features, kf.bow, frame.features, bow, _RELOC_BOW_RATIO, valid, None)
             if pairs.shape[0] < _RELOC_MIN_BOW_MATCHES:
                 continue
-            xyz = np.stack([self.store.get_point(int(kf.point_ids[i])).xyz_w for i in pairs[:, 0]])
             uv = frame.features.uv_undist_px[pairs[:, 1]].astype(np.float64)
+            if not frame.camera.image_undistorted:
+                # a fisheye keypoint enters EPnP as its bearing seen through K (ORB-SLAM3 solves PnP on bearings);
+                # rays at or behind 90 degrees have no such pixel and are left out
+                b = frame.features.bearing[pairs[:, 1]]
+                ahead = b[:, 2] > 0
+                pairs, b = pairs[ahead], b[ahead]
+                if pairs.shape[0] < _RELOC_MIN_BOW_MATCHES:
+                    continue
+                uv = (b[:, :2] / b[:, 2:3]) @ frame.camera.K[:2, :2].T + frame.camera.K[:2, 2]
+            xyz = np.stack([self.store.get_point(int(kf.point_ids[i])).xyz_w for i in pairs[:, 0]])
             ok, rvec, tvec, inliers = cv2.solvePnPRansac(
                 xyz,
                 uv,
@@ -643,12 +635,12 @@ class Tracker:
         points = [self.store.get_point(p) for p in pids]
         feats = frame.features
         xyz = np.stack([p.xyz_w for p in points])
-        uv, z = project_pinhole(frame.T_c_w, xyz, frame.camera.K)
+        uv, _, valid = project_points(frame.T_c_w, xyz, frame.camera)
         center = -frame.T_c_w[:3, :3].T @ frame.T_c_w[:3, 3]
         dist = np.linalg.norm(xyz - center, axis=1)
         d_min = np.array([p.d_min_m for p in points])
         d_max = np.array([p.d_max_m for p in points])
-        ok = (z > 0) & np.all(np.isfinite(uv), axis=1) & (dist >= 0.8 * d_min) & (dist <= 1.2 * d_max)
+        ok = valid & (dist >= 0.8 * d_min) & (dist <= 1.2 * d_max)
         ok &= frame.bounds.contains(np.nan_to_num(uv, nan=-1e9))
         q = np.flatnonzero(ok)
         if q.size == 0:

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from slamkit.errors import PluginError
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import BowDescription, MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
@@ -58,10 +58,11 @@ def store(make_store: StoreFactory) -> MapStore:
     return make_store()
 
 
-def features(n: int = N_FEATS, seed: int = 0) -> Features:
+def features(n: int = N_FEATS, seed: int = 0) -> Observations:
+    """The monocular observation record of n random keypoints."""
     rng = np.random.default_rng(seed)
     uv = rng.uniform(0, 480, (n, 2)).astype(np.float32)
-    return Features(
+    feats = Features(
         uv,
         uv,
         rng.integers(0, 8, n).astype(np.int32),
@@ -71,6 +72,7 @@ def features(n: int = N_FEATS, seed: int = 0) -> Features:
         1.2,
         8,
     )
+    return Observations.monocular(feats, CAMERA.unproject_image(uv.astype(np.float64)))
 
 
 def add_keyframe(store: MapStore, x_m: float = 0.0, point_ids: np.ndarray | None = None) -> int:

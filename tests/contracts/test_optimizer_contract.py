@@ -16,6 +16,8 @@ Tolerances (stated here, derived from the noise: with ~300-1000 observations per
   direction, rejects ~1.3 % of clean matches).
 - fixed variables exactly unchanged (array_equal).
 - backends agree (after convergence, same problem): poses within 1e-3 m and 1e-3 rad.
+- camera models: monocular pose and bundle problems also come through a Kannala-Brandt lens (observations are raw
+  fisheye pixels, slamkit.optim.synthetic.with_kannala_brandt), with the same tolerances.
 """
 
 from __future__ import annotations
@@ -39,9 +41,10 @@ from slamkit.optim.synthetic import (
     make_sim3_problem,
     pose_errors,
     sim3_errors,
+    with_kannala_brandt,
 )
 from slamkit.plugins import ComponentRegistry
-from slamkit.problems import BundleProblem, EssentialGraphProblem, InertialTerms, PoseOnlyProblem
+from slamkit.problems import CAMERA_KANNALA_BRANDT, BundleProblem, EssentialGraphProblem, InertialTerms, PoseOnlyProblem
 
 REGISTRY = ComponentRegistry.discover()
 NAMES = [c.spec.name for c in REGISTRY.components("optimizer")]
@@ -88,9 +91,14 @@ def _flag_rates(flagged: np.ndarray, planted: np.ndarray) -> tuple[float, float]
 # ---- motion-only BA --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("stereo_ratio", [0.0, 0.5], ids=["mono", "stereo"])
-def test_pose_recovers_truth_and_flags_outliers(optimizer: Optimizer, stereo_ratio: float) -> None:
-    problem, truth = make_pose_problem(np.random.default_rng(11), n_points=300, stereo_ratio=stereo_ratio)
+@pytest.mark.parametrize("stereo_ratio", [0.0, 0.5, "fisheye"], ids=["mono", "stereo", "fisheye"])
+def test_pose_recovers_truth_and_flags_outliers(optimizer: Optimizer, stereo_ratio: float | str) -> None:
+    fisheye = stereo_ratio == "fisheye"
+    problem, truth = make_pose_problem(
+        np.random.default_rng(11), n_points=300, stereo_ratio=0.0 if fisheye else stereo_ratio
+    )
+    if fisheye:
+        problem = with_kannala_brandt(problem, truth)
     result = optimizer.optimize_pose(problem)
     rot, pos = pose_errors(result.T_c_w, truth.T_c_w)
     rot0, pos0 = pose_errors(problem.T_c_w_init, truth.T_c_w)
@@ -105,9 +113,12 @@ def test_pose_recovers_truth_and_flags_outliers(optimizer: Optimizer, stereo_rat
 # ---- bundle adjustment -----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("stereo_ratio", [0.0, 0.5], ids=["mono", "stereo"])
-def test_bundle_recovers_truth_and_respects_fixed(optimizer: Optimizer, stereo_ratio: float) -> None:
-    problem, truth = _small_bundle(21, stereo_ratio)
+@pytest.mark.parametrize("stereo_ratio", [0.0, 0.5, "fisheye"], ids=["mono", "stereo", "fisheye"])
+def test_bundle_recovers_truth_and_respects_fixed(optimizer: Optimizer, stereo_ratio: float | str) -> None:
+    fisheye = stereo_ratio == "fisheye"
+    problem, truth = _small_bundle(21, 0.0 if fisheye else float(stereo_ratio))
+    if fisheye:
+        problem = with_kannala_brandt(problem, truth)
     T0, xyz0 = problem.T_c_w.copy(), problem.xyz_w.copy()
     result = optimizer.bundle_adjust(problem)
     assert not result.aborted
@@ -269,6 +280,31 @@ BAD: dict[str, tuple[str, Callable[[], Any], str]] = {
         "no fixed variable",
     ),
     "bundle-inertial": ("bundle_adjust", lambda: replace(_bundle(), inertial=InertialTerms()), "inertial terms"),
+    "pose-pinhole-with-distortion": (
+        "optimize_pose",
+        lambda: replace(_pose(), distortion=np.zeros(4)),
+        "distortion: given for a pinhole problem",
+    ),
+    "pose-unknown-camera-model": (
+        "optimize_pose",
+        lambda: replace(_pose(), camera_model="fov"),
+        "camera_model = 'fov'",
+    ),
+    "bundle-fisheye-without-distortion": (
+        "bundle_adjust",
+        lambda: replace(_bundle(), camera_model=CAMERA_KANNALA_BRANDT),
+        r"distortion: missing; expected k1..k4 of shape \(8, 4\)",
+    ),
+    "pose-fisheye-stereo": (
+        "optimize_pose",
+        lambda: replace(
+            _pose(),
+            camera_model=CAMERA_KANNALA_BRANDT,
+            distortion=np.zeros(4),
+            u_right_px=np.where(np.arange(50) == 2, 100.0, np.nan),
+        ),
+        r"u_right_px\[2\] is a stereo observation in a kannala_brandt problem",
+    ),
     "graph-no-fixed": ("optimize_essential_graph", lambda: replace(_graph(), fixed=np.zeros(30, bool)), "no fixed"),
     "sim3-too-few": (
         "optimize_sim3",
@@ -309,6 +345,17 @@ def test_backends_agree_on_bundle(all_optimizers: list[Optimizer]) -> None:
 def test_backends_agree_on_pose(all_optimizers: list[Optimizer]) -> None:
     problem, _ = make_pose_problem(np.random.default_rng(62), n_points=300, stereo_ratio=0.3)
     _pairwise([opt.optimize_pose(problem).T_c_w for opt in all_optimizers], pose_errors)
+
+
+@needs_two
+def test_backends_agree_on_fisheye(all_optimizers: list[Optimizer]) -> None:
+    problem, truth = make_pose_problem(np.random.default_rng(65), n_points=300)
+    fisheye = with_kannala_brandt(problem, truth)
+    _pairwise([opt.optimize_pose(fisheye).T_c_w for opt in all_optimizers], pose_errors)
+    bundle, bundle_truth = _small_bundle(66)
+    fisheye_bundle = with_kannala_brandt(bundle, bundle_truth)
+    fisheye_bundle.iterations_first, fisheye_bundle.iterations_second = 10, 30
+    _pairwise([opt.bundle_adjust(fisheye_bundle).T_c_w for opt in all_optimizers], pose_errors)
 
 
 @needs_two

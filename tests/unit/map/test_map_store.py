@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slamkit.errors import ConfigError
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
@@ -20,16 +20,23 @@ from slamkit.map.store import InMemoryMapStore
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
 
 
-def features(n: int) -> Features:
-    return Features(
-        uv_px=np.zeros((n, 2), np.float32),
-        uv_undist_px=np.zeros((n, 2), np.float32),
-        level=np.zeros(n, np.int32),
-        angle_deg=np.zeros(n, np.float32),
-        response=np.zeros(n, np.float32),
-        descriptors=np.zeros((n, 32), np.uint8),
-        scale_factor=1.2,
-        n_levels=8,
+def _record(features: Features) -> Observations:
+    """The monocular observation record of hand-made features (bearings through CAMERA)."""
+    return Observations.monocular(features, CAMERA.unproject_image(features.uv_undist_px.astype(np.float64)))
+
+
+def features(n: int) -> Observations:
+    return _record(
+        Features(
+            uv_px=np.zeros((n, 2), np.float32),
+            uv_undist_px=np.zeros((n, 2), np.float32),
+            level=np.zeros(n, np.int32),
+            angle_deg=np.zeros(n, np.float32),
+            response=np.zeros(n, np.float32),
+            descriptors=np.zeros((n, 32), np.uint8),
+            scale_factor=1.2,
+            n_levels=8,
+        )
     )
 
 

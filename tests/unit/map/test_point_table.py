@@ -13,7 +13,7 @@ import pytest
 
 from slamkit.app import build_runner
 from slamkit.config import compose_config
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
@@ -77,10 +77,10 @@ def test_copies_of_a_point_belong_to_no_store() -> None:
     store = InMemoryMapStore()
     k = store.new_keyframe_id()
     uv, zeros = np.zeros((4, 2), np.float32), np.zeros(4, np.float32)
+    camera = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
     feats = Features(uv, uv, np.zeros(4, np.int32), zeros, zeros, np.zeros((4, 32), np.uint8), 1.2, 8)
-    store.add_keyframe(
-        KeyFrame(k, 0, 0.0, np.eye(4), PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0), feats, np.full(4, -1))
-    )
+    record = Observations.monocular(feats, camera.unproject_image(uv.astype(np.float64)))
+    store.add_keyframe(KeyFrame(k, 0, 0.0, np.eye(4), camera, record, np.full(4, -1)))
     p = _point(store, 0)
     store.add_point(p)
     store.add_observation(p.id, k, 2)

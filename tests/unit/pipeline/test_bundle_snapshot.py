@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
@@ -15,17 +15,24 @@ from slamkit.plugins import ComponentRegistry
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
 
 
-def features(uv: np.ndarray) -> Features:
+def _record(features: Features) -> Observations:
+    """The monocular observation record of hand-made features (bearings through CAMERA)."""
+    return Observations.monocular(features, CAMERA.unproject_image(features.uv_undist_px.astype(np.float64)))
+
+
+def features(uv: np.ndarray) -> Observations:
     n = uv.shape[0]
-    return Features(
-        uv.astype(np.float32),
-        uv.astype(np.float32),
-        np.zeros(n, np.int32),
-        np.zeros(n, np.float32),
-        np.zeros(n, np.float32),
-        np.zeros((n, 32), np.uint8),
-        1.2,
-        8,
+    return _record(
+        Features(
+            uv.astype(np.float32),
+            uv.astype(np.float32),
+            np.zeros(n, np.int32),
+            np.zeros(n, np.float32),
+            np.zeros(n, np.float32),
+            np.zeros((n, 32), np.uint8),
+            1.2,
+            8,
+        )
     )
 
 

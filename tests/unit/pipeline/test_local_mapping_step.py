@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from slamkit_scipy.kernels import cholesky_solve_upper
 
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import AbortToken
 from slamkit.map.entities import KeyFrame, MapPoint
@@ -22,6 +22,13 @@ from slamkit.plugins import ComponentRegistry
 from slamkit.problems import BundleProblem, BundleResult
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+
+
+def _record(features: Features) -> Observations:
+    """The monocular observation record of hand-made features (bearings through CAMERA)."""
+    return Observations.monocular(features, CAMERA.unproject_image(features.uv_undist_px.astype(np.float64)))
+
+
 N_POINTS = 400
 N_MAPPED = 200  # points 0..199 are in the map; 200..399 are for local mapping to triangulate
 
@@ -42,15 +49,17 @@ def keyframe(
     T[0, 3] = -x_m
     cam = xyz @ T[:3, :3].T + T[:3, 3]
     uv = (cam[:, :2] / cam[:, 2:] * 500.0 + [320.0, 240.0]).astype(np.float32)
-    feats = Features(
-        uv,
-        uv,
-        np.zeros(N_POINTS, np.int32),
-        np.zeros(N_POINTS, np.float32),
-        np.ones(N_POINTS, np.float32),
-        desc.copy(),
-        1.2,
-        8,
+    feats = _record(
+        Features(
+            uv,
+            uv,
+            np.zeros(N_POINTS, np.int32),
+            np.zeros(N_POINTS, np.float32),
+            np.ones(N_POINTS, np.float32),
+            desc.copy(),
+            1.2,
+            8,
+        )
     )
     kf_id = store.new_keyframe_id()
     matched = np.full(N_POINTS, -1, np.int64) if point_ids is None else point_ids

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.sim3 import Sim3
@@ -22,18 +22,27 @@ from slamkit.plugins import ComponentRegistry
 
 N = 40
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+
+
+def _record(features: Features) -> Observations:
+    """The monocular observation record of hand-made features (bearings through CAMERA)."""
+    return Observations.monocular(features, CAMERA.unproject_image(features.uv_undist_px.astype(np.float64)))
+
+
 #: Shared points of consecutive keyframes and of keyframes two apart (the covisibility weights).
 NEAR, FAR = 150, 40
 N_FEATS = 2 * (NEAR + FAR)
-FEATURES = Features(
-    np.zeros((N_FEATS, 2), np.float32),
-    np.zeros((N_FEATS, 2), np.float32),
-    np.zeros(N_FEATS, np.int32),
-    np.zeros(N_FEATS, np.float32),
-    np.zeros(N_FEATS, np.float32),
-    np.zeros((N_FEATS, 32), np.uint8),
-    1.2,
-    8,
+FEATURES = _record(
+    Features(
+        np.zeros((N_FEATS, 2), np.float32),
+        np.zeros((N_FEATS, 2), np.float32),
+        np.zeros(N_FEATS, np.int32),
+        np.zeros(N_FEATS, np.float32),
+        np.zeros(N_FEATS, np.float32),
+        np.zeros((N_FEATS, 32), np.uint8),
+        1.2,
+        8,
+    )
 )
 
 

@@ -10,7 +10,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from slamkit.config import compose_config
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.sim3 import Sim3
@@ -34,6 +34,13 @@ from slamkit.pipeline.map_points import update_normal_and_depth
 from slamkit.plugins import ComponentRegistry
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+
+
+def _record(features: Features) -> Observations:
+    """The monocular observation record of hand-made features (bearings through CAMERA)."""
+    return Observations.monocular(features, CAMERA.unproject_image(features.uv_undist_px.astype(np.float64)))
+
+
 # ORB-SLAM3's defaults (conf/pipeline/orbslam.yaml): radius 3 px, 30 matches.
 TH = VerificationThresholds(3.0, 30)
 N_WALL, N_OTHER = 60, 240
@@ -82,15 +89,17 @@ class World:
             xyz_c = xyz_true @ T[:3, :3].T + T[:3, 3]
             uv = (xyz_c[:, :2] / xyz_c[:, 2:]) * 500.0 + np.array([320.0, 240.0])
             n = len(uv)
-            feats = Features(
-                uv.astype(np.float32),
-                uv.astype(np.float32),
-                np.zeros(n, np.int32),
-                np.zeros(n, np.float32),
-                np.ones(n, np.float32),
-                desc.copy(),
-                1.2,
-                8,
+            feats = _record(
+                Features(
+                    uv.astype(np.float32),
+                    uv.astype(np.float32),
+                    np.zeros(n, np.int32),
+                    np.zeros(n, np.float32),
+                    np.ones(n, np.float32),
+                    desc.copy(),
+                    1.2,
+                    8,
+                )
             )
             kf = KeyFrame(store.new_keyframe_id(), len(kf_ids), 0.0, T @ invert_T(drift), CAMERA, feats, np.full(n, -1))
             store.add_keyframe(kf)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
@@ -14,6 +14,13 @@ from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.map_points import compute_distinctive_descriptor, refresh_points, update_normal_and_depth
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+
+
+def _record(features: Features) -> Observations:
+    """The monocular observation record of hand-made features (bearings through CAMERA)."""
+    return Observations.monocular(features, CAMERA.unproject_image(features.uv_undist_px.astype(np.float64)))
+
+
 N_FEATS = 60
 
 
@@ -30,15 +37,17 @@ def random_map(seed: int, n_kf: int = 8, n_points: int = 150) -> InMemoryMapStor
         uv = rng.uniform(0, 480, (N_FEATS, 2)).astype(np.float32)
         # few distinct descriptors so median ties happen
         desc = rng.integers(0, 256, (4, 32), dtype=np.uint8)[rng.integers(0, 4, N_FEATS)]
-        feats = Features(
-            uv,
-            uv,
-            rng.integers(0, 8, N_FEATS).astype(np.int32),
-            np.zeros(N_FEATS, np.float32),
-            np.zeros(N_FEATS, np.float32),
-            desc,
-            1.2,
-            8,
+        feats = _record(
+            Features(
+                uv,
+                uv,
+                rng.integers(0, 8, N_FEATS).astype(np.int32),
+                np.zeros(N_FEATS, np.float32),
+                np.zeros(N_FEATS, np.float32),
+                desc,
+                1.2,
+                8,
+            )
         )
         kf_id = store.new_keyframe_id()
         store.add_keyframe(KeyFrame(kf_id, kf_id, float(kf_id), T, CAMERA, feats, np.full(N_FEATS, -1, np.int64)))
