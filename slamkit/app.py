@@ -19,8 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from slamkit.errors import ConfigError
 from slamkit.eval.outputs import PLUGIN_NAME as OUTPUTS_PLUGIN
-from slamkit.interfaces import Dataset, Optimizer
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import Dataset, MapStore, Optimizer
 from slamkit.pipeline.config import PipelineConfig
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
@@ -66,7 +65,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     components = build_components(cfg, registry)
     dataset: Dataset = components["dataset"]
     pipeline = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline, resolve=True))  # type: ignore[arg-type]
-    store: InMemoryMapStore = components["map"]
+    store: MapStore = components["map"]
     rng = np.random.default_rng(int(cfg.seed))
     place = components.get("place")  # None: no relocalization, no loop closing
     init_extractor = None

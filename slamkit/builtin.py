@@ -1,5 +1,6 @@
-"""The core's own components (dataset readers, front ends), registered through the ``slamkit`` entry-point group
-exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/`` and ``conf/frontend/``."""
+"""The core's own components (dataset readers, front ends, the in-memory map store), registered through the
+``slamkit`` entry-point group exactly like any plugin. Their config nodes are YAML files in ``conf/dataset/``,
+``conf/frontend/`` and ``conf/map/``."""
 
 from __future__ import annotations
 
@@ -47,5 +48,11 @@ def slamkit_components() -> list[ComponentSpec]:
             "mono",
             "slamkit.frontend.mono.MonocularFrontEnd",
             description="monocular: ORB features, their bearings from the camera model, no depth",
+        ),
+        ComponentSpec(
+            "map",
+            "memory",
+            "slamkit.map.store.InMemoryMapStore",
+            description="the map's entities and graphs in memory behind one readers-writer lock (the default)",
         ),
     ]

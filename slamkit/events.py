@@ -231,7 +231,7 @@ class MapSnapshot:
             keyframe_timestamps_s=np.array([kf.timestamp_s for kf in kfs], dtype=np.float64),
             T_c_w=np.stack([kf.T_c_w for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
             T_w_c=np.stack([kf.T_w_c for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
-            n_points=len(store.point_ids()),
+            n_points=store.n_points(),
         )
 
     @property

@@ -10,7 +10,6 @@ from frame b to frame a, poses are float64, pixels float32, metres/radians/secon
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -290,43 +289,10 @@ class Optimizer(Protocol):
         ...
 
 
-@runtime_checkable
-class MapStore(Protocol):
-    """Owns the map's entities (plain data) and hands out ids from its own monotonic counters.
-
-    One readers-writer lock per map: ``read()`` and ``write()`` return context managers. ``epoch`` is bumped
-    by every large correction (loop closure, map merge) so tracking can notice it.
-    """
-
-    @property
-    def epoch(self) -> int: ...
-
-    def read(self) -> AbstractContextManager[None]: ...
-
-    def write(self) -> AbstractContextManager[None]: ...
-
-    def new_keyframe_id(self) -> int: ...
-
-    def new_point_id(self) -> int: ...
-
-    def keyframe_ids(self) -> list[int]: ...
-
-    def point_ids(self) -> list[int]: ...
-
-    def get_keyframe(self, keyframe_id: int) -> Any: ...
-
-    def get_point(self, point_id: int) -> Any: ...
-
-    def add_keyframe(self, keyframe: Any) -> None: ...
-
-    def add_point(self, point: Any) -> None: ...
-
-    def remove_keyframe(self, keyframe_id: int) -> None: ...
-
-    def remove_point(self, point_id: int) -> None: ...
-
-    def bump_epoch(self) -> int: ...
-
+# The MapStore protocol (and its graph views) has a module of its own; re-exported here with the other seams.
+from slamkit.map.protocol import CovisibilityGraphView as CovisibilityGraphView  # noqa: E402
+from slamkit.map.protocol import MapStore as MapStore  # noqa: E402
+from slamkit.map.protocol import SpanningTreeView as SpanningTreeView  # noqa: E402
 
 #: kind (= Hydra config group) -> the protocol a component of that kind must satisfy.
 KIND_PROTOCOLS: dict[str, type] = {

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +16,34 @@ import pytest
 from slamkit.map.point_table import SYNCED_ATTRIBUTES
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+TEST_PLUGINS_DIR = REPO_ROOT / "tests" / "plugins"
+
+
+@contextmanager
+def _plugins_installed(target: Path, *distributions: str) -> Iterator[Path]:
+    """pip-install the example plugin distributions ``tests/plugins/<name>`` into ``target`` (a real install, as a
+    third party's would be) and put ``target`` on sys.path for the duration of the block."""
+    for dist in distributions:
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--no-deps",
+                "--no-build-isolation",
+                "--target",
+                str(target),
+                str(TEST_PLUGINS_DIR / dist),
+            ],
+            check=True,
+        )
+    sys.path.insert(0, str(target))
+    try:
+        yield target
+    finally:
+        sys.path.remove(str(target))
 
 
 def shared_datasets_dir() -> Path | None:
@@ -44,3 +75,11 @@ def _assert_point_table_matches_points(store: Any) -> None:
 def assert_point_table_matches_points() -> Callable[[Any], None]:
     """assert_point_table_matches_points(store): the point table tracking gathers from equals the points."""
     return _assert_point_table_matches_points
+
+
+@pytest.fixture(scope="module")
+def dictmap_plugin(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The example third-party MapStore (tests/plugins/slamkit_dictmap, ``map=dict``), pip-installed into a private
+    folder on sys.path for the module's tests."""
+    with _plugins_installed(tmp_path_factory.mktemp("site"), "slamkit_dictmap") as site:
+        yield site

@@ -16,7 +16,7 @@ class CovisibilityGraph:
     def __init__(self) -> None:
         self._w: dict[int, dict[int, int]] = {}
 
-    def __contains__(self, kf_id: int) -> bool:
+    def __contains__(self, kf_id: object) -> bool:
         return kf_id in self._w
 
     def add_node(self, kf_id: int) -> None:
@@ -67,7 +67,7 @@ class SpanningTree:
         self.parent: dict[int, int | None] = {}
         self.children: dict[int, set[int]] = {}
 
-    def __contains__(self, kf_id: int) -> bool:
+    def __contains__(self, kf_id: object) -> bool:
         return kf_id in self.parent
 
     def add(self, kf_id: int, parent: int | None) -> None:
@@ -118,6 +118,53 @@ class SpanningTree:
 
     def edges(self) -> list[tuple[int, int]]:
         return sorted((p, c) for c, p in self.parent.items() if p is not None)
+
+
+class CovisibilityView:
+    """Read-only view of a CovisibilityGraph (what a MapStore hands out as ``covisibility``)."""
+
+    __slots__ = ("_graph",)
+
+    def __init__(self, graph: CovisibilityGraph) -> None:
+        self._graph = graph
+
+    def __contains__(self, kf_id: object) -> bool:
+        return kf_id in self._graph
+
+    def weight(self, a: int, b: int) -> int:
+        return self._graph.weight(a, b)
+
+    def neighbors(self, kf_id: int, min_weight: int = 0) -> list[int]:
+        return self._graph.neighbors(kf_id, min_weight)
+
+    def best_neighbors(self, kf_id: int, n: int) -> list[int]:
+        return self._graph.best_neighbors(kf_id, n)
+
+    def edges(self) -> list[tuple[int, int, int]]:
+        return self._graph.edges()
+
+
+class SpanningTreeView:
+    """Read-only view of a SpanningTree (what a MapStore hands out as ``spanning_tree``)."""
+
+    __slots__ = ("_tree",)
+
+    def __init__(self, tree: SpanningTree) -> None:
+        self._tree = tree
+
+    def __contains__(self, kf_id: object) -> bool:
+        return kf_id in self._tree
+
+    def parent(self, kf_id: int) -> int | None:
+        """The keyframe's parent (None for a root or a keyframe not in the tree)."""
+        return self._tree.parent.get(kf_id)
+
+    def children(self, kf_id: int) -> list[int]:
+        """The keyframe's children, sorted."""
+        return sorted(self._tree.children.get(kf_id, ()))
+
+    def edges(self) -> list[tuple[int, int]]:
+        return self._tree.edges()
 
 
 def essential_graph_edges(

@@ -1,14 +1,15 @@
-"""PointTable: the map points' geometric attributes as arrays indexed by point id, kept in step with the points.
+"""PointTable: the map points' attributes as arrays indexed by point id, kept in step with the points by the store.
 
 Tracking gathers the position, descriptor, viewing direction and scale range of thousands of map points per
-frame. Read one object at a time that was ~2 ms of Python per frame, which beside local mapping's Python runs
-at half speed under the GIL; gathered from these arrays it is one numpy indexing per attribute.
+frame, and counts which of them were visible and found. Read one object at a time that was ~2 ms of Python per
+frame, which beside local mapping's Python runs at half speed under the GIL; gathered from these arrays it is
+one numpy indexing per attribute.
 
-A MapPoint in a store writes each change of one of SYNCED_ATTRIBUTES through to its row here (the attributes
-are properties, see entities.py), so the table is never stale: whoever may assign a point's attribute may rely on
-the table reading it back. Changing such an array *in place* (``point.xyz_w[0] = ...``) bypasses the write-through;
-assign a new array instead (tests/unit/map/test_point_table.py checks the table against the objects after
-whole runs). Rows of erased points stay allocated (ids are never reused): 100 bytes per point ever made.
+The in-memory store writes a point's row whenever it changes one of SYNCED_ATTRIBUTES of the point (every change
+goes through the store: entities are read-only, see entities.py), so the table is never stale. The counters
+(COUNTERS) live only here. Rows of erased points stay allocated (ids are never reused): ~130 bytes per point id
+up to the largest in the map; with an allocator shared by several maps (an Atlas) that counts the ids the other
+maps took too.
 """
 
 from __future__ import annotations
@@ -27,14 +28,25 @@ SYNCED_ATTRIBUTES: tuple[tuple[str, int, type], ...] = (
     ("descriptor", -1, np.uint8),  # width from the first point (32 bytes for ORB)
 )
 
+#: Per-point counters kept only in the table (int64): frames that predicted the point visible / that matched it
+#: (ORB-SLAM VI-B, both start at 1), and the number of keyframes observing it.
+COUNTERS: tuple[str, ...] = ("n_visible", "n_found", "n_observations")
+
+#: Row states: never added, in the map, erased.
+ABSENT, PRESENT, ERASED = 0, 1, 2
+
 
 class PointTable:
-    """Arrays by point id: xyz_w (cap, 3) m, normal_w (cap, 3), d_min_m / d_max_m (cap,) m, descriptor (cap, B)."""
+    """Arrays by point id: xyz_w (cap, 3) m, normal_w (cap, 3), d_min_m / d_max_m (cap,) m, descriptor (cap, B),
+    n_visible / n_found / n_observations (cap,) int64, state (cap,) int8 (ABSENT, PRESENT, ERASED)."""
 
     def __init__(self, capacity: int = 4096) -> None:
         self._capacity = max(int(capacity), 1)
         self._descriptor_bytes: int | None = None
-        self._arrays: dict[str, NDArray[Any]] = {}
+        self._arrays: dict[str, NDArray[Any]] = {
+            **{name: np.zeros(self._capacity, np.int64) for name in COUNTERS},
+            "state": np.zeros(self._capacity, np.int8),
+        }
 
     def _allocate(self, descriptor_bytes: int) -> None:
         self._descriptor_bytes = descriptor_bytes
@@ -56,7 +68,8 @@ class PointTable:
         self._capacity = capacity
 
     def put(self, point_id: int, values: dict[str, Any]) -> None:
-        """Write a point's row: values maps every synced attribute name to the point's value."""
+        """Write a new point's row: values maps every synced attribute name to the point's value; the counters
+        start at n_visible = n_found = 1, n_observations = 0."""
         descriptor = np.asarray(values["descriptor"])
         if self._descriptor_bytes is None:
             self._allocate(int(descriptor.shape[-1]))
@@ -68,10 +81,34 @@ class PointTable:
         self._ensure_row(point_id)
         for name, value in values.items():
             self._arrays[name][point_id] = value
+        self._arrays["n_visible"][point_id] = 1
+        self._arrays["n_found"][point_id] = 1
+        self._arrays["n_observations"][point_id] = 0
+        self._arrays["state"][point_id] = PRESENT
+
+    def erase(self, point_id: int) -> None:
+        """Mark a point's row erased (it stays allocated; the id is never used again)."""
+        self._arrays["state"][point_id] = ERASED
+
+    def state(self, point_ids: NDArray[np.int64]) -> NDArray[np.int8]:
+        """(K,) the row state of any ids (negative or beyond the table: ABSENT)."""
+        ids = np.asarray(point_ids, np.int64)
+        out = np.zeros(ids.shape, np.int8)
+        inside = (ids >= 0) & (ids < self._capacity)
+        out[inside] = self._arrays["state"][ids[inside]]
+        return out
 
     def set(self, point_id: int, name: str, value: Any) -> None:
         """One attribute of a point already in the table."""
         self._arrays[name][point_id] = value
+
+    def increment(self, point_id: int, name: str, delta: int) -> None:
+        """counter[point_id] += delta for one point already in the table."""
+        self._arrays[name][point_id] += delta
+
+    def add(self, point_ids: NDArray[np.int64], name: str, amounts: NDArray[np.int64] | int) -> None:
+        """counter[point_ids] += amounts, an id listed twice counted twice (points already in the table)."""
+        np.add.at(self._arrays[name], point_ids, amounts)
 
     def assign(self, point_ids: NDArray[np.int64], name: str, values: NDArray[Any]) -> None:
         """Rows ``point_ids`` (K,) of attribute ``name`` := values (K, ...) (points already in the table)."""
@@ -79,6 +116,6 @@ class PointTable:
 
     def rows(self, point_ids: NDArray[np.int64], name: str) -> NDArray[Any]:
         """(K, ...) copy of attribute ``name`` of the points ``point_ids`` (K,), which must be in the map."""
-        if not self._arrays:
+        if self._descriptor_bytes is None:
             raise KeyError("the point table is empty")
         return self._arrays[name][point_ids]

@@ -1,48 +1,72 @@
-"""The default MapStore: the map's entities and graphs in memory, behind one readers-writer lock."""
+"""The default MapStore (``map=memory``): the map's entities and graphs in memory, behind one readers-writer lock."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterable
 from contextlib import AbstractContextManager
-from typing import Any
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
-from slamkit.map.entities import KeyFrame, MapPoint, mirror_in, mirror_of, set_unmirrored
-from slamkit.map.graphs import CovisibilityGraph, SpanningTree, essential_graph_edges
+from slamkit.interfaces import BowDescription
+from slamkit.map.entities import KeyFrame, MapPoint, frozen_copy, frozen_view, replace_fields
+from slamkit.map.graphs import (
+    CovisibilityGraph,
+    CovisibilityView,
+    SpanningTree,
+    SpanningTreeView,
+    essential_graph_edges,
+)
+from slamkit.map.ids import IdAllocator
 from slamkit.map.lock import ReadWriteLock
-from slamkit.map.point_table import SYNCED_ATTRIBUTES, PointTable
+from slamkit.map.point_table import COUNTERS, PRESENT, SYNCED_ATTRIBUTES, PointTable
+from slamkit.map.protocol import MapStore
+
+I64 = NDArray[np.int64]
+
+_ASSIGNABLE = frozenset(name for name, _, _ in SYNCED_ATTRIBUTES)
+_READABLE = _ASSIGNABLE | frozenset(COUNTERS)
 
 
 class InMemoryMapStore:
-    """Keyframes, map points, the covisibility graph, the spanning tree and loop edges of one map.
+    """Keyframes, map points, the covisibility graph, the spanning tree and loop edges of one map
+    (implements slamkit.map.protocol.MapStore; see there for what each method promises).
 
-    Callers take ``read()`` / ``write()`` around access from several threads (the sequential runner needs
-    no locking, but taking the lock is cheap). Ids come from the store's own monotonic counters and are
-    never reused. ``epoch`` is bumped by large corrections (loop closure) so tracking notices them.
+    The entities it hands out are read-only: it keeps the writable arrays behind them (each keyframe's point_ids,
+    each point's observation dict) and changes the frozen dataclasses with entities.replace_fields. The points'
+    attributes are mirrored, by every mutation, in a PointTable indexed by id, from which ``point_rows`` gathers;
+    the visible/found counters live only there.
 
-    covisibility_min_shared: ORB-SLAM III-D, an edge needs at least 15 shared points.
+    covisibility_min_shared: ORB-SLAM III-D, an edge needs at least 15 shared points. ids: the allocator of
+    keyframe and point ids (shared by the maps of an Atlas); default a private one.
     """
 
-    def __init__(self, covisibility_min_shared: int = 15) -> None:
+    def __init__(self, covisibility_min_shared: int = 15, ids: IdAllocator | None = None) -> None:
         if covisibility_min_shared < 1:
             raise ConfigError(f"map.covisibility_min_shared must be >= 1, got {covisibility_min_shared}")
         self.covisibility_min_shared = int(covisibility_min_shared)
+        self._ids = ids if ids is not None else IdAllocator()
         self._lock = ReadWriteLock()
+        self._counter_lock = threading.Lock()  # increase_visible/found run under the read lock
         self._keyframes: dict[int, KeyFrame] = {}
+        self._kf_point_ids: dict[int, I64] = {}  # the writable arrays behind the keyframes' point_ids
+        self._erased_keyframes: set[int] = set()
         self._points: dict[int, MapPoint] = {}
-        self._table = PointTable()  # the points' geometry as arrays by id (tracking's gathers)
-        self._next_kf_id = 0
-        self._next_point_id = 0
+        self._observations: dict[int, dict[int, int]] = {}  # behind the points' read-only observations
+        self._table = PointTable()  # the points' attributes as arrays by id (tracking's gathers)
         self._epoch = 0
         self._origin: int | None = None  # cached smallest keyframe id (see origin_keyframe_id)
-        self.covisibility = CovisibilityGraph()
-        self.spanning_tree = SpanningTree()
-        self.loop_edges: set[tuple[int, int]] = set()
+        self._covisibility = CovisibilityGraph()
+        self._tree = SpanningTree()
+        self._loop_edges: set[tuple[int, int]] = set()
+        self._covisibility_view = CovisibilityView(self._covisibility)
+        self._tree_view = SpanningTreeView(self._tree)
 
-    # ---- locking and epoch -----------------------------------------------------------------
+    # ---- locking, epoch, ids -------------------------------------------------------------------------
 
     @property
     def epoch(self) -> int:
@@ -58,17 +82,17 @@ class InMemoryMapStore:
     def write(self) -> AbstractContextManager[None]:
         return self._lock.write()
 
-    # ---- ids ----------------------------------------------------------------------------------
+    @property
+    def ids(self) -> IdAllocator:
+        return self._ids
 
     def new_keyframe_id(self) -> int:
-        self._next_kf_id += 1
-        return self._next_kf_id - 1
+        return self._ids.new_keyframe_id()
 
     def new_point_id(self) -> int:
-        self._next_point_id += 1
-        return self._next_point_id - 1
+        return self._ids.new_point_id()
 
-    # ---- entities -----------------------------------------------------------------------------
+    # ---- entities (read) ---------------------------------------------------------------------------------
 
     def keyframe_ids(self) -> list[int]:
         return sorted(self._keyframes)
@@ -96,6 +120,9 @@ class InMemoryMapStore:
     def has_point(self, point_id: int) -> bool:
         return point_id in self._points
 
+    def has_points(self, point_ids: I64) -> NDArray[np.bool_]:
+        return np.asarray(self._table.state(np.asarray(point_ids, np.int64)) == PRESENT)
+
     def get_keyframe(self, keyframe_id: int) -> KeyFrame:
         return self._keyframes[keyframe_id]
 
@@ -103,130 +130,203 @@ class InMemoryMapStore:
         return self._points[point_id]
 
     def get_points(self, point_ids: Iterable[int]) -> list[MapPoint]:
-        """The points among ``point_ids`` still in the map, in the given order (erased ids are skipped).
-
-        One call instead of has_point/get_point per id: the per-point loops of local mapping use it."""
         points = self._points
         return [points[p] for p in point_ids if p in points]
 
-    def add_keyframe(self, keyframe: KeyFrame) -> None:
-        if keyframe.id in self._keyframes:
-            raise ValueError(f"keyframe {keyframe.id} is already in the map")
-        self._keyframes[keyframe.id] = keyframe
-        self.covisibility.add_node(keyframe.id)
-        if self._origin is not None and keyframe.id < self._origin:
-            self._origin = keyframe.id
-
-    def point_rows(self, point_ids: NDArray[np.int64], attribute: str) -> NDArray[Any]:
-        """(K, ...) array of one attribute of K points that are all in the map: "xyz_w" (K, 3) m, "normal_w"
-        (K, 3), "d_min_m" / "d_max_m" (K,) m, "descriptor" (K, B) uint8. One indexing of the point table, which
-        every change of those attributes reaches (see slamkit/map/point_table.py)."""
+    def point_rows(self, point_ids: I64, attribute: str) -> NDArray[Any]:
+        if attribute not in _READABLE:
+            raise KeyError(f"point_rows: no point attribute {attribute!r} (one of {', '.join(sorted(_READABLE))})")
         return self._table.rows(np.asarray(point_ids, np.int64), attribute)
 
-    def assign_points(self, points: list[MapPoint], attribute: str, values: NDArray[Any]) -> None:
-        """points[i].<attribute> = values[i] for points of this map, with their point-table rows written in one
-        indexing (bulk updates: refresh, bundle adjustment, loop correction). values: (K, ...) for K points;
-        each point gets its own row of a private copy."""
-        if len(points) != len(values):
-            raise ValueError(f"assign_points: {len(points)} points but {len(values)} values of {attribute}")
-        if not points:
-            return
-        own = np.array(values, copy=True)
-        for point, value in zip(points, own, strict=True):
-            if mirror_of(point) is not self._table:
-                raise ValueError(f"assign_points: map point {point.id} is not in this map")
-            set_unmirrored(point, attribute, value.item() if own.ndim == 1 else value)
-        self._table.assign(np.array([p.id for p in points], np.int64), attribute, own)
+    # ---- graphs (read) -----------------------------------------------------------------------------------
 
-    def add_point(self, point: MapPoint) -> None:
-        if point.id in self._points:
-            raise ValueError(f"map point {point.id} is already in the map")
-        self._table.put(point.id, {name: getattr(point, name) for name, _, _ in SYNCED_ATTRIBUTES})
-        mirror_in(point, self._table)  # from now on its attribute writes reach the table
-        self._points[point.id] = point
+    @property
+    def covisibility(self) -> CovisibilityView:
+        return self._covisibility_view
 
-    def _forget_point(self, point_id: int) -> MapPoint:
-        point = self._points.pop(point_id)
-        mirror_in(point, None)
-        return point
+    @property
+    def spanning_tree(self) -> SpanningTreeView:
+        return self._tree_view
 
-    def remove_point(self, point_id: int) -> None:
-        """Erase a point and its observations from every keyframe that saw it."""
-        point = self._forget_point(point_id)
-        for kf_id, idx in point.observations.items():
-            kf = self._keyframes.get(kf_id)
-            if kf is not None and kf.point_ids[idx] == point_id:
-                kf.point_ids[idx] = -1
-
-    def remove_keyframe(self, keyframe_id: int) -> None:
-        """Erase a keyframe: its observations, graph edges and spanning-tree node (children re-parented).
-
-        Points left with no observation are erased too.
-        """
-        kf = self._keyframes[keyframe_id]
-        for idx, pid in enumerate(kf.point_ids):
-            if pid < 0:
-                continue
-            point = self._points.get(int(pid))
-            if point is None:
-                continue
-            point.observations.pop(keyframe_id, None)
-            if not point.observations:
-                self._forget_point(int(pid))
-            elif point.ref_kf_id == keyframe_id:
-                point.ref_kf_id = min(point.observations)
-            kf.point_ids[idx] = -1
-        self.spanning_tree.remove(keyframe_id, self.covisibility)
-        self.covisibility.remove(keyframe_id)
-        self.loop_edges = {e for e in self.loop_edges if keyframe_id not in e}
-        del self._keyframes[keyframe_id]
-
-    # ---- observations and graphs ----------------------------------------------------------------
-
-    def add_observation(self, point_id: int, keyframe_id: int, feature_index: int) -> None:
-        """Record that feature ``feature_index`` of a keyframe observes a point (both directions)."""
-        self._points[point_id].observations[keyframe_id] = feature_index
-        self._keyframes[keyframe_id].point_ids[feature_index] = point_id
-
-    def remove_observation(self, point_id: int, keyframe_id: int) -> None:
-        """Forget that a keyframe observes a point; a point left with fewer than two observations is erased
-        (ORB-SLAM MapPoint::EraseObservation sets it bad)."""
-        point = self._points[point_id]
-        idx = point.observations.pop(keyframe_id, None)
-        kf = self._keyframes.get(keyframe_id)
-        if idx is not None and kf is not None and kf.point_ids[idx] == point_id:
-            kf.point_ids[idx] = -1
-        if len(point.observations) < 2:
-            self.remove_point(point_id)
-        elif point.ref_kf_id == keyframe_id:
-            point.ref_kf_id = min(point.observations)
+    def loop_edges(self) -> list[tuple[int, int]]:
+        return sorted(self._loop_edges)
 
     def shared_point_counts(self, keyframe_id: int) -> dict[int, int]:
         """Other keyframe id -> number of map points it shares with ``keyframe_id``."""
         counts: dict[int, int] = {}
-        for pid in self._keyframes[keyframe_id].point_ids:
+        observations = self._observations
+        for pid in self._kf_point_ids[keyframe_id].tolist():
             if pid < 0:
                 continue
-            point = self._points.get(int(pid))
-            if point is None:
+            obs = observations.get(pid)
+            if obs is None:
                 continue
-            for other in point.observations:
+            for other in obs:
                 if other != keyframe_id:
                     counts[other] = counts.get(other, 0) + 1
         return counts
 
-    def update_connections(self, keyframe_id: int) -> None:
-        """Recompute a keyframe's covisibility edges; a keyframe entering the spanning tree gets as parent
-        the keyframe it shares most points with (III-D)."""
-        shared = self.shared_point_counts(keyframe_id)
-        self.covisibility.update_connections(keyframe_id, shared, self.covisibility_min_shared)
-        if keyframe_id not in self.spanning_tree:
-            neighbors = self.covisibility.neighbors(keyframe_id)
-            self.spanning_tree.add(keyframe_id, neighbors[0] if neighbors else None)
-
-    def add_loop_edge(self, a: int, b: int) -> None:
-        self.loop_edges.add((min(a, b), max(a, b)))
-
     def essential_graph(self, theta_min: int) -> list[tuple[int, int]]:
         """Essential-graph edges (III-D) with the given covisibility threshold (ORB-SLAM: 100)."""
-        return essential_graph_edges(self.covisibility, self.spanning_tree, self.loop_edges, theta_min)
+        return essential_graph_edges(self._covisibility, self._tree, self._loop_edges, theta_min)
+
+    # ---- mutations: entities ---------------------------------------------------------------------------
+
+    def add_keyframe(self, keyframe: KeyFrame) -> None:
+        kf_id = keyframe.id
+        if kf_id in self._keyframes or kf_id in self._erased_keyframes:
+            raise ValueError(f"keyframe {kf_id} is already in the map or was erased from it (ids are not reused)")
+        if not self._ids.issued_keyframe(kf_id):
+            raise ValueError(f"keyframe {kf_id}: its id was not issued by this map's id allocator")
+        own = np.array(keyframe.point_ids, np.int64)
+        replace_fields(keyframe, point_ids=frozen_view(own))
+        self._kf_point_ids[kf_id] = own
+        self._keyframes[kf_id] = keyframe
+        self._covisibility.add_node(kf_id)
+        if self._origin is not None and kf_id < self._origin:
+            self._origin = kf_id
+        for idx in np.flatnonzero(own >= 0).tolist():
+            obs = self._observations.get(int(own[idx]))
+            if obs is None or kf_id in obs:  # gone, or two features of this keyframe matched the same point
+                own[idx] = -1
+            else:
+                self.add_observation(int(own[idx]), kf_id, idx)
+
+    def add_point(self, point: MapPoint) -> None:
+        pid = point.id
+        if pid in self._points or self._table.state(np.array([pid]))[0] != 0:
+            raise ValueError(f"map point {pid} is already in the map or was erased from it (ids are not reused)")
+        if not self._ids.issued_point(pid):
+            raise ValueError(f"map point {pid}: its id was not issued by this map's id allocator")
+        if point.observations:
+            raise ValueError(f"map point {pid} comes with observations: add them with add_observation")
+        self._table.put(pid, {name: getattr(point, name) for name, _, _ in SYNCED_ATTRIBUTES})
+        obs: dict[int, int] = {}
+        replace_fields(point, observations=MappingProxyType(obs))
+        self._observations[pid] = obs
+        self._points[pid] = point
+
+    def _forget_point(self, point_id: int) -> dict[int, int]:
+        del self._points[point_id]
+        self._table.erase(point_id)
+        return self._observations.pop(point_id)
+
+    def remove_point(self, point_id: int) -> None:
+        obs = self._forget_point(point_id)
+        for kf_id, idx in obs.items():
+            own = self._kf_point_ids.get(kf_id)
+            if own is not None and own[idx] == point_id:
+                own[idx] = -1
+
+    def remove_keyframe(self, keyframe_id: int) -> None:
+        own = self._kf_point_ids[keyframe_id]
+        for idx, pid in enumerate(own.tolist()):
+            if pid < 0:
+                continue
+            obs = self._observations.get(pid)
+            if obs is None:
+                continue
+            if obs.pop(keyframe_id, None) is not None:
+                self._table.increment(pid, "n_observations", -1)
+            if not obs:
+                self._forget_point(pid)
+            elif self._points[pid].ref_kf_id == keyframe_id:
+                replace_fields(self._points[pid], ref_kf_id=min(obs))
+            own[idx] = -1
+        self._tree.remove(keyframe_id, self._covisibility)
+        self._covisibility.remove(keyframe_id)
+        self._loop_edges = {e for e in self._loop_edges if keyframe_id not in e}
+        del self._keyframes[keyframe_id]
+        del self._kf_point_ids[keyframe_id]
+        self._erased_keyframes.add(keyframe_id)
+
+    def add_observation(self, point_id: int, keyframe_id: int, feature_index: int) -> None:
+        obs = self._observations[point_id]
+        own = self._kf_point_ids[keyframe_id]
+        if keyframe_id not in obs:
+            self._table.increment(point_id, "n_observations", 1)
+        obs[keyframe_id] = feature_index
+        own[feature_index] = point_id
+
+    def remove_observation(self, point_id: int, keyframe_id: int) -> None:
+        obs = self._observations[point_id]
+        idx = obs.pop(keyframe_id, None)
+        if idx is not None:
+            self._table.increment(point_id, "n_observations", -1)
+        own = self._kf_point_ids.get(keyframe_id)
+        if idx is not None and own is not None and own[idx] == point_id:
+            own[idx] = -1
+        if len(obs) < 2:
+            self.remove_point(point_id)
+        elif self._points[point_id].ref_kf_id == keyframe_id:
+            replace_fields(self._points[point_id], ref_kf_id=min(obs))
+
+    def replace_point(self, old_id: int, new_id: int) -> None:
+        if old_id == new_id:
+            raise ValueError(f"replace_point: map point {old_id} cannot replace itself")
+        old_obs = self._observations[old_id]
+        new_obs = self._observations[new_id]
+        for kf_id, feat in sorted(old_obs.items()):
+            self._kf_point_ids[kf_id][feat] = -1
+            if kf_id not in new_obs:
+                self.add_observation(new_id, kf_id, feat)
+        with self._counter_lock:
+            for name in ("n_visible", "n_found"):
+                self._table.add(np.array([new_id]), name, self._table.rows(np.array([old_id]), name))
+        self._forget_point(old_id)
+
+    def set_keyframe_pose(self, keyframe_id: int, T_c_w: NDArray[np.float64]) -> None:
+        replace_fields(self._keyframes[keyframe_id], T_c_w=frozen_copy(T_c_w, np.float64))
+
+    def set_keyframe_poses(self, keyframe_ids: Iterable[int], T_c_w: NDArray[np.float64]) -> None:
+        ids = list(keyframe_ids)
+        if len(ids) != len(T_c_w):
+            raise ValueError(f"set_keyframe_poses: {len(ids)} keyframes but {len(T_c_w)} poses")
+        for kf_id, T in zip(ids, T_c_w, strict=True):
+            self.set_keyframe_pose(kf_id, T)
+
+    def set_keyframe_bow(self, keyframe_id: int, bow: BowDescription) -> None:
+        replace_fields(self._keyframes[keyframe_id], bow=bow)
+
+    def assign_points(self, point_ids: I64, attribute: str, values: NDArray[Any]) -> None:
+        if attribute not in _ASSIGNABLE:
+            raise KeyError(f"assign_points: {attribute!r} is not an assignable point attribute")
+        ids = np.asarray(point_ids, np.int64).reshape(-1)
+        if len(ids) != len(values):
+            raise ValueError(f"assign_points: {len(ids)} points but {len(values)} values of {attribute}")
+        if not ids.size:
+            return
+        own = np.array(values, copy=True)
+        own.setflags(write=False)  # each point gets a read-only row of this private copy
+        points = self._points
+        scalar = own.ndim == 1
+        for pid, value in zip(ids.tolist(), own, strict=True):
+            point = points.get(pid)
+            if point is None:
+                raise ValueError(f"assign_points: map point {pid} is not in this map")
+            object.__setattr__(point, attribute, value.item() if scalar else value)
+        self._table.assign(ids, attribute, own)
+
+    def increase_visible(self, point_ids: I64, n: int = 1) -> None:
+        with self._counter_lock:
+            self._table.add(np.asarray(point_ids, np.int64), "n_visible", n)
+
+    def increase_found(self, point_ids: I64, n: int = 1) -> None:
+        with self._counter_lock:
+            self._table.add(np.asarray(point_ids, np.int64), "n_found", n)
+
+    # ---- mutations: graphs -----------------------------------------------------------------------------
+
+    def update_connections(self, keyframe_id: int) -> None:
+        shared = self.shared_point_counts(keyframe_id)
+        self._covisibility.update_connections(keyframe_id, shared, self.covisibility_min_shared)
+        if keyframe_id not in self._tree:
+            neighbors = self._covisibility.neighbors(keyframe_id)
+            self._tree.add(keyframe_id, neighbors[0] if neighbors else None)
+
+    def add_loop_edge(self, a: int, b: int) -> None:
+        self._loop_edges.add((min(a, b), max(a, b)))
+
+
+if TYPE_CHECKING:  # mypy checks that the class implements the protocol
+    _implements: MapStore = InMemoryMapStore()

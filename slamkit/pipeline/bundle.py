@@ -10,8 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
-from slamkit.interfaces import AbortToken, Camera, Optimizer
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import AbortToken, Camera, MapStore, Optimizer
 from slamkit.problems import CAMERA_KANNALA_BRANDT, CAMERA_PINHOLE, BundleProblem, BundleResult
 
 F64 = NDArray[np.float64]
@@ -51,7 +50,7 @@ class BundleSnapshot:
 
 
 def snapshot_bundle(
-    store: InMemoryMapStore,
+    store: MapStore,
     free_kf_ids: list[int],
     fixed_kf_ids: list[int],
     point_ids: list[int],
@@ -156,7 +155,7 @@ def _bundle_camera(keyframes: list[Any]) -> dict[str, Any]:
 
 
 def run_bundle(
-    store: InMemoryMapStore, optimizer: Optimizer, snap: BundleSnapshot, abort: AbortToken | None = None
+    store: MapStore, optimizer: Optimizer, snap: BundleSnapshot, abort: AbortToken | None = None
 ) -> BundleResult:
     """Optimize a snapshot (no lock held) and commit it under the map's write lock."""
     problem = snap.problem
@@ -172,7 +171,7 @@ def run_bundle(
     return result
 
 
-def commit_bundle(store: InMemoryMapStore, snap: BundleSnapshot, result: BundleResult) -> int:
+def commit_bundle(store: MapStore, snap: BundleSnapshot, result: BundleResult) -> int:
     """Write optimized poses and points back, skipping entities culled meanwhile, and erase the
     observations flagged as outliers (points left with fewer than 2 observations go too).
 
@@ -181,11 +180,10 @@ def commit_bundle(store: InMemoryMapStore, snap: BundleSnapshot, result: BundleR
     for pid in snap.dropped_point_ids:
         if store.has_point(pid):
             store.remove_point(pid)
-    for i, kf_id in enumerate(snap.kf_ids):
-        if not snap.problem.pose_fixed[i] and store.has_keyframe(int(kf_id)):
-            store.get_keyframe(int(kf_id)).T_c_w = result.T_c_w[i].copy()
+    moved = [i for i, k in enumerate(snap.kf_ids.tolist()) if not snap.problem.pose_fixed[i] and store.has_keyframe(k)]
+    store.set_keyframe_poses(snap.kf_ids[moved].tolist(), result.T_c_w[moved])
     alive = [j for j, pid in enumerate(snap.point_ids.tolist()) if store.has_point(pid)]
-    store.assign_points([store.get_point(int(snap.point_ids[j])) for j in alive], "xyz_w", result.xyz_w[alive])
+    store.assign_points(snap.point_ids[alive], "xyz_w", result.xyz_w[alive])
     removed = 0
     for e in np.flatnonzero(result.outlier):
         pid = int(snap.point_ids[snap.problem.obs_point[e]])

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.frame import ImageBounds
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.projection import frustum_test, match_projected
@@ -17,25 +17,18 @@ TH_LOW = 50
 CHI2_FUSE = 5.99
 
 
-def replace_point(store: InMemoryMapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
+def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
     """Move every observation of ``old`` to ``new`` (where ``new`` is not already observed) and erase old.
 
     ``refresh=False`` leaves ``new``'s descriptor to the caller (fusion recomputes its survivors in one batch,
     after its matches, which read the descriptors before any replacement anyway)."""
-    for kf_id, feat in sorted(old.observations.items()):
-        store.get_keyframe(kf_id).point_ids[feat] = -1
-        if kf_id not in new.observations:
-            store.add_observation(new.id, kf_id, feat)
-    new.n_visible += old.n_visible
-    new.n_found += old.n_found
-    old.observations.clear()
-    store.remove_point(old.id)
+    store.replace_point(old.id, new.id)
     if refresh:
         refresh_points(store, [new.id], normals=False)
 
 
 def fuse_points(
-    store: InMemoryMapStore,
+    store: MapStore,
     kf: KeyFrame,
     point_ids: list[int],
     radius_px: float,

@@ -11,13 +11,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.interfaces import Initializer, Optimizer, TwoViewResult
+from slamkit.interfaces import Initializer, MapStore, Optimizer, TwoViewResult
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import commit_bundle, snapshot_bundle
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame
-from slamkit.pipeline.map_points import compute_distinctive_descriptor, update_normal_and_depth
+from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.projection import match_projected, require_pinhole_image
 
 log = logging.getLogger("slamkit.tracking")
@@ -108,22 +107,23 @@ class MonocularInitialization:
         return InitAttempt(int(ref_idx.shape[0]), result, "initialised"), (ref_idx, cur_idx)
 
 
-def new_keyframe(store: InMemoryMapStore, frame: Frame) -> KeyFrame:
-    """A keyframe made from a tracked frame (its matched points are attached by the caller)."""
+def new_keyframe(store: MapStore, frame: Frame, point_ids: I64 | None = None) -> KeyFrame:
+    """A keyframe made from a tracked frame, not yet in the map. point_ids: (N,) the map points tracking matched
+    to its features (-1 none; default none), which become observations when the store adds the keyframe."""
     assert frame.T_c_w is not None
     return KeyFrame(
         id=store.new_keyframe_id(),
         frame_index=frame.index,
         timestamp_s=frame.timestamp_s,
-        T_c_w=frame.T_c_w.copy(),
+        T_c_w=frame.T_c_w,
         camera=frame.camera,
         features=frame.features,
-        point_ids=np.full(len(frame.features), -1, np.int64),
+        point_ids=np.full(len(frame.features), -1, np.int64) if point_ids is None else point_ids,
     )
 
 
 def create_initial_map(
-    store: InMemoryMapStore,
+    store: MapStore,
     optimizer: Optimizer,
     ref: Frame,
     cur: Frame,
@@ -155,11 +155,7 @@ def create_initial_map(
             )
             store.add_observation(pid, kf_ini.id, i_ref)
             store.add_observation(pid, kf_cur.id, i_cur)
-        keyframes = {kf_ini.id: kf_ini, kf_cur.id: kf_cur}
-        for pid in store.point_ids():
-            point = store.get_point(pid)
-            compute_distinctive_descriptor(point, keyframes)
-            update_normal_and_depth(point, keyframes)
+        refresh_points(store, store.point_ids())  # descriptor, normal and depth range from the two keyframes
         store.update_connections(kf_ini.id)
         store.update_connections(kf_cur.id)
         # Global BA of the two keyframes (ORB-SLAM: GlobalBundleAdjustemnt(map, 20)); the first keyframe fixed.
@@ -180,12 +176,13 @@ def create_initial_map(
                 store.remove_keyframe(kf_id)
             return reason
         inv_median = 1.0 / float(np.median(depths))
-        kf_cur.T_c_w[:3, 3] *= inv_median
-        for pid in store.point_ids():
-            point = store.get_point(pid)
-            point.xyz_w = point.xyz_w * inv_median
-        for pid in store.point_ids():
-            update_normal_and_depth(store.get_point(pid), {kf_ini.id: kf_ini, kf_cur.id: kf_cur})
+        T_cur_w = kf_cur.T_c_w.copy()
+        T_cur_w[:3, 3] *= inv_median
+        store.set_keyframe_pose(kf_cur.id, T_cur_w)
+        pids = np.array(store.point_ids(), np.int64)
+        if pids.size:
+            store.assign_points(pids, "xyz_w", store.point_rows(pids, "xyz_w") * inv_median)
+        refresh_points(store, pids.tolist(), descriptors=False)
     log.info(
         "map initialised: keyframes %d/%d, %d points, model %s",
         kf_ini.frame_index,
@@ -196,7 +193,7 @@ def create_initial_map(
     return kf_ini, kf_cur
 
 
-def _depths_in(kf: KeyFrame, store: InMemoryMapStore) -> F64:
+def _depths_in(kf: KeyFrame, store: MapStore) -> F64:
     """(M,) depths (z in the camera) of the points a keyframe observes."""
     pids = kf.point_ids[kf.point_ids >= 0]
     if pids.size == 0:

@@ -13,7 +13,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import MapStore
 
 I64 = NDArray[np.int64]
 
@@ -47,7 +47,7 @@ class ObservationTable:
     alive: (E,) False once the observing keyframe is culled.
     """
 
-    def __init__(self, store: InMemoryMapStore, kf_ids: Sequence[int]) -> None:
+    def __init__(self, store: MapStore, kf_ids: Sequence[int]) -> None:
         self.store = store
         parts = [store.get_keyframe(k).point_ids for k in kf_ids]
         ids = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)

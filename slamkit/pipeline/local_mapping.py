@@ -19,9 +19,8 @@ from numpy.typing import NDArray
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.so3 import hat
 from slamkit.geometry.twoview import triangulate_points
-from slamkit.interfaces import AbortToken, Optimizer, PlaceRecognizer
+from slamkit.interfaces import AbortToken, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.fusion import fuse_points
@@ -72,7 +71,7 @@ class LocalMapper:
     def __init__(
         self,
         cfg: LocalMappingConfig,
-        store: InMemoryMapStore,
+        store: MapStore,
         optimizer: Optimizer,
         place: PlaceRecognizer | None = None,
     ) -> None:
@@ -118,23 +117,12 @@ class LocalMapper:
 
     def _process_new_keyframe(self, kf: KeyFrame, already_in_map: bool) -> None:
         store = self.store
-        if self.place is not None and kf.bow is None:
-            kf.bow = self.place.transform(kf.features.descriptors)
         if not already_in_map:
+            # the points tracking matched that are still in the map become the keyframe's observations
             store.add_keyframe(kf)
-            observed: list[int] = []
-            for idx in np.flatnonzero(kf.point_ids >= 0).tolist():
-                pid = int(kf.point_ids[idx])
-                if not store.has_point(pid):
-                    kf.point_ids[idx] = -1
-                    continue
-                point = store.get_point(pid)
-                if kf.id in point.observations:  # two features of this keyframe matched the same point
-                    kf.point_ids[idx] = -1
-                    continue
-                store.add_observation(pid, kf.id, idx)
-                observed.append(pid)
-            refresh_points(store, observed)  # each point's normal, depth range and descriptor with kf in
+            refresh_points(store, kf.point_ids[kf.point_ids >= 0].tolist())  # normal, depth range, descriptor
+        if self.place is not None and kf.bow is None:
+            store.set_keyframe_bow(kf.id, self.place.transform(kf.features.descriptors))
         store.update_connections(kf.id)
 
     # ---- VI-B --------------------------------------------------------------------------------------
@@ -143,17 +131,23 @@ class LocalMapper:
         """Erase recent points found in fewer than 25% of the frames predicting them, or seen by fewer than
         three keyframes once past creation; points surviving three keyframes leave the recent list."""
         cfg = self.cfg
+        store = self.store
         culled = 0
         kept: list[int] = []
-        for pid in self.recent_points:
-            if not self.store.has_point(pid):
-                continue
-            point = self.store.get_point(pid)
+        alive = [pid for pid in self.recent_points if store.has_point(pid)]
+        ids = np.array(alive, np.int64)
+        found_ratio = (
+            store.point_rows(ids, "n_found") / np.maximum(store.point_rows(ids, "n_visible"), 1)
+            if ids.size
+            else np.zeros(0)
+        )
+        for i, pid in enumerate(alive):
+            point = store.get_point(pid)
             age = kf.id - point.first_kf_id
-            if point.found_ratio() < cfg.point_min_found_ratio or (
+            if found_ratio[i] < cfg.point_min_found_ratio or (
                 age >= cfg.point_culling_window_kfs - 1 and len(point.observations) < cfg.point_min_observations
             ):
-                self.store.remove_point(pid)
+                store.remove_point(pid)
                 culled += 1
             elif age < cfg.point_culling_window_kfs:
                 kept.append(pid)
@@ -387,7 +381,7 @@ class LocalMapper:
             n_points, redundant = table.redundancy(k_id, cfg.keyframe_culling_min_observers)
             if n_points and redundant > cfg.keyframe_culling_redundancy * n_points:
                 k = store.get_keyframe(k_id)
-                parent = store.spanning_tree.parent.get(k_id)
+                parent = store.spanning_tree.parent(k_id)
                 T_kp = k.T_c_w @ invert_T(store.get_keyframe(parent).T_c_w) if parent is not None else np.eye(4)
                 culled.append(CulledKeyFrame(k_id, parent, T_kp, k.T_c_w.copy()))
                 store.remove_keyframe(k_id)
@@ -487,7 +481,7 @@ def same_node_matches(
     )
 
 
-def _median_depth(kf: KeyFrame, store: InMemoryMapStore) -> float:
+def _median_depth(kf: KeyFrame, store: MapStore) -> float:
     ids = np.array([p for p in kf.point_ids[kf.point_ids >= 0].tolist() if store.has_point(p)], np.int64)
     if not ids.size:
         return float("nan")

@@ -19,9 +19,8 @@ from numpy.typing import NDArray
 
 from slamkit.geometry.sim3 import Sim3
 from slamkit.geometry.sim3_ransac import ransac_sim3
-from slamkit.interfaces import Optimizer, PlaceRecognizer
+from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.entities import KeyFrame
-from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import intrinsics_of, run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
@@ -97,7 +96,7 @@ class LoopCloser:
     def __init__(
         self,
         cfg: LoopClosingConfig,
-        store: InMemoryMapStore,
+        store: MapStore,
         optimizer: Optimizer,
         place: PlaceRecognizer,
         rng: np.random.Generator,

@@ -14,8 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.sim3 import Sim3
-from slamkit.interfaces import Optimizer
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import MapStore, Optimizer
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.problems import EssentialGraphProblem, EssentialGraphResult
 
@@ -41,7 +40,7 @@ class LoopCorrection:
     corrected: dict[int, Sim3]
 
 
-def propagate_loop_sim3(store: InMemoryMapStore, current_id: int, S_cw_corrected: Sim3) -> LoopCorrection:
+def propagate_loop_sim3(store: MapStore, current_id: int, S_cw_corrected: Sim3) -> LoopCorrection:
     """The current keyframe and its covisible neighbours move with it: S_iw' = S_ic S_cw' where S_ic is
     taken from the poses before correction (ORB-SLAM CorrectLoop)."""
     current = store.get_keyframe(current_id)
@@ -56,18 +55,18 @@ def propagate_loop_sim3(store: InMemoryMapStore, current_id: int, S_cw_corrected
     return LoopCorrection(non_corrected, corrected)
 
 
-def _move_points(store: InMemoryMapStore, moves: dict[int, tuple[list[int], F64]]) -> None:
+def _move_points(store: MapStore, moves: dict[int, tuple[list[int], F64]]) -> None:
     """moves: keyframe id -> (point ids, the (4, 4) similarity to apply to their world positions), in one
     vectorised product per keyframe."""
     for pids, M in moves.values():
         if not pids:
             continue
-        points = store.get_points(pids)
-        xyz = store.point_rows(np.array([p.id for p in points], np.int64), "xyz_w").reshape(-1, 3)
-        store.assign_points(points, "xyz_w", xyz @ M[:3, :3].T + M[:3, 3])
+        ids = np.array([p.id for p in store.get_points(pids)], np.int64)
+        xyz = store.point_rows(ids, "xyz_w").reshape(-1, 3)
+        store.assign_points(ids, "xyz_w", xyz @ M[:3, :3].T + M[:3, 3])
 
 
-def apply_loop_correction(store: InMemoryMapStore, corr: LoopCorrection) -> set[int]:
+def apply_loop_correction(store: MapStore, corr: LoopCorrection) -> set[int]:
     """Move the points seen by the corrected keyframes (each once, by the first keyframe in id order that
     sees it) and set the keyframes' poses. Returns the ids of the corrected points."""
     done: set[int] = set()
@@ -83,13 +82,13 @@ def apply_loop_correction(store: InMemoryMapStore, corr: LoopCorrection) -> set[
         moves[kf_id] = (pids, corr.corrected[kf_id].inverse().matrix() @ corr.non_corrected[kf_id].matrix())
     _move_points(store, moves)
     for kf_id, S in corr.corrected.items():
-        store.get_keyframe(kf_id).T_c_w = pose_of_sim3(S)
+        store.set_keyframe_pose(kf_id, pose_of_sim3(S))
     refresh_points(store, done, normals=True, descriptors=False)
     return done
 
 
 def essential_graph_problem(
-    store: InMemoryMapStore,
+    store: MapStore,
     loop_kf_id: int,
     current_id: int,
     corr: LoopCorrection,
@@ -123,7 +122,7 @@ def essential_graph_problem(
             add(i, j, initial)
     for p, c in store.spanning_tree.edges():
         add(p, c, measured)
-    for a, b in sorted(store.loop_edges):
+    for a, b in store.loop_edges():
         add(a, b, measured)
     for a, b, w in cov.edges():
         if w >= theta_min:
@@ -145,7 +144,7 @@ def essential_graph_problem(
 
 
 def apply_essential_graph(
-    store: InMemoryMapStore, problem: EssentialGraphProblem, result: EssentialGraphResult, kf_ids: list[int]
+    store: MapStore, problem: EssentialGraphProblem, result: EssentialGraphResult, kf_ids: list[int]
 ) -> None:
     """Set every keyframe's pose from the optimized Sim3 and move each point with its reference keyframe:
     p' = S_new^-1 S_before p (ORB-SLAM OptimizeEssentialGraph's final step)."""
@@ -162,12 +161,12 @@ def apply_essential_graph(
         moves[ref] = (pids, Sim3.from_matrix(after).inverse().matrix() @ before)
     _move_points(store, moves)
     for k in kf_ids:
-        store.get_keyframe(k).T_c_w = pose_of_sim3(Sim3.from_matrix(result.S_c_w[row[k]]))
+        store.set_keyframe_pose(k, pose_of_sim3(Sim3.from_matrix(result.S_c_w[row[k]])))
     refresh_points(store, store.point_ids(), normals=True, descriptors=False)
 
 
 def optimize_essential_graph(
-    store: InMemoryMapStore,
+    store: MapStore,
     optimizer: Optimizer,
     loop_kf_id: int,
     current_id: int,

@@ -33,8 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.sim3 import Sim3
+from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame
-from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.frame import ImageBounds
 from slamkit.pipeline.fusion import TH_LOW
 from slamkit.pipeline.projection import frustum_test, match_projected
@@ -125,7 +125,7 @@ class PendingLoop:
     misses: int = 0
     matches: dict[int, int] = field(default_factory=dict)
 
-    def predict(self, store: InMemoryMapStore, kf: KeyFrame) -> Sim3:
+    def predict(self, store: MapStore, kf: KeyFrame) -> Sim3:
         """The hypothesis carried to ``kf`` by the relative motion tracked since the last agreeing keyframe:
         S_k_w = T_k_l S_l_w, with T_k_l from the current poses (the last keyframe's pose when it agreed, if it
         has been culled since)."""
@@ -134,7 +134,7 @@ class PendingLoop:
         return Sim3.from_se3(T_k_l) @ self.S_l_w
 
 
-def loop_window(store: InMemoryMapStore, loop_kf_id: int) -> list[int]:
+def loop_window(store: MapStore, loop_kf_id: int) -> list[int]:
     """Ids of the points seen by the loop keyframe and its covisible keyframes (ORB-SLAM's loop map points),
     sorted."""
     group = (
@@ -152,7 +152,7 @@ def loop_window(store: InMemoryMapStore, loop_kf_id: int) -> list[int]:
 
 
 def project_window(
-    store: InMemoryMapStore,
+    store: MapStore,
     kf: KeyFrame,
     S_k_w: Sim3,
     window: list[int],
@@ -207,7 +207,7 @@ def project_window(
 
 
 def check_keyframe(
-    store: InMemoryMapStore, kf: KeyFrame, S_k_w: Sim3, window: list[int], th: VerificationThresholds
+    store: MapStore, kf: KeyFrame, S_k_w: Sim3, window: list[int], th: VerificationThresholds
 ) -> tuple[KeyframeCheck, WindowProjection]:
     """Does ``kf`` agree with the hypothesis S_k_w? Enough window points matched (ORB-SLAM3
     DetectCommonRegionsFromLastKF). The share of the predicted visible points matched is recorded only."""
@@ -218,7 +218,7 @@ def check_keyframe(
 
 
 def check_covisibles(
-    store: InMemoryMapStore,
+    store: MapStore,
     kf: KeyFrame,
     S_c_w: Sim3,
     window: list[int],
@@ -255,7 +255,7 @@ class PendingStep:
 
 
 def advance_pending(
-    store: InMemoryMapStore,
+    store: MapStore,
     pending: PendingLoop,
     kf: KeyFrame,
     th: VerificationThresholds,

@@ -16,8 +16,8 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.matching import row_distance
 
 F64 = NDArray[np.float64]
@@ -150,17 +150,13 @@ class _Gathered:
             self.n_levels[q] = feats.n_levels
 
 
-def _apply(
-    points: list[MapPoint], g: _Gathered, normals: bool, descriptors: bool, store: InMemoryMapStore | None = None
-) -> None:
-    """Recompute and set the points' normals/depth ranges and descriptors; with ``store`` (the points' map) the
-    new values are written in bulk (store.assign_points), else point by point."""
+def _apply(store: MapStore, points: list[MapPoint], g: _Gathered, normals: bool, descriptors: bool) -> None:
+    """Recompute the points' normals/depth ranges and descriptors and write them to the points' map in bulk
+    (store.assign_points)."""
     if not points:
         return
-    if store is not None:
-        xyz = store.point_rows(np.array([p.id for p in points], np.int64), "xyz_w")
-    else:
-        xyz = np.array([p.xyz_w for p in points], np.float64).reshape(-1, 3)
+    ids = np.array([p.id for p in points], np.int64)
+    xyz = store.point_rows(ids, "xyz_w")
     if g.desc.shape[1] % 8:
         raise ValueError(f"descriptors must have a multiple of 8 bytes, got {g.desc.shape[1]}")
     normal, has_normal, d_min, d_max, best = _refresh_kernel(
@@ -184,17 +180,10 @@ def _apply(
         with_best = np.flatnonzero(best >= 0)
         updates += [("descriptor", with_best, g.desc[best[with_best]])]
     for name, rows, values in updates:
-        chosen = [points[q] for q in rows.tolist()]
-        if store is not None:
-            store.assign_points(chosen, name, values)
-        else:
-            for point, value in zip(chosen, values, strict=True):
-                setattr(point, name, value.copy() if value.ndim else float(value))
+        store.assign_points(ids[rows], name, values)
 
 
-def refresh_points(
-    store: InMemoryMapStore, point_ids: Iterable[int], normals: bool = True, descriptors: bool = True
-) -> None:
+def refresh_points(store: MapStore, point_ids: Iterable[int], normals: bool = True, descriptors: bool = True) -> None:
     """``update_normal_and_depth`` (when ``normals``) and ``compute_distinctive_descriptor`` (when
     ``descriptors``) for every listed point still in the map (duplicates and erased ids ignored), in one
     gather and one compiled pass."""
@@ -203,22 +192,22 @@ def refresh_points(
         return
     kf_ids = {k for p in points for k in p.observations}
     keyframes = {k: store.get_keyframe(k) for k in kf_ids if store.has_keyframe(k)}
-    _apply(points, _Gathered(points, keyframes), normals, descriptors, store)
+    _apply(store, points, _Gathered(points, keyframes), normals, descriptors)
 
 
-def update_normal_and_depth(point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
+def update_normal_and_depth(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
     """Recompute ``normal_w`` (mean unit vector from the observing cameras to the point) and the distance
     range [d_min, d_max] in which ORB can detect it, from its reference keyframe's pyramid level:
     d_max = d_ref * scale^level, d_min = d_max / scale^(n_levels - 1) (ORB-SLAM MapPoint::UpdateNormalAndDepth).
-    Observers missing from ``keyframes`` are ignored.
+    Observers missing from ``keyframes`` are ignored. ``point`` is a point of ``store``, which records the result.
     """
-    _apply([point], _Gathered([point], keyframes), True, False)
+    _apply(store, [point], _Gathered([point], keyframes), True, False)
 
 
-def compute_distinctive_descriptor(point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
+def compute_distinctive_descriptor(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
     """Choose as the point's descriptor the observation with the least median Hamming distance to all the
     others (ORB-SLAM MapPoint::ComputeDistinctiveDescriptors). Deterministic: ties go to the lowest keyframe id."""
-    _apply([point], _Gathered([point], keyframes), False, True)
+    _apply(store, [point], _Gathered([point], keyframes), False, True)
 
 
 def predict_level(

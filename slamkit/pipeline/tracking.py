@@ -22,9 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import SE3, invert_T
-from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, Optimizer, PlaceRecognizer
+from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import intrinsics_of, problem_camera
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
@@ -88,7 +87,7 @@ class Tracker:
         frontend: FrontEnd,
         initializer: Initializer,
         optimizer: Optimizer,
-        store: InMemoryMapStore,
+        store: MapStore,
         rng: np.random.Generator,
         place: PlaceRecognizer | None = None,
         pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
@@ -253,8 +252,7 @@ class Tracker:
         if self._mapping_wait_ms is not None:
             timings["mapping_wait_ms"] = self._mapping_wait_ms
         if wants_keyframe:
-            kf = new_keyframe(self.store, frame)
-            kf.point_ids = frame.point_ids.copy()
+            kf = new_keyframe(self.store, frame, frame.point_ids)
             outcome.new_keyframes = [kf]
             self.reference_kf_id = kf.id
             frame.ref_kf_id = kf.id
@@ -304,11 +302,7 @@ class Tracker:
 
     def _valid_point_ids(self, point_ids: I64) -> NDArray[np.bool_]:
         """(N,) bool: the entry names a point that is in the map."""
-        ok = point_ids >= 0
-        n = int(np.count_nonzero(ok))
-        if n:
-            ok[ok] = np.fromiter(map(self.store.has_point, point_ids[ok].tolist()), bool, n)
-        return ok
+        return self.store.has_points(point_ids)
 
     def _points(self, point_ids: I64) -> list[MapPoint]:
         """The map points of (K,) ids that are all in the map."""
@@ -449,8 +443,8 @@ class Tracker:
             if len(local) >= limit:
                 break
             extra = self.store.covisibility.best_neighbors(kf_id, _K2_NEIGHBORS_PER_KF)
-            extra += sorted(tree.children.get(kf_id, set()))
-            parent = tree.parent.get(kf_id)
+            extra += tree.children(kf_id)
+            parent = tree.parent(kf_id)
             if parent is not None:
                 extra.append(parent)
             for other in extra:
@@ -464,8 +458,7 @@ class Tracker:
         frame.point_ids[~self._valid_point_ids(frame.point_ids)] = -1
         local_kfs = self._local_keyframes(frame)
         matched = np.unique(frame.point_ids[frame.point_ids >= 0])
-        for point in self._points(matched):
-            point.n_visible += 1
+        self.store.increase_visible(matched)
         if local_kfs:
             ids = np.concatenate([self.store.get_keyframe(k).point_ids for k in local_kfs])
             candidates = np.setdiff1d(np.unique(ids[ids >= 0]), matched, assume_unique=True)
@@ -473,12 +466,11 @@ class Tracker:
                 self._search_local_points(frame, candidates.astype(np.int64))
         assert frame.T_c_w is not None
         self._optimize_pose(frame, frame.T_c_w)
-        inliers = 0
-        for point in self._points(frame.point_ids[(frame.point_ids >= 0) & ~frame.outlier]):
-            point.n_found += 1
-            if point.observations:
-                inliers += 1
-        return inliers
+        found = frame.point_ids[(frame.point_ids >= 0) & ~frame.outlier]
+        if found.size == 0:
+            return 0
+        self.store.increase_found(found)
+        return int(np.count_nonzero(self.store.point_rows(found, "n_observations") > 0))
 
     def _search_local_points(self, frame: Frame, candidates: I64) -> None:
         """ORB-SLAM SearchLocalPoints: the frustum test of every candidate (sorted point ids not matched yet),
@@ -510,8 +502,7 @@ class Tracker:
         )
         v = np.flatnonzero(test.visible)
         visible = near[v]
-        for point in self._points(visible):
-            point.n_visible += 1
+        store.increase_visible(visible)
         recent = frame.index < self.last_reloc_frame_index + 2
         th = cfg.local_map_search_radius_relocalized_px if recent else cfg.local_map_search_radius_px
         level = test.predicted_level[v]
@@ -552,8 +543,9 @@ class Tracker:
             if self.reference_kf_id is not None and self.store.has_keyframe(self.reference_kf_id):
                 ref = self.store.get_keyframe(self.reference_kf_id)
                 min_obs = 2 if n_kfs <= 2 else 3
-                ref_points = self._points(ref.point_ids[self._valid_point_ids(ref.point_ids)])
-                n_ref = sum(1 for p in ref_points if len(p.observations) >= min_obs)
+                ref_ids = ref.point_ids[self._valid_point_ids(ref.point_ids)]
+                n_obs = self.store.point_rows(ref_ids, "n_observations") if ref_ids.size else np.zeros(0, np.int64)
+                n_ref = int(np.count_nonzero(n_obs >= min_obs))
                 if inliers >= cfg.keyframe_max_ref_ratio * n_ref:
                     return False  # condition 4
         if mapping_idle or frame.index >= self.last_kf_frame_index + cfg.keyframe_max_frames_idle:

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import invert_T
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import MapStore
 from slamkit.pipeline.local_mapping import CulledKeyFrame
 from slamkit.sensors import Trajectory
 
@@ -63,7 +63,7 @@ class TrajectoryRecorder:
         parent = self._keyframe_pose(keyframe_poses, culled.parent_id, depth + 1)
         return culled.T_c_w if parent is None else culled.T_kf_parent @ parent
 
-    def frames(self, store: InMemoryMapStore) -> Trajectory:
+    def frames(self, store: MapStore) -> Trajectory:
         """Every recorded frame's pose T_w_c (frames whose keyframe cannot be resolved are left out)."""
         return self.frames_at({k: store.get_keyframe(k).T_c_w for k in store.keyframe_ids()})
 
@@ -82,7 +82,7 @@ class TrajectoryRecorder:
         return Trajectory(np.array(t), np.stack(poses))
 
     @staticmethod
-    def keyframes(store: InMemoryMapStore) -> Trajectory:
+    def keyframes(store: MapStore) -> Trajectory:
         """The map's keyframes, T_w_c in time order."""
         kfs = sorted((store.get_keyframe(k) for k in store.keyframe_ids()), key=lambda k: k.timestamp_s)
         if not kfs:

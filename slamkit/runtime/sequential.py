@@ -12,8 +12,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from slamkit.interfaces import Camera, Dataset
-from slamkit.map.store import InMemoryMapStore
+from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
@@ -32,7 +31,7 @@ class SequentialRunner:
         self,
         tracker: Tracker,
         mapper: LocalMapper,
-        store: InMemoryMapStore,
+        store: MapStore,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
         events: EventDispatcher | None = None,

@@ -29,9 +29,8 @@ from typing import Any
 
 from tqdm import tqdm
 
-from slamkit.interfaces import Camera, Dataset
+from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.map.entities import KeyFrame
-from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
@@ -70,7 +69,7 @@ class ThreadedRunner:
         self,
         tracker: Tracker,
         mapper: LocalMapper,
-        store: InMemoryMapStore,
+        store: MapStore,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
         realtime: bool = False,

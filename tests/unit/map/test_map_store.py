@@ -82,7 +82,7 @@ def test_covisibility_threshold_spanning_tree_and_essential_graph() -> None:
     assert cov.weight(k[3], k[2]) == 10  # never isolated
     assert cov.neighbors(k[1]) == [k[0], k[2]]  # best first
     # spanning tree: parent = keyframe sharing the most points at insertion
-    assert store.spanning_tree.parent[k[2]] == k[1] and store.spanning_tree.parent[k[3]] == k[2]
+    assert store.spanning_tree.parent(k[2]) == k[1] and store.spanning_tree.parent(k[3]) == k[2]
     store.add_loop_edge(k[3], k[0])
     assert store.essential_graph(theta_min=100) == sorted(
         {tuple(sorted(e)) for e in store.spanning_tree.edges()} | {(k[0], k[1]), (k[0], k[3])}
@@ -102,12 +102,12 @@ def test_removing_a_keyframe_reparents_children_and_drops_orphan_points() -> Non
     add_shared_points(store, [k[1]], 7, nxt)  # seen only by k1
     for kf in k:
         store.update_connections(kf)
-    assert store.spanning_tree.parent[k[2]] == k[1]
+    assert store.spanning_tree.parent(k[2]) == k[1]
     n_points = store.n_points()
     store.remove_keyframe(k[1])
     assert not store.has_keyframe(k[1]) and k[1] not in store.covisibility
     assert store.n_points() == n_points - 7  # points seen only by k1 are gone
-    assert store.spanning_tree.parent[k[2]] == k[0]  # re-attached to the best remaining candidate
+    assert store.spanning_tree.parent(k[2]) == k[0]  # re-attached to the best remaining candidate
     for pid in store.point_ids():
         assert k[1] not in store.get_point(pid).observations
 

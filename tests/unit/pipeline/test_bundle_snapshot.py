@@ -56,7 +56,9 @@ def test_point_behind_all_cameras_is_dropped_and_the_rest_optimized() -> None:
         store.add_point(MapPoint(pid, p.copy(), np.zeros(32, np.uint8), 0, 0))
         for kf_id in (0, 1):
             store.add_observation(pid, kf_id, j)
-    store.get_keyframe(1).T_c_w[0, 3] = -0.25  # perturbed: BA must pull it back
+    perturbed = store.get_keyframe(1).T_c_w.copy()
+    perturbed[0, 3] = -0.25  # BA must pull it back
+    store.set_keyframe_pose(1, perturbed)
     snap = snapshot_bundle(store, [1], [0], store.point_ids())
     assert snap.dropped_point_ids == (30,)
     assert len(snap.point_ids) == 30

@@ -40,8 +40,11 @@ def scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return xyz, desc
 
 
-def keyframe(store: InMemoryMapStore, x_m: float, xyz: np.ndarray, desc: np.ndarray) -> KeyFrame:
-    """A camera at (x_m, 0, 0) looking along +z; feature j is the exact projection of point j."""
+def keyframe(
+    store: InMemoryMapStore, x_m: float, xyz: np.ndarray, desc: np.ndarray, point_ids: np.ndarray | None = None
+) -> KeyFrame:
+    """A camera at (x_m, 0, 0) looking along +z; feature j is the exact projection of point j. point_ids: the
+    points tracking matched (default none)."""
     T = np.eye(4)
     T[0, 3] = -x_m
     cam = xyz @ T[:3, :3].T + T[:3, 3]
@@ -59,7 +62,8 @@ def keyframe(store: InMemoryMapStore, x_m: float, xyz: np.ndarray, desc: np.ndar
         )
     )
     kf_id = store.new_keyframe_id()
-    return KeyFrame(kf_id, kf_id, float(kf_id), T, CAMERA, feats, np.full(N_POINTS, -1, np.int64))
+    matched = np.full(N_POINTS, -1, np.int64) if point_ids is None else point_ids
+    return KeyFrame(kf_id, kf_id, float(kf_id), T, CAMERA, feats, matched)
 
 
 class WatchingOptimizer:
@@ -102,8 +106,9 @@ def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock() -> N
     refresh_points(store, store.point_ids())
     store.update_connections(0)
     store.update_connections(1)
-    kf2 = keyframe(store, 0.6, xyz, desc)
-    kf2.point_ids[:N_MAPPED] = np.arange(N_MAPPED)  # tracked by tracking
+    tracked = np.full(N_POINTS, -1, np.int64)
+    tracked[:N_MAPPED] = np.arange(N_MAPPED)  # matched by tracking
+    kf2 = keyframe(store, 0.6, xyz, desc, tracked)
     optimizer = WatchingOptimizer(store)
     mapper = LocalMapper(LocalMappingConfig(), store, optimizer)  # type: ignore[arg-type]
     out = mapper.step(kf2)

@@ -11,7 +11,7 @@ from slamkit.geometry.camera import PinholeCamera
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.sim3 import Sim3
 from slamkit.geometry.so3 import so3_exp
-from slamkit.map.entities import KeyFrame
+from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.loop_correction import (
     apply_loop_correction,
@@ -29,14 +29,17 @@ def _record(features: Features) -> Observations:
     return Observations.monocular(features, CAMERA.unproject_image(features.uv_undist_px.astype(np.float64)))
 
 
-EMPTY = _record(
+#: Shared points of consecutive keyframes and of keyframes two apart (the covisibility weights).
+NEAR, FAR = 150, 40
+N_FEATS = 2 * (NEAR + FAR)
+FEATURES = _record(
     Features(
-        np.zeros((0, 2), np.float32),
-        np.zeros((0, 2), np.float32),
-        np.zeros(0, np.int32),
-        np.zeros(0, np.float32),
-        np.zeros(0, np.float32),
-        np.zeros((0, 32), np.uint8),
+        np.zeros((N_FEATS, 2), np.float32),
+        np.zeros((N_FEATS, 2), np.float32),
+        np.zeros(N_FEATS, np.int32),
+        np.zeros(N_FEATS, np.float32),
+        np.zeros(N_FEATS, np.float32),
+        np.zeros((N_FEATS, 32), np.uint8),
         1.2,
         8,
     )
@@ -74,18 +77,33 @@ def centres(poses: list[np.ndarray]) -> np.ndarray:
     return np.stack([invert_T(T)[:3, 3] for T in poses])
 
 
+def graph_map(est: list[np.ndarray]) -> InMemoryMapStore:
+    """Keyframes at the drifted poses, inserted in order as local mapping does: each shares NEAR points with the
+    keyframe before it and FAR with the one two before, so its spanning-tree parent is the one before it."""
+    store = InMemoryMapStore()
+    used = [0] * N
+    for k in range(N):
+        kf_id = store.new_keyframe_id()
+        store.add_keyframe(KeyFrame(kf_id, k, float(k), est[k], CAMERA, FEATURES, np.full(N_FEATS, -1, np.int64)))
+        for j, count in ((k - 1, NEAR), (k - 2, FAR)):
+            for _ in range(count if j >= 0 else 0):
+                pid = store.new_point_id()
+                store.add_point(MapPoint(pid, np.zeros(3), np.zeros(32, np.uint8), j, j))  # positions play no part
+                for o in (j, k):
+                    store.add_observation(pid, o, used[o])
+                    used[o] += 1
+        store.update_connections(kf_id)
+    return store
+
+
 @pytest.mark.parametrize("backend", ["scipy", "gtsam"])
 def test_loop_correction_and_essential_graph_remove_the_drift(backend: str) -> None:
     truth = true_poses()
     est = drifted(truth)
-    store = InMemoryMapStore()
-    for k in range(N):
-        kf_id = store.new_keyframe_id()
-        store.add_keyframe(KeyFrame(kf_id, k, float(k), est[k].copy(), CAMERA, EMPTY, np.zeros(0, np.int64)))
-    for k in range(N):
-        shared = {j: (150 if abs(j - k) == 1 else 40) for j in range(max(0, k - 2), min(N, k + 3)) if j != k}
-        store.covisibility.update_connections(k, shared, 15)
-        store.spanning_tree.add(k, k - 1 if k > 0 else None)
+    store = graph_map(est)
+    assert [store.covisibility.weight(k, k + 1) for k in range(N - 1)] == [NEAR] * (N - 1)
+    assert [store.covisibility.weight(k, k + 2) for k in range(N - 2)] == [FAR] * (N - 2)
+    assert [store.spanning_tree.parent(k) for k in range(N)] == [None, *range(N - 1)]
     before = np.linalg.norm(centres([store.get_keyframe(k).T_c_w for k in range(N)]) - centres(truth), axis=1)
     assert before.max() > 1.0  # the drift is large
 

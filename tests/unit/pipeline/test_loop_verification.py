@@ -110,7 +110,7 @@ class World:
                 store.add_observation(pid, k, i)
         keyframes = {k: store.get_keyframe(k) for k in kf_ids}
         for pid in pids:
-            update_normal_and_depth(store.get_point(pid), keyframes)
+            update_normal_and_depth(store, store.get_point(pid), keyframes)
         for k in kf_ids:
             store.update_connections(k)
         return kf_ids
@@ -247,7 +247,7 @@ def loop_closer(world: World) -> LoopCloser:
     place = registry.instantiate("place", cfg.place)
     for k in world.store.keyframe_ids():
         kf = world.store.get_keyframe(k)
-        kf.bow = place.transform(kf.features.descriptors)
+        world.store.set_keyframe_bow(k, place.transform(kf.features.descriptors))
     optimizer = build_optimizer(cfg.optimizer, registry)
     return LoopCloser(pipeline.loop_closing, world.store, optimizer, place, np.random.default_rng(0))
 

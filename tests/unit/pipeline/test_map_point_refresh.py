@@ -103,8 +103,8 @@ def test_single_point_forms_match_the_batch() -> None:
     for pid in store.point_ids():
         point = store.get_point(pid)
         kfs = {k: store.get_keyframe(k) for k in point.observations}
-        update_normal_and_depth(point, kfs)
-        compute_distinctive_descriptor(point, kfs)
+        update_normal_and_depth(store, point, kfs)
+        compute_distinctive_descriptor(store, point, kfs)
         other = batch.get_point(pid)
         np.testing.assert_array_equal(point.normal_w, other.normal_w)
         assert (point.d_min_m, point.d_max_m) == (other.d_min_m, other.d_max_m)
@@ -114,13 +114,12 @@ def test_single_point_forms_match_the_batch() -> None:
 def test_descriptor_tie_goes_to_the_lowest_keyframe_id() -> None:
     store = random_map(4, n_kf=3, n_points=0)
     pid = store.new_point_id()
-    store.add_point(MapPoint(pid, np.array([0.0, 0.0, 5.0]), np.zeros(32, np.uint8), 0, 0))
+    store.add_point(MapPoint(pid, np.array([0.0, 0.0, 5.0]), np.zeros(32, np.uint8), 1, 1))  # reference: 1
     # two keyframes' descriptors: each has median distance to the pair equal -> first (keyframe 1) wins
     for k in (2, 1):
         kf = store.get_keyframe(k)
         kf.features.descriptors[0] = np.full(32, k, np.uint8)
         store.add_observation(pid, k, 0)
-    store.get_point(pid).ref_kf_id = 1
     refresh_points(store, [pid])
     np.testing.assert_array_equal(store.get_point(pid).descriptor, np.full(32, 1, np.uint8))
 
@@ -130,7 +129,7 @@ def test_observers_missing_from_the_mapping_are_ignored() -> None:
     point = next(store.get_point(p) for p in store.point_ids() if len(store.get_point(p).observations) >= 3)
     before = point.d_max_m
     others = {k: store.get_keyframe(k) for k in point.observations if k != point.ref_kf_id}
-    update_normal_and_depth(point, others)  # no reference keyframe: the depth range stays
+    update_normal_and_depth(store, point, others)  # no reference keyframe: the depth range stays
     assert point.d_max_m == before
     units = [(point.xyz_w - kf.center_w) / np.linalg.norm(point.xyz_w - kf.center_w) for kf in others.values()]
     mean = np.mean(units, axis=0)

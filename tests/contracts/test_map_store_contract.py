@@ -1,0 +1,514 @@
+"""The MapStore contract: every registered map store (first-party or third-party) must pass these tests.
+
+Parametrized over ``ComponentRegistry.discover().components("map")`` plus the example third-party store of
+tests/plugins/slamkit_dictmap (``map=dict``, pip-installed for this module), each built from its default config
+node through the registry (which checks it against slamkit.map.protocol.MapStore). What is held to: the behaviour
+documented in slamkit/map/protocol.py, on small maps whose right answer the test counts itself.
+"""
+
+from __future__ import annotations
+
+import copy
+import pickle
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from slamkit.errors import PluginError
+from slamkit.features import Features, Observations
+from slamkit.geometry.camera import PinholeCamera
+from slamkit.interfaces import BowDescription, MapStore
+from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.ids import IdAllocator
+from slamkit.plugins import ComponentRegistry
+
+NAMES = sorted({c.spec.name for c in ComponentRegistry.discover().components("map")} | {"dict"})
+CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
+N_FEATS = 200
+GEOMETRY = ("xyz_w", "normal_w", "d_min_m", "d_max_m", "descriptor")
+
+StoreFactory = Callable[..., MapStore]
+
+
+@pytest.fixture(scope="module")
+def registry(dictmap_plugin: Path) -> ComponentRegistry:
+    return ComponentRegistry.discover()
+
+
+@pytest.fixture(params=NAMES)
+def make_store(request: pytest.FixtureRequest, registry: ComponentRegistry) -> StoreFactory:
+    """make_store(**kwargs) -> a new store of the parametrized kind (kwargs: runtime arguments such as ids)."""
+    node = registry.get("map", request.param).config_node()
+
+    def make(**kwargs: Any) -> MapStore:
+        store = registry.instantiate("map", node, **kwargs)
+        assert isinstance(store, MapStore)
+        return store
+
+    return make
+
+
+@pytest.fixture
+def store(make_store: StoreFactory) -> MapStore:
+    return make_store()
+
+
+def features(n: int = N_FEATS, seed: int = 0) -> Observations:
+    """The monocular observation record of n random keypoints."""
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(0, 480, (n, 2)).astype(np.float32)
+    feats = Features(
+        uv,
+        uv,
+        rng.integers(0, 8, n).astype(np.int32),
+        np.zeros(n, np.float32),
+        np.ones(n, np.float32),
+        rng.integers(0, 256, (n, 32), dtype=np.uint8),
+        1.2,
+        8,
+    )
+    return Observations.monocular(feats, CAMERA.unproject_image(uv.astype(np.float64)))
+
+
+def add_keyframe(store: MapStore, x_m: float = 0.0, point_ids: np.ndarray | None = None) -> int:
+    kf_id = store.new_keyframe_id()
+    T = np.eye(4)
+    T[0, 3] = -x_m
+    matched = np.full(N_FEATS, -1, np.int64) if point_ids is None else point_ids
+    store.add_keyframe(KeyFrame(kf_id, kf_id, float(kf_id), T, CAMERA, features(seed=kf_id), matched))
+    return kf_id
+
+
+def add_point(store: MapStore, observers: dict[int, int], seed: int = 0) -> int:
+    """A point at a random place in front of the cameras, observed by keyframe -> feature ``observers``."""
+    rng = np.random.default_rng(seed)
+    pid = store.new_point_id()
+    first = min(observers) if observers else 0
+    xyz = rng.uniform([-1, -1, 3], [1, 1, 6])
+    store.add_point(MapPoint(pid, xyz, rng.integers(0, 256, 32).astype(np.uint8), first, first))
+    for kf_id, feat in observers.items():
+        store.add_observation(pid, kf_id, feat)
+    return pid
+
+
+class FreeFeatures:
+    """Next free feature of each keyframe (the tests' bookkeeping)."""
+
+    def __init__(self) -> None:
+        self.next: dict[int, int] = {}
+
+    def take(self, kf_id: int) -> int:
+        self.next[kf_id] = self.next.get(kf_id, 0) + 1
+        return self.next[kf_id] - 1
+
+
+def shared(store: MapStore, kf_ids: list[int], count: int, free: FreeFeatures, seed: int = 0) -> list[int]:
+    """``count`` points seen by every keyframe of kf_ids."""
+    return [add_point(store, {k: free.take(k) for k in kf_ids}, seed + i) for i in range(count)]
+
+
+def assert_consistent(
+    store: MapStore, visible: dict[int, int] | None = None, found: dict[int, int] | None = None
+) -> None:
+    """Observations both ways; point_rows equal the entities (and the counters the test's own count)."""
+    pids = store.point_ids()
+    for kf_id in store.keyframe_ids():
+        kf = store.get_keyframe(kf_id)
+        for feat in np.flatnonzero(kf.point_ids >= 0).tolist():
+            pid = int(kf.point_ids[feat])
+            assert store.has_point(pid), (kf_id, feat, pid)
+            assert store.get_point(pid).observations[kf_id] == feat
+    for pid in pids:
+        point = store.get_point(pid)
+        assert point.observations, pid
+        for kf_id, feat in point.observations.items():
+            assert store.get_keyframe(kf_id).point_ids[feat] == pid
+    if not pids:
+        return
+    ids = np.array(pids, np.int64)
+    for name in GEOMETRY:
+        rows = store.point_rows(ids, name)
+        np.testing.assert_array_equal(rows, np.array([getattr(store.get_point(p), name) for p in pids]), name)
+    np.testing.assert_array_equal(
+        store.point_rows(ids, "n_observations"), [len(store.get_point(p).observations) for p in pids]
+    )
+    if visible is not None and found is not None:
+        np.testing.assert_array_equal(store.point_rows(ids, "n_visible"), [visible[p] for p in pids])
+        np.testing.assert_array_equal(store.point_rows(ids, "n_found"), [found[p] for p in pids])
+
+
+# ---- ids ----------------------------------------------------------------------------------------------------
+
+
+def test_ids_are_monotonic_and_never_reused(store: MapStore) -> None:
+    kfs = [add_keyframe(store) for _ in range(3)]
+    assert kfs == sorted(kfs) and len(set(kfs)) == 3
+    free = FreeFeatures()
+    pids = shared(store, kfs[:2], 3, free)
+    assert pids == sorted(pids) and len(set(pids)) == 3
+    kept = store.get_keyframe(kfs[2])
+    store.remove_keyframe(kfs[2])
+    with pytest.raises(ValueError):
+        store.add_keyframe(kept)  # an erased keyframe's id is not used again
+    point = store.get_point(pids[0])
+    store.remove_point(pids[0])
+    with pytest.raises(ValueError):
+        store.add_point(MapPoint(point.id, point.xyz_w, point.descriptor, kfs[0], kfs[0]))
+    with pytest.raises(ValueError):  # an id the store's allocator never issued
+        store.add_point(MapPoint(10_000, np.zeros(3), np.zeros(32, np.uint8), kfs[0], kfs[0]))
+    assert store.new_keyframe_id() > max(kfs) and store.new_point_id() > max(pids)
+
+
+def test_stores_sharing_an_allocator_never_hand_out_the_same_id(make_store: StoreFactory) -> None:
+    ids = IdAllocator()
+    a, b = make_store(ids=ids), make_store(ids=ids)
+    assert a.ids is ids and b.ids is ids
+    kf_ids = [add_keyframe(s) for s in (a, b, a, b, b)]
+    assert kf_ids == sorted(set(kf_ids))
+    free = FreeFeatures()
+    point_ids = [add_point(s, {s.keyframe_ids()[0]: free.take(s.keyframe_ids()[0])}) for s in (b, a, b)]
+    assert point_ids == sorted(set(point_ids))
+    assert a.keyframe_ids() == [kf_ids[0], kf_ids[2]] and b.keyframe_ids() == [kf_ids[1], kf_ids[3], kf_ids[4]]
+    assert a.point_ids() == [point_ids[1]]
+
+
+# ---- observations and culling ----------------------------------------------------------------------------------
+
+
+def test_observations_are_recorded_both_ways(store: MapStore) -> None:
+    k0, k1, k2 = (add_keyframe(store, x) for x in (0.0, 0.2, 0.4))
+    pid = add_point(store, {k0: 5, k1: 7, k2: 9})
+    assert dict(store.get_point(pid).observations) == {k0: 5, k1: 7, k2: 9}
+    assert [store.get_keyframe(k).point_ids[f] for k, f in ((k0, 5), (k1, 7), (k2, 9))] == [pid] * 3
+    assert store.point_rows(np.array([pid]), "n_observations")[0] == 3
+    store.remove_observation(pid, k0)  # the reference keyframe goes: the smallest remaining observer takes over
+    assert dict(store.get_point(pid).observations) == {k1: 7, k2: 9}
+    assert store.get_keyframe(k0).point_ids[5] == -1 and store.get_point(pid).ref_kf_id == k1
+    store.remove_observation(pid, k2)  # fewer than two observations: the point is erased (EraseObservation)
+    assert not store.has_point(pid) and store.get_keyframe(k1).point_ids[7] == -1
+    assert_consistent(store)
+
+
+def test_adding_a_keyframe_keeps_the_tracked_points_still_in_the_map(store: MapStore) -> None:
+    k0, k1 = add_keyframe(store), add_keyframe(store, 0.2)
+    free = FreeFeatures()
+    a, b, c = shared(store, [k0, k1], 3, free)
+    store.remove_point(c)
+    tracked = np.full(N_FEATS, -1, np.int64)
+    tracked[[3, 4, 10, 11]] = [a, c, b, a]  # c is gone; a is matched twice: the first feature keeps it
+    k2 = add_keyframe(store, 0.4, tracked)
+    kf = store.get_keyframe(k2)
+    assert kf.point_ids[[3, 4, 10, 11]].tolist() == [a, -1, b, -1]
+    assert store.get_point(a).observations[k2] == 3 and store.get_point(b).observations[k2] == 10
+    assert_consistent(store)
+
+
+def test_removing_a_point_clears_every_keyframe_entry(store: MapStore) -> None:
+    kfs = [add_keyframe(store, x) for x in (0.0, 0.2, 0.4)]
+    pid = add_point(store, {kfs[0]: 1, kfs[1]: 2, kfs[2]: 3})
+    store.remove_point(pid)
+    assert not store.has_point(pid) and pid not in store.point_ids()
+    assert all(store.get_keyframe(k).n_tracked_points() == 0 for k in kfs)
+    assert not store.has_points(np.array([pid, -1]))[0:2].any()
+
+
+def test_removing_a_keyframe_reparents_its_children_and_erases_orphan_points(store: MapStore) -> None:
+    k: list[int] = []
+    free = FreeFeatures()
+    # keyframes arrive one by one, each sharing points with earlier ones, as local mapping inserts them
+    for others, counts in (([], []), ([0], [50]), ([1, 0], [50, 30]), ([1, 2], [40, 20])):
+        k.append(add_keyframe(store, 0.1 * len(k)))
+        for o, count in zip(others, counts, strict=True):
+            shared(store, [k[o], k[-1]], count, free)
+        store.update_connections(k[-1])
+    only_k1 = [add_point(store, {k[1]: free.take(k[1])}) for _ in range(7)]
+    tree = store.spanning_tree
+    assert [tree.parent(kf) for kf in k] == [None, k[0], k[1], k[1]]
+    assert tree.children(k[1]) == [k[2], k[3]]
+    store.add_loop_edge(k[3], k[1])
+    n_points = store.n_points()
+    store.remove_keyframe(k[1])
+    assert not store.has_keyframe(k[1]) and k[1] not in store.covisibility and k[1] not in tree
+    assert store.n_points() == n_points - 7 and not store.has_points(np.array(only_k1)).any()
+    # ORB-SLAM SetBadFlag: the children go to the best-connected candidate, starting from the parent k0
+    assert tree.parent(k[2]) == k[0] and tree.parent(k[3]) == k[2]
+    assert sorted(tree.children(k[0])) == [k[2]] and tree.children(k[2]) == [k[3]]
+    assert store.loop_edges() == []
+    for pid in store.point_ids():
+        assert k[1] not in store.get_point(pid).observations
+    assert_consistent(store)
+
+
+# ---- graphs --------------------------------------------------------------------------------------------------
+
+
+def test_covisibility_weights_are_shared_points_above_the_threshold(store: MapStore) -> None:
+    k = [add_keyframe(store, 0.1 * i) for i in range(4)]
+    free = FreeFeatures()
+    store.update_connections(k[0])  # the first keyframe, alone: the root of the spanning tree
+    shared(store, [k[0], k[1]], 30, free)
+    store.update_connections(k[1])
+    shared(store, [k[0], k[1], k[2]], 20, free)  # a point seen by three keyframes counts for each pair
+    store.update_connections(k[2])
+    shared(store, [k[2], k[3]], 10, free)  # below 15: kept only as k3's single best edge
+    shared(store, [k[0], k[3]], 4, free)  # below 15 and not the best of either: no edge
+    store.update_connections(k[3])
+    for kf in k:
+        store.update_connections(kf)
+    cov = store.covisibility
+    assert cov.weight(k[0], k[1]) == 50 and cov.weight(k[1], k[0]) == 50
+    assert cov.weight(k[0], k[2]) == 20 and cov.weight(k[1], k[2]) == 20
+    assert cov.weight(k[2], k[3]) == 10 and cov.weight(k[0], k[3]) == 0
+    assert cov.neighbors(k[0]) == [k[1], k[2]] and cov.neighbors(k[2]) == [k[0], k[1], k[3]]  # ties: lower id
+    assert cov.neighbors(k[2], min_weight=15) == [k[0], k[1]] and cov.best_neighbors(k[2], 1) == [k[0]]
+    assert cov.edges() == [(k[0], k[1], 50), (k[0], k[2], 20), (k[1], k[2], 20), (k[2], k[3], 10)]
+    assert store.spanning_tree.edges() == [(k[0], k[1]), (k[0], k[2]), (k[2], k[3])]
+    assert store.spanning_tree.parent(k[0]) is None and store.spanning_tree.children(k[0]) == [k[1], k[2]]
+    store.add_loop_edge(k[3], k[0])
+    store.add_loop_edge(k[0], k[3])
+    assert store.loop_edges() == [(k[0], k[3])]
+
+
+def test_the_min_shared_threshold_is_the_configured_one(make_store: StoreFactory) -> None:
+    store = make_store(covisibility_min_shared=25)
+    k = [add_keyframe(store, 0.1 * i) for i in range(3)]
+    free = FreeFeatures()
+    shared(store, [k[0], k[1]], 30, free)
+    shared(store, [k[0], k[2]], 20, free)
+    shared(store, [k[1], k[2]], 19, free)
+    for kf in k:
+        store.update_connections(kf)
+    # 20 < 25: the edge k0-k2 is not kept by k0's update; k2 keeps only its best (k0, 20)
+    assert store.covisibility.neighbors(k[0]) == [k[1], k[2]]
+    assert store.covisibility.neighbors(k[2]) == [k[0]] and store.covisibility.weight(k[1], k[2]) == 0
+
+
+# ---- point rows, counters, poses ------------------------------------------------------------------------------
+
+
+def test_point_rows_equal_the_entities_after_every_kind_of_mutation(store: MapStore) -> None:
+    rng = np.random.default_rng(7)
+    kfs = [add_keyframe(store, 0.1 * i) for i in range(6)]
+    free = FreeFeatures()
+    visible: dict[int, int] = {}
+    found: dict[int, int] = {}
+
+    def check() -> None:
+        assert_consistent(store, visible, found)
+
+    for i in range(60):
+        observers = sorted(rng.choice(kfs, size=int(rng.integers(2, 5)), replace=False).tolist())
+        pid = add_point(store, {k: free.take(k) for k in observers}, seed=i)
+        visible[pid] = found[pid] = 1
+    check()
+    for name, shape, dtype in (
+        ("xyz_w", (3,), np.float64),
+        ("normal_w", (3,), np.float64),
+        ("d_min_m", (), np.float64),
+        ("d_max_m", (), np.float64),
+        ("descriptor", (32,), np.uint8),
+    ):
+        ids = np.array(store.point_ids()[::3], np.int64)
+        values = (rng.uniform(0, 255, (ids.size, *shape))).astype(dtype)
+        store.assign_points(ids, name, values)
+        check()
+        np.testing.assert_array_equal(store.point_rows(ids, name), values)
+        values[...] = 0  # the store keeps its own copy
+        assert np.any(store.point_rows(ids, name) != 0)
+    ids = np.array(store.point_ids(), np.int64)
+    twice = np.concatenate([ids[:10], ids[:5]])  # an id listed twice counts twice
+    store.increase_visible(twice)
+    store.increase_found(ids[:3], 2)
+    for p in twice.tolist():
+        visible[p] += 1
+    for p in ids[:3].tolist():
+        found[p] += 2
+    check()
+    old, new = int(ids[0]), int(ids[1])
+    store.replace_point(old, new)  # ORB-SLAM Replace: observations and counters move to the survivor
+    visible[new] += visible.pop(old)
+    found[new] += found.pop(old)
+    assert not store.has_point(old)
+    check()
+    store.remove_observation(int(ids[2]), next(iter(store.get_point(int(ids[2])).observations)))
+    check()
+    store.remove_point(int(ids[3]))
+    store.remove_keyframe(kfs[2])
+    for p in list(visible):
+        if not store.has_point(p):
+            visible.pop(p), found.pop(p)
+    check()
+    np.testing.assert_array_equal(store.has_points(ids), [store.has_point(int(p)) for p in ids])
+
+
+def test_counters_start_at_one_and_count_concurrent_increases_under_the_read_lock(store: MapStore) -> None:
+    k0, k1 = add_keyframe(store), add_keyframe(store, 0.2)
+    ids = np.array(shared(store, [k0, k1], 200, FreeFeatures()), np.int64)
+    np.testing.assert_array_equal(store.point_rows(ids, "n_visible"), np.ones(200))
+    np.testing.assert_array_equal(store.point_rows(ids, "n_found"), np.ones(200))
+
+    def track() -> None:  # as tracking does, frame after frame, while other threads read
+        for _ in range(200):
+            with store.read():
+                store.increase_visible(ids)
+                store.increase_found(ids[::2])
+
+    threads = [threading.Thread(target=track) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    np.testing.assert_array_equal(store.point_rows(ids, "n_visible"), np.full(200, 1 + 600))
+    np.testing.assert_array_equal(store.point_rows(ids[::2], "n_found"), np.full(100, 1 + 600))
+    np.testing.assert_array_equal(store.point_rows(ids[1::2], "n_found"), np.ones(100))
+
+
+def test_poses_and_bags_of_words_are_set_through_the_store(store: MapStore) -> None:
+    k0, k1 = add_keyframe(store), add_keyframe(store, 0.2)
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    store.set_keyframe_pose(k0, T)
+    T[0, 3] = 9.0  # the store keeps a copy
+    assert store.get_keyframe(k0).T_c_w[0, 3] == 1.0
+    poses = np.stack([np.eye(4), np.eye(4)])
+    poses[:, 2, 3] = [4.0, 5.0]
+    store.set_keyframe_poses([k0, k1], poses)
+    assert [store.get_keyframe(k).T_c_w[2, 3] for k in (k0, k1)] == [4.0, 5.0]
+    np.testing.assert_array_equal(store.get_keyframe(k1).center_w, [0.0, 0.0, -5.0])
+    bow = BowDescription({1: 1.0}, {})
+    store.set_keyframe_bow(k1, bow)
+    assert store.get_keyframe(k1).bow is bow
+
+
+def test_epoch_is_bumped_by_one(store: MapStore) -> None:
+    e = store.epoch
+    assert store.bump_epoch() == e + 1 and store.epoch == e + 1
+
+
+def test_origin_is_the_smallest_keyframe_left(store: MapStore) -> None:
+    k = [add_keyframe(store) for _ in range(3)]
+    assert store.origin_keyframe_id() == k[0]
+    store.remove_keyframe(k[0])
+    assert store.origin_keyframe_id() == k[1] and store.n_keyframes() == 2
+
+
+# ---- the lock --------------------------------------------------------------------------------------------------
+
+
+def _waits(hold: Callable[[], Any], then: Callable[[], Any]) -> bool:
+    """Whether ``then()`` (a lock context) has to wait while another thread is inside ``hold()``."""
+    inside, release, got_in = threading.Event(), threading.Event(), threading.Event()
+
+    def holder() -> None:
+        with hold():
+            inside.set()
+            release.wait(10)
+
+    def other() -> None:
+        with then():
+            got_in.set()
+
+    t1 = threading.Thread(target=holder)
+    t1.start()
+    assert inside.wait(10)
+    t2 = threading.Thread(target=other)
+    t2.start()
+    waited = not got_in.wait(0.2)
+    release.set()
+    t1.join(10)
+    t2.join(10)
+    assert got_in.is_set()
+    return waited
+
+
+def test_the_write_lock_excludes_readers_and_writers(store: MapStore) -> None:
+    assert _waits(store.write, store.read)
+    assert _waits(store.read, store.write)
+    assert _waits(store.write, store.write)
+
+
+def test_a_writer_waiting_for_a_reader_gets_in_once_the_reader_leaves(store: MapStore) -> None:
+    order: list[str] = []
+    reading = threading.Event()
+
+    def reader() -> None:
+        with store.read():
+            reading.set()
+            time.sleep(0.05)
+            order.append("read")
+
+    def writer() -> None:
+        with store.write():
+            order.append("write")
+
+    t1 = threading.Thread(target=reader)
+    t1.start()
+    reading.wait(5)
+    t2 = threading.Thread(target=writer)
+    t2.start()
+    for t in (t1, t2):
+        t.join(10)
+    assert order == ["read", "write"]
+
+
+# ---- entities are read-only outside the store ------------------------------------------------------------------
+
+
+def test_writing_an_entity_behind_the_store_raises(store: MapStore) -> None:
+    k0, k1 = add_keyframe(store), add_keyframe(store, 0.2)
+    pid = add_point(store, {k0: 0, k1: 0})
+    kf, point = store.get_keyframe(k0), store.get_point(pid)
+    writes: list[Callable[[], Any]] = [
+        lambda: kf.point_ids.__setitem__(0, -1),
+        lambda: kf.T_c_w.__setitem__((0, 3), 1.0),
+        lambda: setattr(kf, "T_c_w", np.eye(4)),
+        lambda: setattr(kf, "bow", None),
+        lambda: setattr(kf, "point_ids", np.full(N_FEATS, -1)),
+        lambda: point.xyz_w.__setitem__(0, 1.0),
+        lambda: point.normal_w.__setitem__(0, 1.0),
+        lambda: point.descriptor.__setitem__(0, 1),
+        lambda: setattr(point, "xyz_w", np.zeros(3)),
+        lambda: setattr(point, "ref_kf_id", k1),
+        lambda: point.observations.__setitem__(k1, 5),  # type: ignore[attr-defined]
+        lambda: point.observations.pop(k1),  # type: ignore[attr-defined]
+    ]
+    for i, write in enumerate(writes):
+        with pytest.raises((ValueError, TypeError, AttributeError)):
+            write()
+        assert_consistent(store), i
+    assert kf.point_ids[0] == pid and store.get_point(pid).observations[k1] == 0
+    # the graphs are handed out as read views: no mutator, and what they return is the caller's own list
+    for name in ("update_connections", "remove", "add_node", "add", "change_parent"):
+        assert not hasattr(store.covisibility, name) and not hasattr(store.spanning_tree, name)
+    store.update_connections(k1)
+    store.spanning_tree.children(k0).append(99)
+    store.covisibility.neighbors(k0).append(99)
+    assert store.spanning_tree.children(k0) == [k1] and store.covisibility.neighbors(k0) == [k1]
+
+
+def test_copies_of_entities_are_read_only_and_belong_to_no_store(store: MapStore) -> None:
+    k0, k1 = add_keyframe(store), add_keyframe(store, 0.2)
+    pid = add_point(store, {k0: 0, k1: 0})
+    for clone in (copy.deepcopy(store.get_point(pid)), pickle.loads(pickle.dumps(store.get_point(pid)))):
+        with pytest.raises(ValueError):
+            clone.xyz_w[0] = 1.0
+    kf_clone = copy.deepcopy(store.get_keyframe(k0))
+    with pytest.raises(ValueError):
+        kf_clone.point_ids[0] = 5
+    store.remove_point(pid)
+    assert kf_clone.point_ids[0] == pid and store.get_keyframe(k0).point_ids[0] == -1
+
+
+def test_a_map_component_without_the_whole_protocol_is_refused_when_built(registry: ComponentRegistry) -> None:
+    """A ``map=`` component is checked against the full protocol when it is built, not at its first missing call
+    (a class with the graphs' bookkeeping but none of the store's mutations)."""
+    with pytest.raises(PluginError) as err:
+        registry.instantiate("map", {"_target_": "slamkit.map.graphs.CovisibilityGraph"})
+    msg = str(err.value)
+    assert "does not implement MapStore" in msg
+    assert all(name in msg for name in ("add_observation", "point_rows", "replace_point", "spanning_tree"))

@@ -1,0 +1,1 @@
+"""A minimal MapStore written against slamkit's MapStore protocol only (map=dict)."""
