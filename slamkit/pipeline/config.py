@@ -81,7 +81,6 @@ class LocalMappingConfig:
     point_min_observations: int = 3
     point_culling_window_kfs: int = 3
     triangulation_neighbors: int = 20
-    triangulation_ratio: float = 0.6
     min_parallax_cos: float = 0.9998
     chi2_mono: float = 5.991
     scale_consistency_factor: float = 1.5
