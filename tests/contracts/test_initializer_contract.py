@@ -152,6 +152,7 @@ def test_same_seed_same_result(initializer: Initializer) -> None:
     b = initializer.initialize(views.uv_ref, views.uv_cur, K, np.random.default_rng(5))
     assert a.success == b.success and a.model == b.model and a.reason == b.reason
     assert a.T_cur_ref is not None and b.T_cur_ref is not None and np.array_equal(a.T_cur_ref, b.T_cur_ref)
+    assert a.xyz_ref is not None and b.xyz_ref is not None
     assert np.array_equal(a.xyz_ref, b.xyz_ref, equal_nan=True)
 
 
