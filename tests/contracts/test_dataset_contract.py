@@ -100,7 +100,13 @@ INPUTS: dict[str, Callable[[Callable[[], Path], Path], dict[str, Any]]] = {
 }
 
 
-@pytest.fixture(scope="module", params=NAMES)
+#: readers of recorded sequences: their tests need ../shared/datasets (skipped with the reason when absent)
+SHARED = {"tum_rgbd", "euroc", "kitti"}
+
+
+@pytest.fixture(
+    scope="module", params=[pytest.param(n, marks=pytest.mark.shared_data) if n in SHARED else n for n in NAMES]
+)
 def built(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> tuple[Dataset, list[FrameData]]:
     name = request.param
     if name not in INPUTS:
