@@ -166,7 +166,7 @@ def _no_orientation(f: Features) -> Features:
 
 
 def test_suite_fails_on_broken_extractors(image: np.ndarray) -> None:
-    orb = REGISTRY.instantiate("features", REGISTRY.get("features", NAMES[0]).config_node())
+    orb = REGISTRY.instantiate("features", REGISTRY.get("features", "orb").config_node())  # the default one
     from dataclasses import replace
 
     shifted = _Broken(orb, lambda f: replace(f, uv_px=f.uv_px + np.float32(700.0)))

@@ -200,7 +200,7 @@ class _Broken:
 
 
 def test_suite_fails_on_broken_initializers() -> None:
-    inner = REGISTRY.instantiate("initializer", REGISTRY.get("initializer", NAMES[0]).config_node())
+    inner = REGISTRY.instantiate("initializer", REGISTRY.get("initializer", "twoview").config_node())
     views = make_views(1, **CASES["general-sideways"])  # type: ignore[arg-type]
     for how in ("transposed-rotation", "stretched-depth"):
         with pytest.raises(AssertionError):

@@ -220,7 +220,7 @@ class _Broken:
 
 
 def test_suite_fails_on_broken_recognizers(extractor: FeatureExtractor, images: dict[int, np.ndarray]) -> None:
-    inner = REGISTRY.instantiate("place", REGISTRY.get("place", NAMES[0]).config_node())
+    inner = REGISTRY.instantiate("place", REGISTRY.get("place", "dbow").config_node())
     vs = views(inner, extractor, images)
     damped = _Broken(inner, score=lambda a, b: 0.9 * inner.score(a, b))
     with pytest.raises(AssertionError):
