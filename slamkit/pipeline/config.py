@@ -49,6 +49,7 @@ class MatcherConfig:
     th_low: int = 50
     th_high: int = 100
     rotation_bins: int = 30
+    epipole_min_dist2: float = 100.0
     ratio_initialization: float = 0.9
     ratio_reference_kf: float = 0.7
     ratio_local_map: float = 0.8

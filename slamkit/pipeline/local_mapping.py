@@ -197,8 +197,8 @@ class LocalMapper:
 
     def _match_for_triangulation(self, kf1: KeyFrame, kf2: KeyFrame) -> tuple[I64, I64]:
         """Unmatched features of kf1 and kf2 with Hamming <= TH_LOW, on the epipolar line (distance^2 <
-        3.84 sigma^2 of kf2's level, pipeline.chi2.epipolar), away from the epipole, best per feature, one-to-one, rotation-consistent
-        (ORB-SLAM SearchForTriangulation). As ORB-SLAM, only features under the same vocabulary node of the
+        3.84 sigma^2 of kf2's level, pipeline.chi2.epipolar), away from the epipole, best per feature,
+        one-to-one, rotation-consistent (ORB-SLAM SearchForTriangulation; thresholds from pipeline.matcher). As ORB-SLAM, only features under the same vocabulary node of the
         direct index are compared when both keyframes have a bag of words; otherwise every pair is."""
         empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
         matcher = self.cfg.matcher
@@ -231,12 +231,13 @@ class LocalMapper:
         dist2 = num**2 / np.maximum(lines[:, 0] ** 2 + lines[:, 1] ** 2, 1e-12)
         sigma2 = kf2.features.level_sigma2()[b]
         ok = dist2 < self.cfg.chi2.epipolar * sigma2
-        # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably (an epipole at infinity,
-        # kf1's centre level with kf2's image plane, is close to nothing: NaN distances are not rejected)
+        # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably: squared distance below
+        # epipole_min_dist2 x the scale factor of its level (not squared, as ORB-SLAM writes it). An epipole at
+        # infinity (kf1's centre level with kf2's image plane) is close to nothing: NaN distances are not rejected.
         epipole = project_pinhole(kf2.T_c_w, kf1.center_w[None], kf2.camera.K)[0][0]
         scale2 = kf2.features.level_scale()[b]
         with np.errstate(invalid="ignore"):
-            ok &= ~(np.linalg.norm(uv2 - epipole, axis=1) < 10.0 * scale2)
+            ok &= ~(np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2)
         a, b, dd = a[ok], b[ok], d[ok]
         # best candidate per kf1 feature
         order = np.lexsort((b, dd, a))

@@ -37,6 +37,7 @@ PIPELINE_CONSTANTS = [
     ("pipeline.matcher.th_low", 50, "code: ORBmatcher::TH_LOW"),
     ("pipeline.matcher.th_high", 100, "code: ORBmatcher::TH_HIGH"),
     ("pipeline.matcher.rotation_bins", 30, "code: ORBmatcher::HISTO_LENGTH"),
+    ("pipeline.matcher.epipole_min_dist2", 100.0, "code: SearchForTriangulation"),
     ("pipeline.matcher.ratio_initialization", 0.9, "code: MonocularInitialization ORBmatcher(0.9, true)"),
     ("pipeline.matcher.ratio_reference_kf", 0.7, "code: TrackReferenceKeyFrame ORBmatcher(0.7, true)"),
     ("pipeline.matcher.ratio_local_map", 0.8, "code: SearchLocalPoints ORBmatcher(0.8)"),
