@@ -20,6 +20,7 @@ a second and covers code paths no short run reaches. The rule, per kind of confi
   receiver).
 - **@package _global_ configs** (conf/backend, conf/experiment, conf/sweep): every key they set, and every
   parameter a sweep sweeps, exists in the config they apply to (so it is one of the keys checked above).
+- **any other group** (a new one without a ``_target_``): like the runner, each key read by name in slamkit/.
 - conf/hydra/ configures Hydra's own launcher (validated by its structured config), and is not checked here.
 
 The check is name-based, not type-based: a field counts as read when any config-like receiver loads that name,
@@ -250,6 +251,46 @@ def test_every_runner_key_is_read(path: Path) -> None:
     runner_loads = {attr for attr, recv in _runtime_loads() if recv in {"runner", "cfg"}}
     unread = [k for k in _yaml(path) if k not in strings and k not in runner_loads]
     assert unread == [], f"{path.name}: runner keys read by no code: {unread}"
+
+
+#: groups with a rule of their own above (every other group falls to the by-name rule)
+OWN_RULES = {"pipeline", "runner", "experiment", "sweep", "backend", "hydra"}
+
+
+def _other_group_files() -> list[Path]:
+    return [
+        p
+        for p in sorted(CONF.glob("*/*.yaml"))
+        if p.parent.name not in OWN_RULES and "_target_" not in _yaml(p) and not _is_global(p)
+    ]
+
+
+def _is_global(path: Path) -> bool:
+    return "@package _global_" in path.read_text().split("\n", 1)[0]
+
+
+def test_every_other_group_key_is_read() -> None:
+    strings = string_reads(_trees().values())
+    loads = {attr for attr, _ in _runtime_loads()}
+    unread = {
+        str(path.relative_to(REPO)): [k for k in _yaml(path) if k != "defaults" and k not in strings | loads]
+        for path in _other_group_files()
+    }
+    assert {f: keys for f, keys in unread.items() if keys} == {}, "keys read by no code"
+
+
+def test_every_config_file_falls_under_a_rule() -> None:
+    """A new group is checked too: each YAML of conf/ is a component node, a pipeline/runner node, a global
+    config, Hydra's, or goes to the by-name rule of the other groups."""
+    files = set(CONF.glob("*/*.yaml")) | set(CONF.glob("hydra/*/*.yaml"))
+    covered = {p for p in files if p.parent.name in OWN_RULES or p.parent.parent.name == "hydra"}
+    covered |= {p for p in files if p.parent.parent == CONF and "_target_" in _yaml(p)}
+    covered |= set(_other_group_files())
+    globals_ = {p for p in files if _is_global(p)}
+    assert not (globals_ - {p for p in files if p.parent.name in {"experiment", "sweep", "backend"}}), (
+        "a @package _global_ config outside experiment/, sweep/, backend/: add its group to the global rule"
+    )
+    assert files - covered == set()
 
 
 def test_primary_config_keys_are_read() -> None:
