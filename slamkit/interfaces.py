@@ -218,9 +218,14 @@ class PlaceRecognizer(Protocol):
         ratio: float,
         mask1: NDArray[np.bool_] | None = None,
         mask2: NDArray[np.bool_] | None = None,
+        *,
+        max_distance: int,
+        rotation_bins: int | None,
     ) -> NDArray[np.int64]:
-        """BoW-guided matching: (K, 2) feature index pairs (image 1, image 2) among features sharing a vocabulary
-        node, with the ratio test and rotation consistency; masks restrict the eligible features."""
+        """BoW-guided matching (ORB-SLAM SearchByBoW): (K, 2) feature index pairs (image 1, image 2) among features
+        sharing a vocabulary node, best Hamming distance <= ``max_distance`` bits, nearest/second ``ratio`` test,
+        each feature of image 2 once, and rotation consistency over ``rotation_bins`` histogram bins (None: no
+        check); masks restrict the eligible features. The caller passes the thresholds (pipeline.matcher)."""
         ...
 
 

@@ -16,9 +16,6 @@ from slamkit_dbow.vocabulary import VocabularyError
 
 I64 = NDArray[np.int64]
 
-#: ORB-SLAM's ORBmatcher::TH_LOW: the largest Hamming distance (bits) accepted by SearchByBoW.
-TH_LOW = 50
-
 
 def _mask(mask: NDArray[np.bool_] | None, n: int, name: str) -> NDArray[np.bool_] | None:
     if mask is None:
@@ -34,21 +31,22 @@ def match_by_bow(
     bow1: BowDescription,
     feats2: Features,
     bow2: BowDescription,
-    ratio: float = 0.75,
-    max_distance: int = TH_LOW,
-    rotation_bins: int | None = 30,
+    ratio: float,
+    max_distance: int,
+    rotation_bins: int | None,
     mask1: NDArray[np.bool_] | None = None,
     mask2: NDArray[np.bool_] | None = None,
 ) -> I64:
     """Match the features of two images through their direct indexes (same node at the direct-index level).
 
     For each eligible feature i of image 1, the best and second-best features of image 2 in the same node
-    are found; the match (i, best) is kept when best <= ``max_distance`` bits and best < ``ratio`` *
-    second (a lone candidate has no second and passes). Each feature of image 2 then keeps only its
-    closest claim; with ``rotation_bins`` (ORB-SLAM: 30, HISTO_LENGTH; None: no check) only matches whose
-    orientation difference angle1 - angle2 falls in the three main histogram bins survive.
+    are found; the match (i, best) is kept when best <= ``max_distance`` bits (ORB-SLAM: TH_LOW = 50) and
+    best < ``ratio`` * second (a lone candidate has no second and passes). Each feature of image 2 then keeps
+    only its closest claim; with ``rotation_bins`` (ORB-SLAM: 30, HISTO_LENGTH; None: no check) only matches
+    whose orientation difference angle1 - angle2 falls in the three main histogram bins survive.
     mask1 / mask2: (N1,) / (N2,) bool, the features allowed to match (None: all).
-    ORB-SLAM's ratios: 0.75 for relocalization and loop detection, 0.6 for triangulation pairs.
+    The thresholds are the caller's (slamkit's pipeline passes ``pipeline.matcher``: ratio 0.7 with the
+    reference keyframe, 0.75 for relocalization and loop detection).
 
     Returns (K, 2) int64 index pairs (feature of image 1, feature of image 2), sorted by the first index.
     """

@@ -131,6 +131,19 @@ class DbowPlaceRecognizer:
         ratio: float,
         mask1: NDArray[np.bool_] | None = None,
         mask2: NDArray[np.bool_] | None = None,
+        *,
+        max_distance: int,
+        rotation_bins: int | None,
     ) -> NDArray[np.int64]:
         """BoW-guided matching through the direct index (see ``slamkit_dbow.matching.match_by_bow``)."""
-        return match_by_bow(feats1, bow1, feats2, bow2, ratio=ratio, mask1=mask1, mask2=mask2)
+        return match_by_bow(
+            feats1,
+            bow1,
+            feats2,
+            bow2,
+            ratio=ratio,
+            max_distance=max_distance,
+            rotation_bins=rotation_bins,
+            mask1=mask1,
+            mask2=mask2,
+        )

@@ -71,6 +71,7 @@ def ransac_sim3(
     probability: float = 0.99,
     min_inliers: int = 20,
     max_iterations: int = 300,
+    chi2: float = CHI2_2DOF_99,
 ) -> Sim3RansacResult:
     """Find S_12 with at least ``min_inliers`` inliers (ORB-SLAM: 0.99, 20, 300).
 
@@ -93,7 +94,7 @@ def ransac_sim3(
             S = horn_alignment(xyz2_c2[sample], xyz1_c1[sample], with_scale=not fix_scale)
         except ValueError:  # collinear or degenerate sample
             continue
-        inl = sim3_inliers(S, xyz1_c1, xyz2_c2, uv1_px, uv2_px, K1, K2, sigma2_1, sigma2_2)
+        inl = sim3_inliers(S, xyz1_c1, xyz2_c2, uv1_px, uv2_px, K1, K2, sigma2_1, sigma2_2, chi2)
         if inl.sum() > best_inliers.sum():
             best_inliers, best = inl, S
             ratio = inl.sum() / n
@@ -107,7 +108,7 @@ def ransac_sim3(
         refined = horn_alignment(xyz2_c2[best_inliers], xyz1_c1[best_inliers], with_scale=not fix_scale)
     except ValueError:
         refined = best
-    inl = sim3_inliers(refined, xyz1_c1, xyz2_c2, uv1_px, uv2_px, K1, K2, sigma2_1, sigma2_2)
+    inl = sim3_inliers(refined, xyz1_c1, xyz2_c2, uv1_px, uv2_px, K1, K2, sigma2_1, sigma2_2, chi2)
     if inl.sum() >= best_inliers.sum():
         best, best_inliers = refined, inl
     return Sim3RansacResult(best, best_inliers, it)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from slamkit.errors import ConfigError
@@ -15,7 +15,8 @@ T = TypeVar("T")
 
 def from_mapping(cls: type[T], node: Mapping[str, Any], prefix: str) -> T:
     """Build a config dataclass from a mapping; ConfigError names unknown/missing keys as ``prefix.key``."""
-    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    # fields marked ``shared`` (the matcher and chi-square sections) are filled by PipelineConfig, not from node
+    fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("shared")}  # type: ignore[arg-type]
     unknown = sorted(set(node) - set(fields))
     if unknown:
         raise ConfigError(
@@ -41,17 +42,44 @@ def from_mapping(cls: type[T], node: Mapping[str, Any], prefix: str) -> T:
 
 
 @dataclass(frozen=True)
+class MatcherConfig:
+    """ORB-SLAM's ORBmatcher constants (``pipeline.matcher``): Hamming thresholds (bits), the rotation histogram,
+    and the nearest/second-nearest ratio of each kind of search."""
+
+    th_low: int = 50
+    th_high: int = 100
+    rotation_bins: int = 30
+    epipole_min_dist2: float = 100.0
+    ratio_initialization: float = 0.9
+    ratio_reference_kf: float = 0.7
+    ratio_local_map: float = 0.8
+    ratio_relocalization: float = 0.75
+    ratio_loop: float = 0.75
+
+
+@dataclass(frozen=True)
+class Chi2Config:
+    """The chi-square gates (``pipeline.chi2``): squared reprojection errors over the level's sigma^2 above them
+    are outliers."""
+
+    mono: float = 5.991
+    stereo: float = 7.815
+    epipolar: float = 3.84
+    fuse_mono: float = 5.99
+    sim3: float = 10.0
+    sim3_ransac: float = 9.21
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     pose_optimization: str = "compiled"
     motion_model_search_radius_px: float = 15.0
     min_motion_model_matches: int = 20
     min_reference_kf_matches: int = 15
     min_inliers_after_pose_opt: int = 10
-    reference_kf_ratio: float = 0.7
     local_map_min_view_cos: float = 0.5
     local_map_search_radius_px: float = 1.0
     local_map_search_radius_relocalized_px: float = 5.0
-    local_map_ratio: float = 0.8
     local_map_covisible_keyframes: int = 80
     min_local_map_inliers: int = 30
     min_local_map_inliers_after_reloc: int = 50
@@ -59,20 +87,17 @@ class TrackingConfig:
     keyframe_max_frames_idle: int = 20
     keyframe_min_tracked_points: int = 50
     keyframe_max_ref_ratio: float = 0.9
-    descriptor_threshold_high: int = 100
-    descriptor_threshold_low: int = 50
-    rotation_histogram_bins: int = 30
     init_feature_factor: float = 2.0
     init_min_features: int = 100
     init_min_matches: int = 100
     init_search_radius_px: float = 100.0
-    init_match_ratio: float = 0.9
     init_min_map_points: int = 100
     init_ba_iterations: int = 20
-    pose_chi2_mono: float = 5.991
-    pose_chi2_stereo: float = 7.815
     pose_rounds: int = 4
     pose_iterations_per_round: int = 10
+    # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
+    matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
+    chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})
 
 
 @dataclass(frozen=True)
@@ -81,9 +106,7 @@ class LocalMappingConfig:
     point_min_observations: int = 3
     point_culling_window_kfs: int = 3
     triangulation_neighbors: int = 20
-    triangulation_ratio: float = 0.6
     min_parallax_cos: float = 0.9998
-    chi2_mono: float = 5.991
     scale_consistency_factor: float = 1.5
     fuse_neighbors: int = 20
     fuse_second_neighbors: int = 5
@@ -93,10 +116,11 @@ class LocalMappingConfig:
     keyframe_culling_redundancy: float = 0.9
     keyframe_culling_min_observers: int = 3
     min_baseline_depth_ratio: float = 0.01
-    ba_chi2_mono: float = 5.991
-    ba_chi2_stereo: float = 7.815
     ba_iterations_first: int = 5
     ba_iterations_second: int = 10
+    # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
+    matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
+    chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})
 
 
 @dataclass(frozen=True)
@@ -118,6 +142,9 @@ class LoopClosingConfig:
     verify_min_matches: int = 30
     verify_max_misses: int = 2
     max_loop_rotation_deg: float = 20.0
+    # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
+    matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
+    chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})
 
 
 @dataclass(frozen=True)
@@ -125,15 +152,25 @@ class PipelineConfig:
     tracking: TrackingConfig
     local_mapping: LocalMappingConfig
     loop_closing: LoopClosingConfig
+    matcher: MatcherConfig
+    chi2: Chi2Config
 
     @staticmethod
     def from_node(node: Mapping[str, Any]) -> PipelineConfig:
-        """node: the composed ``pipeline`` group (a plain mapping)."""
-        unknown = sorted(set(node) - {"tracking", "local_mapping", "loop_closing"})
+        """node: the composed ``pipeline`` group (a plain mapping). The matcher and chi-square sections are read
+        once and given to each step's config (``cfg.matcher``, ``cfg.chi2``)."""
+        unknown = sorted(set(node) - {"tracking", "local_mapping", "loop_closing", "matcher", "chi2"})
         if unknown:
             raise ConfigError(f"unknown config section(s) {', '.join('pipeline.' + k for k in unknown)}")
+        matcher = from_mapping(MatcherConfig, node.get("matcher", {}), "pipeline.matcher")
+        chi2 = from_mapping(Chi2Config, node.get("chi2", {}), "pipeline.chi2")
+        tracking = from_mapping(TrackingConfig, node.get("tracking", {}), "pipeline.tracking")
+        local_mapping = from_mapping(LocalMappingConfig, node.get("local_mapping", {}), "pipeline.local_mapping")
+        loop_closing = from_mapping(LoopClosingConfig, node.get("loop_closing", {}), "pipeline.loop_closing")
         return PipelineConfig(
-            from_mapping(TrackingConfig, node.get("tracking", {}), "pipeline.tracking"),
-            from_mapping(LocalMappingConfig, node.get("local_mapping", {}), "pipeline.local_mapping"),
-            from_mapping(LoopClosingConfig, node.get("loop_closing", {}), "pipeline.loop_closing"),
+            dataclasses.replace(tracking, matcher=matcher, chi2=chi2),
+            dataclasses.replace(local_mapping, matcher=matcher, chi2=chi2),
+            dataclasses.replace(loop_closing, matcher=matcher, chi2=chi2),
+            matcher,
+            chi2,
         )

@@ -11,11 +11,6 @@ from slamkit.pipeline.frame import ImageBounds
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.projection import frustum_test, match_projected
 
-#: ORB-SLAM ORBmatcher TH_LOW: max Hamming distance of a fusion match.
-TH_LOW = 50
-#: chi-square 95% with 2 dof: reprojection gate of a fusion match (ORB-SLAM Fuse: 5.99).
-CHI2_FUSE = 5.99
-
 
 def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
     """Move every observation of ``old`` to ``new`` (where ``new`` is not already observed) and erase old.
@@ -33,12 +28,16 @@ def fuse_points(
     point_ids: list[int],
     radius_px: float,
     incoming_wins: bool = False,
+    *,
+    max_distance: int,
+    chi2_gate: float,
 ) -> int:
     """Project ``point_ids`` into ``kf`` and fuse each match (radius_px scaled by the predicted level).
 
     When the matched feature already has another point, the one with more observations survives (local
     mapping, ORB-SLAM Fuse), or always the incoming one with ``incoming_wins`` (loop fusion, ORB-SLAM
-    SearchAndFuse). Returns the number of fused matches.
+    SearchAndFuse). max_distance: Hamming threshold, bits (pipeline.matcher.th_low); chi2_gate: reprojection
+    gate over the level's sigma^2 (pipeline.chi2.fuse_mono). Returns the number of fused matches.
     """
     kf_id = kf.id
     points = [p for p in store.get_points(point_ids) if kf_id not in p.observations]
@@ -73,15 +72,15 @@ def fuse_points(
         radius,
         level - 1,
         level,
-        TH_LOW,
+        max_distance,
         None,
         None,
-        30,
+        None,
     )
     sigma2 = feats.level_sigma2()
     uv_pred = test.uv_px[q[m.query]]
     err2 = np.sum((uv_pred - feats.uv_undist_px[m.feature]) ** 2, axis=1)
-    gated = err2 <= CHI2_FUSE * sigma2[m.feature]
+    gated = err2 <= chi2_gate * sigma2[m.feature]
     fused = 0
     survivors: list[int] = []
     for row, feat in zip(m.query[gated].tolist(), m.feature[gated].tolist(), strict=True):

@@ -53,7 +53,8 @@ class MonocularInitialization:
 
     def match(self, frame: Frame) -> tuple[I64, I64]:
         """ORB-SLAM SearchForInitialization: level-0 features of the reference searched in a window around
-        where they were last matched, Hamming <= TH_LOW, ratio 0.9, rotation consistency, one-to-one.
+        where they were last matched, Hamming <= TH_LOW, ratio 0.9, rotation consistency, one-to-one
+        (pipeline.matcher).
 
         Returns (reference feature indices, current feature indices)."""
         ref = self.reference
@@ -70,10 +71,10 @@ class MonocularInitialization:
             np.full(q.shape[0], cfg.init_search_radius_px),
             np.zeros(q.shape[0], np.int64),
             np.zeros(q.shape[0], np.int64),
-            cfg.descriptor_threshold_low,
-            cfg.init_match_ratio,
+            cfg.matcher.th_low,
+            cfg.matcher.ratio_initialization,
             ref.features.angle_deg[q].astype(np.float64),
-            cfg.rotation_histogram_bins,
+            cfg.matcher.rotation_bins,
             cell_px=max(10.0, cfg.init_search_radius_px / 4),
         )
         ref_idx, cur_idx = q[m.query], m.feature
@@ -160,7 +161,14 @@ def create_initial_map(
         store.update_connections(kf_cur.id)
         # Global BA of the two keyframes (ORB-SLAM: GlobalBundleAdjustemnt(map, 20)); the first keyframe fixed.
         snap = snapshot_bundle(
-            store, [kf_cur.id], [kf_ini.id], store.point_ids(), cfg.init_ba_iterations, 0, cfg.pose_chi2_mono
+            store,
+            [kf_cur.id],
+            [kf_ini.id],
+            store.point_ids(),
+            cfg.init_ba_iterations,
+            0,
+            cfg.chi2.mono,
+            cfg.chi2.stereo,
         )
     ba = optimizer.bundle_adjust(snap.problem)
     with store.write():

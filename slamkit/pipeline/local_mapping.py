@@ -34,11 +34,6 @@ log = logging.getLogger("slamkit.mapping")
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
-#: ORB-SLAM ORBmatcher TH_LOW: max Hamming distance for triangulation and fusion matches.
-_TH_LOW = 50
-#: Rotation-consistency histogram bins (ORB-SLAM HISTO_LENGTH).
-_ROT_BINS = 30
-
 
 @dataclass(frozen=True)
 class CulledKeyFrame:
@@ -196,10 +191,11 @@ class LocalMapper:
 
     def _match_for_triangulation(self, kf1: KeyFrame, kf2: KeyFrame) -> tuple[I64, I64]:
         """Unmatched features of kf1 and kf2 with Hamming <= TH_LOW, on the epipolar line (distance^2 <
-        3.84 sigma^2 of kf2's level), away from the epipole, best per feature, one-to-one, rotation-consistent
-        (ORB-SLAM SearchForTriangulation). As ORB-SLAM, only features under the same vocabulary node of the
+        3.84 sigma^2 of kf2's level, pipeline.chi2.epipolar), away from the epipole, best per feature,
+        one-to-one, rotation-consistent (ORB-SLAM SearchForTriangulation; thresholds from pipeline.matcher). As ORB-SLAM, only features under the same vocabulary node of the
         direct index are compared when both keyframes have a bag of words; otherwise every pair is."""
         empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        matcher = self.cfg.matcher
         free1 = kf1.point_ids < 0
         free2 = kf2.point_ids < 0
         if not free1.any() or not free2.any():
@@ -212,12 +208,12 @@ class LocalMapper:
                 free2,
                 kf1.features.descriptors,
                 kf2.features.descriptors,
-                _TH_LOW,
+                matcher.th_low,
             )
         else:
             f1, f2 = np.flatnonzero(free1), np.flatnonzero(free2)
             dm = hamming_matrix(kf1.features.descriptors[f1], kf2.features.descriptors[f2])
-            ia, ib = np.nonzero(dm <= _TH_LOW)
+            ia, ib = np.nonzero(dm <= matcher.th_low)
             a, b, d = f1[ia], f2[ib], dm[ia, ib].astype(np.int64)
         if a.size == 0:
             return empty
@@ -228,13 +224,14 @@ class LocalMapper:
         num = np.einsum("ij,ij->i", lines, np.c_[uv2, np.ones(b.size)])
         dist2 = num**2 / np.maximum(lines[:, 0] ** 2 + lines[:, 1] ** 2, 1e-12)
         sigma2 = kf2.features.level_sigma2()[b]
-        ok = dist2 < 3.84 * sigma2
-        # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably (an epipole at infinity,
-        # kf1's centre level with kf2's image plane, is close to nothing: NaN distances are not rejected)
+        ok = dist2 < self.cfg.chi2.epipolar * sigma2
+        # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably: squared distance below
+        # epipole_min_dist2 x the scale factor of its level (not squared, as ORB-SLAM writes it). An epipole at
+        # infinity (kf1's centre level with kf2's image plane) is close to nothing: NaN distances are not rejected.
         epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
         scale2 = kf2.features.level_scale()[b]
         with np.errstate(invalid="ignore"):
-            ok &= ~(np.linalg.norm(uv2 - epipole, axis=1) < 10.0 * scale2)
+            ok &= ~(np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2)
         a, b, dd = a[ok], b[ok], d[ok]
         # best candidate per kf1 feature
         order = np.lexsort((b, dd, a))
@@ -245,7 +242,7 @@ class LocalMapper:
         keep = resolve_one_to_one(a, b, dd)
         a, b = a[keep], b[keep]
         diff = kf1.features.angle_deg[a].astype(np.float64) - kf2.features.angle_deg[b]
-        rot = rotation_consistent(diff, _ROT_BINS)
+        rot = rotation_consistent(diff, matcher.rotation_bins)
         return a[rot], b[rot]
 
     def _triangulate(self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64) -> tuple[I64, I64, F64] | None:
@@ -270,7 +267,7 @@ class LocalMapper:
             proj, z, _ = project_points(kf.T_c_w, xyz, kf.camera)
             ok &= z > 0
             err2 = np.sum((np.where(np.isfinite(proj), proj, 1e9) - uv) ** 2, axis=1)
-            ok &= err2 < cfg.chi2_mono * s2
+            ok &= err2 < cfg.chi2.mono * s2
         dist1 = np.linalg.norm(xyz - kf1.center_w, axis=1)
         dist2 = np.linalg.norm(xyz - kf2.center_w, axis=1)
         ok &= (dist1 > 0) & (dist2 > 0)
@@ -323,12 +320,26 @@ class LocalMapper:
             with store.write():
                 if store.has_keyframe(t_id):
                     pids = kf.point_ids[kf.point_ids >= 0].tolist()
-                    fused += fuse_points(store, store.get_keyframe(t_id), pids, cfg.fuse_search_radius_px)
+                    fused += fuse_points(
+                        store,
+                        store.get_keyframe(t_id),
+                        pids,
+                        cfg.fuse_search_radius_px,
+                        max_distance=cfg.matcher.th_low,
+                        chi2_gate=cfg.chi2.fuse_mono,
+                    )
         with store.write():
             alive = [t for t in targets if store.has_keyframe(t)]
             if alive:
                 ids = np.unique(np.concatenate([store.get_keyframe(t).point_ids for t in alive]))
-                fused += fuse_points(store, kf, ids[ids >= 0].tolist(), cfg.fuse_search_radius_px)
+                fused += fuse_points(
+                    store,
+                    kf,
+                    ids[ids >= 0].tolist(),
+                    cfg.fuse_search_radius_px,
+                    max_distance=cfg.matcher.th_low,
+                    chi2_gate=cfg.chi2.fuse_mono,
+                )
         with store.write():
             refresh_points(store, kf.point_ids[kf.point_ids >= 0].tolist())
             store.update_connections(kf.id)
@@ -358,8 +369,8 @@ class LocalMapper:
                 pids,
                 cfg.ba_iterations_first,
                 cfg.ba_iterations_second,
-                cfg.ba_chi2_mono,
-                cfg.ba_chi2_stereo,
+                cfg.chi2.mono,
+                cfg.chi2.stereo,
             )
         result = run_bundle(store, self.optimizer, snap, abort)
         return int(result.outlier.sum()), bool(result.aborted)

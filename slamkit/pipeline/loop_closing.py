@@ -53,8 +53,6 @@ I64 = NDArray[np.int64]
 _MIN_KEYFRAMES_BETWEEN_LOOPS = 10
 #: ORB-SLAM ComputeSim3: BoW matches needed to try a candidate.
 _MIN_BOW_MATCHES = 20
-#: ORB-SLAM: ratio of BoW matching for loop detection.
-_BOW_RATIO = 0.75
 #: ORB-SLAM ComputeSim3: SearchByProjection(Scw) radius (th = 10) for the final loop check, px at level 0.
 _LOOP_SEARCH_RADIUS_PX = 10.0
 #: ORB-SLAM SearchAndFuse radius, px (ORBmatcher::Fuse with th = 4).
@@ -110,7 +108,9 @@ class LoopCloser:
         self._groups: list[_ConsistentGroup] = []
         self._pending: PendingLoop | None = None
         self.loops: list[LoopOutcome] = []
-        self._thresholds = VerificationThresholds(cfg.verify_search_radius_px, cfg.verify_min_matches)
+        self._thresholds = VerificationThresholds(
+            cfg.verify_search_radius_px, cfg.verify_min_matches, cfg.matcher.th_low
+        )
 
     def _neighbors(self, kf_id: int, n: int) -> list[int]:
         return self.store.covisibility.best_neighbors(kf_id, n) if kf_id in self.store.covisibility else []
@@ -237,7 +237,17 @@ class LoopCloser:
                 info["rejected"] = "no bag of words"
                 continue
             valid2 = np.array([p >= 0 and store.has_point(int(p)) for p in cand.point_ids], bool)
-            pairs = self.place.match(kf.features, kf.bow, cand.features, cand.bow, _BOW_RATIO, valid1, valid2)
+            pairs = self.place.match(
+                kf.features,
+                kf.bow,
+                cand.features,
+                cand.bow,
+                cfg.matcher.ratio_loop,
+                valid1,
+                valid2,
+                max_distance=cfg.matcher.th_low,
+                rotation_bins=cfg.matcher.rotation_bins,
+            )
             info["bow_matches"] = int(pairs.shape[0])
             if pairs.shape[0] < _MIN_BOW_MATCHES:
                 info["rejected"] = f"{pairs.shape[0]} BoW matches < {_MIN_BOW_MATCHES}"
@@ -262,6 +272,7 @@ class LoopCloser:
                 probability=cfg.sim3_ransac_probability,
                 min_inliers=cfg.sim3_ransac_min_inliers,
                 max_iterations=cfg.sim3_ransac_max_iterations,
+                chi2=cfg.chi2.sim3_ransac,
             )
             info["ransac_inliers"] = int(ransac.inliers.sum())
             if ransac.S_12 is None:
@@ -278,6 +289,7 @@ class LoopCloser:
                 intrinsics1=intrinsics_of(kf.camera.K),
                 intrinsics2=intrinsics_of(cand.camera.K),
                 scale_factor=kf.features.scale_factor,
+                chi2=cfg.chi2.sim3,
             )
             opt = self.optimizer.optimize_sim3(problem)
             info["optimized_inliers"] = int(opt.inliers.sum())
@@ -310,7 +322,9 @@ class LoopCloser:
         taken[list(matched)] = True
         used = set(matched.values())
         rest = [p for p in window if p not in used]
-        return project_window(self.store, kf, S_cw, rest, _LOOP_SEARCH_RADIUS_PX, taken).matches
+        return project_window(
+            self.store, kf, S_cw, rest, _LOOP_SEARCH_RADIUS_PX, self.cfg.matcher.th_low, taken
+        ).matches
 
     # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------
 
@@ -415,7 +429,15 @@ class LoopCloser:
             )
             for k in sorted(corr.corrected):
                 if store.has_keyframe(k):
-                    fuse_points(store, store.get_keyframe(k), loop_points, _LOOP_FUSE_RADIUS_PX, incoming_wins=True)
+                    fuse_points(
+                        store,
+                        store.get_keyframe(k),
+                        loop_points,
+                        _LOOP_FUSE_RADIUS_PX,
+                        incoming_wins=True,
+                        max_distance=self.cfg.matcher.th_low,
+                        chi2_gate=self.cfg.chi2.fuse_mono,
+                    )
             loop_connections: dict[int, set[int]] = {}
             for k in sorted(corr.corrected):
                 if not store.has_keyframe(k):
@@ -452,5 +474,8 @@ class LoopCloser:
             kf_ids = store.keyframe_ids()
             if len(kf_ids) < 2:
                 return
-            snap = snapshot_bundle(store, kf_ids[1:], kf_ids[:1], store.point_ids())
+            chi2 = self.cfg.chi2
+            snap = snapshot_bundle(
+                store, kf_ids[1:], kf_ids[:1], store.point_ids(), chi2_mono=chi2.mono, chi2_stereo=chi2.stereo
+            )
         run_bundle(store, self.optimizer, snap)

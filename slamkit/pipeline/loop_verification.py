@@ -36,7 +36,6 @@ from slamkit.geometry.sim3 import Sim3
 from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.frame import ImageBounds
-from slamkit.pipeline.fusion import TH_LOW
 from slamkit.pipeline.projection import frustum_test, match_projected
 
 I64 = NDArray[np.int64]
@@ -52,10 +51,12 @@ class VerificationThresholds:
 
     search_radius_px: window radius at pyramid level 0 (scaled by the predicted level's scale).
     min_matches: matched window points.
+    max_distance: Hamming threshold of a match, bits (pipeline.matcher.th_low).
     """
 
     search_radius_px: float
     min_matches: int
+    max_distance: int
 
 
 def loop_rotation_deg(T_c_w: NDArray[np.float64], S_c_w: Sim3) -> float:
@@ -157,11 +158,13 @@ def project_window(
     S_k_w: Sim3,
     window: list[int],
     radius_px: float,
+    max_distance: int,
     taken: NDArray[np.bool_] | None = None,
 ) -> WindowProjection:
     """ORB-SLAM SearchByProjection(Scw): project the window's points into ``kf`` with the hypothesis S_k_w,
     keep those predicted visible, search each in a radius of ``radius_px`` x the scale of its predicted level
-    among features of that level or the one below, best Hamming distance <= TH_LOW, each feature once.
+    among features of that level or the one below, best Hamming distance <= max_distance (ORB-SLAM: TH_LOW), each
+    feature once.
 
     window: point ids; taken: (F,) bool, features of ``kf`` not to match (None: all free).
     """
@@ -198,10 +201,10 @@ def project_window(
         radius_px * feats.scale_factor ** level.astype(np.float64),
         np.maximum(level - 1, 0),
         level,
-        TH_LOW,
+        max_distance,
         None,
         None,
-        30,
+        None,
     )
     return WindowProjection(int(vis.size), {int(f): pids[int(vis[q])] for q, f in zip(m.query, m.feature, strict=True)})
 
@@ -211,7 +214,7 @@ def check_keyframe(
 ) -> tuple[KeyframeCheck, WindowProjection]:
     """Does ``kf`` agree with the hypothesis S_k_w? Enough window points matched (ORB-SLAM3
     DetectCommonRegionsFromLastKF). The share of the predicted visible points matched is recorded only."""
-    proj = project_window(store, kf, S_k_w, window, th.search_radius_px)
+    proj = project_window(store, kf, S_k_w, window, th.search_radius_px, th.max_distance)
     n = len(proj.matches)
     why = f"{n} matches < {th.min_matches}" if n < th.min_matches else ""
     return KeyframeCheck(kf.id, proj.visible, n, proj.ratio, not why, why), proj

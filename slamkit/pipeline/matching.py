@@ -239,10 +239,11 @@ def resolve_one_to_one(query_idx: I64, train_idx: I64, distance: NDArray[np.inte
     return keep
 
 
-def rotation_consistent(angle_diff_deg: F64, n_bins: int = 30) -> NDArray[np.bool_]:
+def rotation_consistent(angle_diff_deg: F64, n_bins: int) -> NDArray[np.bool_]:
     """ORB-SLAM's rotation-consistency check: histogram the keypoint orientation differences of the matches
-    (``n_bins`` bins over 360 deg, ORB-SLAM HISTO_LENGTH = 30) and keep matches in the three fullest bins,
-    the second and third only when they hold more than 10% of the fullest (ComputeThreeMaxima)."""
+    (``n_bins`` bins over 360 deg: pipeline.matcher.rotation_bins, ORB-SLAM HISTO_LENGTH = 30) and keep matches
+    in the three fullest bins, the second and third only when they hold more than 10% of the fullest
+    (ComputeThreeMaxima)."""
     n = angle_diff_deg.shape[0]
     if n == 0:
         return np.zeros(0, bool)

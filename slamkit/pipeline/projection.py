@@ -86,13 +86,14 @@ def match_projected(
     max_distance: int,
     ratio: float | None,
     query_angle_deg: F64 | None,
-    rotation_bins: int,
+    rotation_bins: int | None,
     cell_px: float = 10.0,
 ) -> ProjectionMatches:
     """Match projected points (uv_px (Q, 2), descriptors (Q, D)) to the frame's features not ``taken``.
 
     Window radius and level range per query; Hamming threshold; optional ratio test; when the queries carry
-    keypoint angles (matching frame to frame), ORB-SLAM's rotation-consistency check; each feature once.
+    keypoint angles (matching frame to frame), ORB-SLAM's rotation-consistency check with ``rotation_bins``
+    (pipeline.matcher.rotation_bins; None when the queries carry no angles); each feature once.
     """
     if uv_px.shape[0] == 0 or len(features) == 0:
         empty = np.zeros(0, np.int64)
@@ -108,6 +109,8 @@ def match_projected(
     keep = resolve_one_to_one(q, f, d)
     q, f, d = q[keep], f[keep], d[keep]
     if query_angle_deg is not None and q.size:
+        if rotation_bins is None:
+            raise ValueError("match_projected: query angles given without rotation_bins")
         rot = rotation_consistent(query_angle_deg[q] - features.angle_deg[f].astype(np.float64), rotation_bins)
         q, f, d = q[rot], f[rot], d[rot]
     return ProjectionMatches(q.astype(np.int64), f.astype(np.int64), d)

@@ -42,8 +42,7 @@ I64 = NDArray[np.int64]
 
 #: Keyframes of the local map K2 taken from each K1 keyframe's covisibility neighbours (ORB-SLAM code: 10).
 _K2_NEIGHBORS_PER_KF = 10
-#: ORB-SLAM Relocalization: BoW ratio 0.75, at least 15 BoW matches, PnP needs 10 inliers.
-_RELOC_BOW_RATIO = 0.75
+#: ORB-SLAM Relocalization: at least 15 BoW matches, PnP needs 10 inliers (its BoW ratio: pipeline.matcher).
 _RELOC_MIN_BOW_MATCHES = 15
 _RELOC_MIN_PNP_INLIERS = 10
 #: A map this small is reset when tracking is lost (ORB-SLAM: "Track lost soon after initialisation").
@@ -325,8 +324,8 @@ class Tracker:
             intrinsics=intrinsics_of(frame.camera.K),
             bf=feats.bf,
             scale_factor=feats.scale_factor,
-            chi2_mono=self.cfg.pose_chi2_mono,
-            chi2_stereo=self.cfg.pose_chi2_stereo,
+            chi2_mono=self.cfg.chi2.mono,
+            chi2_stereo=self.cfg.chi2.stereo,
             rounds=self.cfg.pose_rounds,
             iterations_per_round=self.cfg.pose_iterations_per_round,
             **problem_camera(frame.camera),
@@ -370,10 +369,10 @@ class Tracker:
                 th * scale,
                 last_level - 1,
                 last_level + 1,
-                cfg.descriptor_threshold_high,
+                cfg.matcher.th_high,
                 None,
                 last.features.angle_deg[valid[q]].astype(np.float64),
-                cfg.rotation_histogram_bins,
+                cfg.matcher.rotation_bins,
             )
             frame.point_ids[m.feature] = pids[q[m.query]]
             if len(m) >= cfg.min_motion_model_matches:
@@ -397,7 +396,15 @@ class Tracker:
             return False
         if self.place is not None and kf.bow is not None:
             pairs = self.place.match(
-                kf.features, kf.bow, frame.features, self._bow_of(frame), cfg.reference_kf_ratio, valid, None
+                kf.features,
+                kf.bow,
+                frame.features,
+                self._bow_of(frame),
+                cfg.matcher.ratio_reference_kf,
+                valid,
+                None,
+                max_distance=cfg.matcher.th_low,
+                rotation_bins=cfg.matcher.rotation_bins,
             )
             frame.point_ids[:] = -1
             frame.point_ids[pairs[:, 1]] = kf.point_ids[pairs[:, 0]]
@@ -412,12 +419,12 @@ class Tracker:
         rows = np.arange(feats_kf.size)
         d1 = dist[rows, best]
         d2 = dist[rows, order[:, 1]] if dist.shape[1] > 1 else np.full(feats_kf.size, 1 << 30)
-        ok = (d1 <= cfg.descriptor_threshold_low) & (d1 < cfg.reference_kf_ratio * d2)
+        ok = (d1 <= cfg.matcher.th_low) & (d1 < cfg.matcher.ratio_reference_kf * d2)
         q = np.flatnonzero(ok)
         keep = resolve_one_to_one(q, best[q], d1[q])
         q = q[keep]
         angle_diff = kf.features.angle_deg[feats_kf[q]].astype(np.float64) - frame.features.angle_deg[best[q]]
-        q = q[rotation_consistent(angle_diff, cfg.rotation_histogram_bins)]
+        q = q[rotation_consistent(angle_diff, cfg.matcher.rotation_bins)]
         frame.point_ids[:] = -1
         frame.point_ids[best[q]] = kf.point_ids[feats_kf[q]]
         if q.size < cfg.min_reference_kf_matches:
@@ -516,10 +523,10 @@ class Tracker:
             radius,
             level - 1,
             level,
-            cfg.descriptor_threshold_high,
-            cfg.local_map_ratio,
+            cfg.matcher.th_high,
+            cfg.matcher.ratio_local_map,
             None,
-            cfg.rotation_histogram_bins,
+            None,
         )
         frame.point_ids[m.feature] = candidates[s[v[m.query]]]
 
@@ -571,7 +578,18 @@ class Tracker:
             if kf.bow is None:
                 continue
             valid = self._valid_point_ids(kf.point_ids)
-            pairs = self.place.match(kf.features, kf.bow, frame.features, bow, _RELOC_BOW_RATIO, valid, None)
+            matcher = self.cfg.matcher
+            pairs = self.place.match(
+                kf.features,
+                kf.bow,
+                frame.features,
+                bow,
+                matcher.ratio_relocalization,
+                valid,
+                None,
+                max_distance=matcher.th_low,
+                rotation_bins=matcher.rotation_bins,
+            )
             if pairs.shape[0] < _RELOC_MIN_BOW_MATCHES:
                 continue
             uv = frame.features.uv_undist_px[pairs[:, 1]].astype(np.float64)
@@ -591,7 +609,7 @@ class Tracker:
                 frame.camera.K,
                 None,
                 iterationsCount=300,
-                reprojectionError=float(np.sqrt(5.991)),
+                reprojectionError=float(np.sqrt(self.cfg.chi2.mono)),
                 confidence=0.99,
                 flags=cv2.SOLVEPNP_EPNP,
             )
@@ -607,7 +625,8 @@ class Tracker:
             good = self._discard_outliers(frame)
             if good < _RELOC_MIN_PNP_INLIERS:
                 continue
-            for radius, max_dist in ((10.0, 100), (3.0, 64)):
+            # ORB-SLAM Relocalization: SearchByProjection(frame, kf, found, 10, TH_HIGH), then (3, 64)
+            for radius, max_dist in ((10.0, matcher.th_high), (3.0, 64)):
                 if good >= self.cfg.min_local_map_inliers_after_reloc:
                     break
                 added = self._search_keyframe_points(frame, kf, radius, max_dist)
@@ -658,7 +677,7 @@ class Tracker:
             max_distance,
             None,
             None,
-            self.cfg.rotation_histogram_bins,
+            None,
         )
         frame.point_ids[m.feature] = np.array(pids, np.int64)[q[m.query]]
         return len(m)

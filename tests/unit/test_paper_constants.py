@@ -1,5 +1,5 @@
 """Each ORB-SLAM constant the issues name is a config value with the paper's default, and overriding it
-reaches the code that uses it."""
+reaches the typed config the code reads (tests/unit/test_config_keys_read.py checks that code reads every key)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,14 @@ import pytest
 from omegaconf import OmegaConf
 
 from slamkit.config import compose_config
-from slamkit.pipeline.config import PipelineConfig
+from slamkit.pipeline.config import (
+    Chi2Config,
+    LocalMappingConfig,
+    LoopClosingConfig,
+    MatcherConfig,
+    PipelineConfig,
+    TrackingConfig,
+)
 from slamkit.plugins import ComponentRegistry
 
 # (config key, paper default, where it comes from)
@@ -19,18 +26,32 @@ PIPELINE_CONSTANTS = [
     ("pipeline.local_mapping.point_min_observations", 3, "VI-B"),
     ("pipeline.local_mapping.ba_iterations_first", 5, "appendix: local BA"),
     ("pipeline.local_mapping.ba_iterations_second", 10, "appendix: local BA"),
-    ("pipeline.local_mapping.ba_chi2_mono", 5.991, "appendix"),
     ("pipeline.tracking.local_map_min_view_cos", 0.5, "V-D: cos 60 deg"),
     ("pipeline.tracking.keyframe_min_frames_since_reloc", 20, "V-E condition 1"),
     ("pipeline.tracking.keyframe_max_frames_idle", 20, "V-E condition 2"),
     ("pipeline.tracking.keyframe_min_tracked_points", 50, "V-E condition 3"),
     ("pipeline.tracking.keyframe_max_ref_ratio", 0.9, "V-E condition 4"),
-    ("pipeline.tracking.pose_chi2_mono", 5.991, "appendix: motion-only BA"),
-    ("pipeline.tracking.pose_chi2_stereo", 7.815, "appendix: motion-only BA"),
     ("pipeline.tracking.pose_rounds", 4, "appendix: motion-only BA"),
     ("pipeline.loop_closing.consistency_detections", 3, "VII-A"),
     ("pipeline.loop_closing.candidate_min_covisible_weight", 30, "VII-A"),
+    ("pipeline.matcher.th_low", 50, "code: ORBmatcher::TH_LOW"),
+    ("pipeline.matcher.th_high", 100, "code: ORBmatcher::TH_HIGH"),
+    ("pipeline.matcher.rotation_bins", 30, "code: ORBmatcher::HISTO_LENGTH"),
+    ("pipeline.matcher.epipole_min_dist2", 100.0, "code: SearchForTriangulation"),
+    ("pipeline.matcher.ratio_initialization", 0.9, "code: MonocularInitialization ORBmatcher(0.9, true)"),
+    ("pipeline.matcher.ratio_reference_kf", 0.7, "code: TrackReferenceKeyFrame ORBmatcher(0.7, true)"),
+    ("pipeline.matcher.ratio_local_map", 0.8, "code: SearchLocalPoints ORBmatcher(0.8)"),
+    ("pipeline.matcher.ratio_relocalization", 0.75, "code: Relocalization ORBmatcher(0.75, true)"),
+    ("pipeline.matcher.ratio_loop", 0.75, "code: ComputeSim3 ORBmatcher(0.75, true)"),
+    ("pipeline.chi2.mono", 5.991, "appendix: chi-square 95%, 2 dof"),
+    ("pipeline.chi2.stereo", 7.815, "appendix: chi-square 95%, 3 dof"),
+    ("pipeline.chi2.epipolar", 3.84, "code: CheckDistEpipolarLine"),
+    ("pipeline.chi2.fuse_mono", 5.99, "code: ORBmatcher::Fuse"),
+    ("pipeline.chi2.sim3", 10.0, "code: OptimizeSim3 th2"),
+    ("pipeline.chi2.sim3_ransac", 9.21, "code: Sim3Solver"),
 ]
+#: Sections every step of the pipeline shares (each step's config carries them as ``cfg.matcher``, ``cfg.chi2``).
+SHARED_SECTIONS = ("matcher", "chi2")
 COMPONENT_CONSTANTS = [
     ("map", "covisibility_min_shared", 15, "III-D covisibility graph"),
     ("initializer", "T_H", 5.991, "IV"),
@@ -54,6 +75,18 @@ def test_pipeline_constant_is_configurable(key: str, default: float, source: str
     typed = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline))  # type: ignore[arg-type]
     section, name = key.split(".")[1:]
     assert getattr(getattr(typed, section), name) == new
+    if section in SHARED_SECTIONS:  # the one value reaches tracking, local mapping and loop closing alike
+        for step in (typed.tracking, typed.local_mapping, typed.loop_closing):
+            assert getattr(getattr(step, section), name) == new
+
+
+def test_config_dataclass_defaults_are_the_yaml_defaults() -> None:
+    """The typed config's defaults (used by code built without Hydra, e.g. tests) do not drift from the YAML."""
+    from_yaml = PipelineConfig.from_node(OmegaConf.to_container(compose_config().pipeline))  # type: ignore[arg-type]
+    assert from_yaml.tracking == TrackingConfig()
+    assert from_yaml.local_mapping == LocalMappingConfig()
+    assert from_yaml.loop_closing == LoopClosingConfig()
+    assert (from_yaml.matcher, from_yaml.chi2) == (MatcherConfig(), Chi2Config())
 
 
 @pytest.mark.parametrize(("group", "name", "default", "source"), COMPONENT_CONSTANTS)

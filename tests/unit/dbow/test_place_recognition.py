@@ -13,6 +13,10 @@ from slamkit_dbow.vocabulary import Vocabulary, VocabularyError
 from slamkit.features import Features
 from slamkit.interfaces import FeatureExtractor, PlaceRecognizer
 from slamkit.io.synthetic.dataset import SyntheticDataset
+from slamkit.pipeline.config import MatcherConfig
+
+#: ORB-SLAM's SearchByBoW thresholds, as the pipeline passes them (pipeline.matcher).
+ORB_MATCHER = {"max_distance": MatcherConfig().th_low, "rotation_bins": MatcherConfig().rotation_bins}
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +86,7 @@ def test_bow_matching_two_views_agrees_with_ground_truth(
     f1, f2 = ds[120], ds[132]  # 0.4 s apart
     k1, k2 = orb.extract(f1.image), orb.extract(f2.image)
     b1, b2 = recognizer.transform(k1.descriptors), recognizer.transform(k2.descriptors)
-    pairs = match_by_bow(k1, b1, k2, b2, ratio=0.75)
+    pairs = match_by_bow(k1, b1, k2, b2, ratio=0.75, **ORB_MATCHER)
     assert pairs.shape[1] == 2 and len(pairs) > 100
     assert np.unique(pairs[:, 0]).size == len(pairs) and np.unique(pairs[:, 1]).size == len(pairs)
     # ground truth: lift features of view 1 with the exact depth, project them into view 2
@@ -98,21 +102,21 @@ def test_bow_matching_two_views_agrees_with_ground_truth(
     tolerance = 3.0 * k2.level_scale()[pairs[:, 1]]
     assert np.mean(err < tolerance) > 0.95
     # the rotation check and the ratio test only remove matches
-    loose = match_by_bow(k1, b1, k2, b2, ratio=1.0, rotation_bins=None)
+    loose = match_by_bow(k1, b1, k2, b2, ratio=1.0, max_distance=50, rotation_bins=None)
     assert len(loose) >= len(pairs)
     # masks restrict the features allowed to match
     mask = np.zeros(len(k1), bool)
     mask[: len(k1) // 2] = True
-    masked = match_by_bow(k1, b1, k2, b2, mask1=mask)
+    masked = match_by_bow(k1, b1, k2, b2, 0.75, **ORB_MATCHER, mask1=mask)
     assert len(masked) > 0 and np.all(masked[:, 0] < len(k1) // 2)
 
 
 def test_bow_matching_edge_cases(recognizer: DbowPlaceRecognizer, orb: FeatureExtractor) -> None:
     feats: Features = orb.extract(SyntheticDataset(scene="room", seed=0, imu=False)[10].image)
     bow = recognizer.transform(feats.descriptors)
-    same = match_by_bow(feats, bow, feats, bow, rotation_bins=30)
+    same = match_by_bow(feats, bow, feats, bow, 0.75, **ORB_MATCHER)
     assert np.array_equal(same[:, 0], same[:, 1])  # an image matches itself feature for feature
     empty = recognizer.transform(np.zeros((0, 32), np.uint8))
-    assert match_by_bow(feats, bow, feats, empty).shape == (0, 2)
+    assert match_by_bow(feats, bow, feats, empty, 0.75, **ORB_MATCHER).shape == (0, 2)
     with pytest.raises(VocabularyError, match=r"mask2 must be a \(\d+,\) bool array"):
-        match_by_bow(feats, bow, feats, bow, mask2=np.ones(3, bool))
+        match_by_bow(feats, bow, feats, bow, 0.75, **ORB_MATCHER, mask2=np.ones(3, bool))

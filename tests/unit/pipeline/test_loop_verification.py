@@ -42,7 +42,7 @@ def _record(features: Features) -> Observations:
 
 
 # ORB-SLAM3's defaults (conf/pipeline/orbslam.yaml): radius 3 px, 30 matches.
-TH = VerificationThresholds(3.0, 30)
+TH = VerificationThresholds(3.0, 30, 50)
 N_WALL, N_OTHER = 60, 240
 # place B = G place A: turned by 180 degrees about the vertical through (6, 2, 0) (12 m from A's cameras)
 TWIN = np.array([[-1.0, 0.0, 0.0, 12.0], [0.0, -1.0, 0.0, 4.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
@@ -207,7 +207,9 @@ def test_a_wrong_hypothesis_finds_too_few_matches(world: World) -> None:
 def test_points_outside_their_scale_range_are_not_predicted_visible(world: World) -> None:
     ids = world.add_group([pose_at(0.0, -3.0)], world.xyz_a, world.desc_a, np.eye(4))  # 7 m away: beyond 1.2 d_max
     window = loop_window(world.store, world.loop_ids[0])
-    proj = project_window(world.store, world.store.get_keyframe(ids[0]), Sim3.from_se3(pose_at(0.0, -3.0)), window, 3.0)
+    proj = project_window(
+        world.store, world.store.get_keyframe(ids[0]), Sim3.from_se3(pose_at(0.0, -3.0)), window, 3.0, 50
+    )
     assert proj.visible == 0 and proj.matches == {} and proj.ratio == 0.0
 
 

@@ -79,5 +79,5 @@ def test_rotation_consistency_rejects_odd_orientations() -> None:
     rng = np.random.default_rng(4)
     good = rng.normal(20.0, 2.0, 200)  # the image rotated by ~20 deg
     bad = np.array([150.0, 250.0, 300.0])
-    keep = rotation_consistent(np.concatenate([good, bad]))
+    keep = rotation_consistent(np.concatenate([good, bad]), 30)
     assert keep[:200].mean() > 0.95 and not keep[200:].any()
