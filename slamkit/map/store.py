@@ -19,7 +19,6 @@ from slamkit.map.graphs import (
     CovisibilityView,
     SpanningTree,
     SpanningTreeView,
-    essential_graph_edges,
 )
 from slamkit.map.ids import IdAllocator
 from slamkit.map.lock import ReadWriteLock
@@ -165,10 +164,6 @@ class InMemoryMapStore:
                 if other != keyframe_id:
                     counts[other] = counts.get(other, 0) + 1
         return counts
-
-    def essential_graph(self, theta_min: int) -> list[tuple[int, int]]:
-        """Essential-graph edges (III-D) with the given covisibility threshold (ORB-SLAM: 100)."""
-        return essential_graph_edges(self._covisibility, self._tree, self._loop_edges, theta_min)
 
     # ---- mutations: entities ---------------------------------------------------------------------------
 
