@@ -1,6 +1,6 @@
 """Local mapping on a small exact map: triangulation recovers the true points, the local BA runs on a snapshot
-without the map's write lock (a reader gets in while the optimizer works), and the Cholesky kernel and the
-direct-index candidate pairs the faster paths rely on are exact."""
+without the map's write lock (a reader gets in while the optimizer works), and the Cholesky kernel the faster
+path relies on is exact."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from slamkit.interfaces import AbortToken
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import LocalMappingConfig
-from slamkit.pipeline.local_mapping import LocalMapper, same_node_matches
+from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.plugins import ComponentRegistry
 from slamkit.problems import BundleProblem, BundleResult
@@ -151,21 +151,3 @@ def test_cholesky_kernel_signals_an_indefinite_system_with_nan() -> None:
     S = np.array([[1.0, 2.0], [2.0, 1.0]])  # eigenvalues 3 and -1
     assert np.all(np.isnan(cholesky_solve_upper(S, np.ones(2))))
     assert np.all(np.isnan(cholesky_solve_upper(np.array([[np.nan]]), np.ones(1))))
-
-
-def test_direct_index_candidates_are_the_close_unmatched_pairs_of_shared_nodes() -> None:
-    rng = np.random.default_rng(7)
-    d1 = rng.integers(0, 256, (6, 32), dtype=np.uint8)
-    d2 = rng.integers(0, 256, (7, 32), dtype=np.uint8)
-    d2[1] = d1[0]  # distance 0
-    d2[6] = d1[2] ^ np.uint8(1)  # distance 32 (one bit per byte)
-    di1 = {3: np.array([0, 2, 5]), 7: np.array([1]), 9: np.array([4])}
-    di2 = {3: np.array([1, 6, 5]), 7: np.array([0, 3]), 8: np.array([2])}
-    free1 = np.array([True, True, True, True, True, False])  # feature 5 of kf1 already has a point
-    free2 = np.array([True, True, True, False, True, True, True])  # feature 3 of kf2 too
-    a, b, d = same_node_matches(di1, di2, free1, free2, d1, d2, 255)
-    assert list(zip(a.tolist(), b.tolist(), strict=True)) == [(0, 1), (0, 6), (0, 5), (2, 1), (2, 6), (2, 5), (1, 0)]
-    bits = np.unpackbits(d1[a] ^ d2[b], axis=1).sum(axis=1)
-    np.testing.assert_array_equal(d, bits)
-    a, b, d = same_node_matches(di1, di2, free1, free2, d1, d2, 50)  # ORB-SLAM TH_LOW
-    assert list(zip(a.tolist(), b.tolist(), d.tolist(), strict=True)) == [(0, 1, 0), (2, 6, 32)]
