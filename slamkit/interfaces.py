@@ -10,7 +10,7 @@ from frame b to frame a, poses are float64, pixels float32, metres/radians/secon
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
@@ -161,11 +161,13 @@ class BowDescription:
     """A bag-of-words description of one image.
 
     words: word id -> TF-IDF weight (L1-normalised).
-    direct_index: vocabulary node id (at the configured level) -> (k,) indices of the image's features.
+    direct_index: the recognizer's own grouping of the image's features (DBoW: vocabulary node id at the
+        configured level -> (k,) indices of the image's features; empty for a recognizer without one). Only the
+        recognizer that made it reads it (its ``match`` and ``candidate_pairs``); the pipeline never does.
     """
 
     words: Mapping[int, float]
-    direct_index: Mapping[int, NDArray[np.int64]]
+    direct_index: Mapping[int, NDArray[np.int64]] = field(default_factory=dict)
 
 
 #: (keyframe id, n) -> its n best covisible keyframes, best first (``store.covisibility.best_neighbors``).
@@ -226,6 +228,28 @@ class PlaceRecognizer(Protocol):
         sharing a vocabulary node, best Hamming distance <= ``max_distance`` bits, nearest/second ``ratio`` test,
         each feature of image 2 once, and rotation consistency over ``rotation_bins`` histogram bins (None: no
         check); masks restrict the eligible features. The caller passes the thresholds (pipeline.matcher)."""
+        ...
+
+    def candidate_pairs(
+        self,
+        feats1: Features,
+        bow1: BowDescription,
+        feats2: Features,
+        bow2: BowDescription,
+        mask1: NDArray[np.bool_] | None = None,
+        mask2: NDArray[np.bool_] | None = None,
+        *,
+        max_distance: int,
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """The BoW-restricted candidates of ORB-SLAM SearchForTriangulation (local mapping, VI-C): every pair
+        (feature a of image 1, feature b of image 2) that the recognizer's structure puts together (DBoW: the same
+        vocabulary node of the direct index, ORB-SLAM's FeatureVector walk), both allowed by the masks ((N1,) /
+        (N2,) bool, None: all), with Hamming distance <= ``max_distance`` bits (pipeline.matcher.th_low), each pair
+        once -> (a, b, distance) (K,) int64 arrays. Local mapping filters them (epipolar constraint, best per
+        feature, one-to-one, rotation), so the order does not change its result; DBoW gives node order, then a,
+        then b. A recognizer with no such structure may return every masked pair within ``max_distance``
+        (slamkit.pipeline.matching.close_pairs): correct, only slower. Every pair ``match`` returns under the same
+        masks and ``max_distance`` is among these."""
         ...
 
 

@@ -5,7 +5,8 @@
 - textformat.py / binformat.py / files.py: DBoW2's text format (ORBvoc.txt) and slamkit's binary form;
 - builtin.py: the vocabulary slamkit ships (trained on its synthetic world), rebuilt on first use if absent;
 - database.py / covisibility.py: ORB-SLAM's keyframe database and covisibility grouping (III-E);
-- matching.py: BoW-guided matching (SearchByBoW); recognizer.py: the ``place=dbow`` component;
+- matching.py: BoW-guided matching (SearchByBoW) and triangulation candidates (SearchForTriangulation's node walk);
+  recognizer.py: the ``place=dbow`` component;
 - cli.py: ``slamkit vocab train | convert | info | eval`` (also ``python -m slamkit_dbow vocab ...``).
 See docs/place_recognition.md.
 """
@@ -13,7 +14,7 @@ See docs/place_recognition.md.
 from slamkit_dbow.covisibility import group_by_covisibility
 from slamkit_dbow.database import KeyframeDatabase
 from slamkit_dbow.files import load_vocabulary, save_vocabulary
-from slamkit_dbow.matching import match_by_bow
+from slamkit_dbow.matching import match_by_bow, node_pairs
 from slamkit_dbow.recognizer import DbowPlaceRecognizer
 from slamkit_dbow.training import TrainingParams, train_vocabulary
 from slamkit_dbow.vocabulary import Vocabulary, VocabularyError
@@ -27,6 +28,7 @@ __all__ = [
     "group_by_covisibility",
     "load_vocabulary",
     "match_by_bow",
+    "node_pairs",
     "save_vocabulary",
     "train_vocabulary",
 ]

@@ -1,17 +1,25 @@
-"""BoW-guided matching (ORB-SLAM's ORBmatcher::SearchByBoW, sec. III-E / V-A / VI-B): brute-force
-matching restricted to the features of two images that fall in the same vocabulary node of the direct
-index, with the nearest/second-nearest ratio test, a maximum distance, each feature matched once, and
-the rotation-consistency histogram. Used for relocalization, loop detection and (with masks selecting the
-features without a map point) to find pairs to triangulate."""
+"""BoW-guided matching through the direct index: two walks of the vocabulary nodes two images share, as
+ORB-SLAM's ORBmatcher has them.
+
+- ``match_by_bow`` (SearchByBoW, sec. III-E / V-A / VI-B): brute-force matching restricted to the features of
+  the same node, with the nearest/second-nearest ratio test, a maximum distance, each feature matched once, and
+  the rotation-consistency histogram. Used for tracking the reference keyframe, relocalization and loop
+  detection.
+- ``node_pairs`` (SearchForTriangulation's FeatureVector walk, sec. VI-C): every close pair of allowed features of
+  the same node, the candidates local mapping filters with the epipolar constraint before triangulating.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.features import Features
 from slamkit.interfaces import BowDescription
-from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
+from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent, row_distance
 from slamkit_dbow.vocabulary import VocabularyError
 
 I64 = NDArray[np.int64]
@@ -90,3 +98,97 @@ def match_by_bow(
         q, t = q[ok], t[ok]
     order = np.argsort(q, kind="stable")
     return np.stack([q[order], t[order]], axis=1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _node_pair_matches(
+    nodes1: I64,
+    ptr1: I64,
+    feats1: I64,
+    nodes2: I64,
+    ptr2: I64,
+    feats2: I64,
+    mask1: NDArray[np.bool_],
+    mask2: NDArray[np.bool_],
+    desc1: NDArray[np.uint64],
+    desc2: NDArray[np.uint64],
+    max_distance: int,
+) -> tuple[I64, I64, I64]:  # pragma: no cover - compiled
+    """Merge the two sorted node lists; for every shared node, every (allowed feature of 1, allowed feature of 2)
+    pair within max_distance bits -> (a, b, distance), in node order, then a's, then b's (direct-index order)."""
+    n_pairs = 0
+    i = j = 0
+    while i < nodes1.shape[0] and j < nodes2.shape[0]:
+        if nodes1[i] < nodes2[j]:
+            i += 1
+        elif nodes1[i] > nodes2[j]:
+            j += 1
+        else:
+            n_pairs += (ptr1[i + 1] - ptr1[i]) * (ptr2[j + 1] - ptr2[j])
+            i += 1
+            j += 1
+    a = np.empty(n_pairs, np.int64)
+    b = np.empty(n_pairs, np.int64)
+    d = np.empty(n_pairs, np.int64)
+    n = 0
+    i = j = 0
+    while i < nodes1.shape[0] and j < nodes2.shape[0]:
+        if nodes1[i] < nodes2[j]:
+            i += 1
+        elif nodes1[i] > nodes2[j]:
+            j += 1
+        else:
+            for s in range(ptr1[i], ptr1[i + 1]):
+                x = feats1[s]
+                if not mask1[x]:
+                    continue
+                for t in range(ptr2[j], ptr2[j + 1]):
+                    y = feats2[t]
+                    if not mask2[y]:
+                        continue
+                    dist = row_distance(desc1, x, desc2, y)
+                    if dist <= max_distance:
+                        a[n] = x
+                        b[n] = y
+                        d[n] = dist
+                        n += 1
+            i += 1
+            j += 1
+    return a[:n], b[:n], d[:n]
+
+
+def _direct_index_arrays(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
+    """A direct index (node -> feature indices) as sorted node ids (K,), offsets (K + 1,), features."""
+    nodes = sorted(di)
+    parts = [np.asarray(di[n], np.int64).ravel() for n in nodes]
+    sizes = np.array([p.size for p in parts], np.int64)
+    ptr = np.concatenate([np.zeros(1, np.int64), np.cumsum(sizes)]).astype(np.int64)
+    feats = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+    return np.array(nodes, np.int64), ptr, feats
+
+
+def node_pairs(
+    feats1: Features,
+    bow1: BowDescription,
+    feats2: Features,
+    bow2: BowDescription,
+    mask1: NDArray[np.bool_] | None,
+    mask2: NDArray[np.bool_] | None,
+    max_distance: int,
+) -> tuple[I64, I64, I64]:
+    """The candidates of ORB-SLAM's SearchForTriangulation, which walks the two images' FeatureVectors: every pair
+    (feature a of image 1, feature b of image 2) under the same direct-index node, both allowed by the masks
+    (mask1 (N1,) / mask2 (N2,) bool, None: all; local mapping passes the features without a map point), with Hamming
+    distance <= ``max_distance`` bits (pipeline.matcher.th_low) -> (a, b, distance) (K,) int64 arrays, in node
+    order, then a, then b (one compiled pass, GIL released)."""
+    m1 = _mask(mask1, len(feats1), "mask1")
+    m2 = _mask(mask2, len(feats2), "mask2")
+    m1 = np.ones(len(feats1), bool) if m1 is None else m1
+    m2 = np.ones(len(feats2), bool) if m2 is None else m2
+    d1 = np.ascontiguousarray(feats1.descriptors, np.uint8)
+    d2 = np.ascontiguousarray(feats2.descriptors, np.uint8)
+    if d1.shape[1] % 8 or d1.shape[1] != d2.shape[1]:
+        raise VocabularyError(f"descriptors must be (N, D) uint8 with one D, a multiple of 8: {d1.shape}, {d2.shape}")
+    n1, p1, f1 = _direct_index_arrays(bow1.direct_index)
+    n2, p2, f2 = _direct_index_arrays(bow2.direct_index)
+    return _node_pair_matches(n1, p1, f1, n2, p2, f2, m1, m2, d1.view(np.uint64), d2.view(np.uint64), int(max_distance))

@@ -16,7 +16,7 @@ from slamkit_dbow.builtin import load_builtin_vocabulary
 from slamkit_dbow.covisibility import NeighborsFn
 from slamkit_dbow.database import KeyframeDatabase
 from slamkit_dbow.files import load_vocabulary
-from slamkit_dbow.matching import match_by_bow
+from slamkit_dbow.matching import match_by_bow, node_pairs
 from slamkit_dbow.vocabulary import Vocabulary
 
 _cache_lock = threading.Lock()
@@ -147,3 +147,18 @@ class DbowPlaceRecognizer:
             mask1=mask1,
             mask2=mask2,
         )
+
+    def candidate_pairs(
+        self,
+        feats1: Features,
+        bow1: BowDescription,
+        feats2: Features,
+        bow2: BowDescription,
+        mask1: NDArray[np.bool_] | None = None,
+        mask2: NDArray[np.bool_] | None = None,
+        *,
+        max_distance: int,
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """The close pairs of features under the same direct-index node (ORB-SLAM SearchForTriangulation's
+        FeatureVector walk; see ``slamkit_dbow.matching.node_pairs``)."""
+        return node_pairs(feats1, bow1, feats2, bow2, mask1, mask2, max_distance)

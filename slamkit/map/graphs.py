@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
+from slamkit.map import protocol
+
 
 class CovisibilityGraph:
     """Undirected weighted graph: an edge joins two keyframes that observe at least ``min_shared`` common
@@ -168,13 +170,17 @@ class SpanningTreeView:
 
 
 def essential_graph_edges(
-    covisibility: CovisibilityGraph,
-    spanning_tree: SpanningTree,
+    covisibility: protocol.CovisibilityGraphView,
+    spanning_tree: protocol.SpanningTreeView,
     loop_edges: Iterable[tuple[int, int]],
     theta_min: int,
 ) -> list[tuple[int, int]]:
-    """Edges of the essential graph (III-D): the spanning tree, the covisibility edges with weight >=
-    theta_min (ORB-SLAM: 100), and the loop-closure edges. Each edge once as (a, b), a < b, sorted."""
+    """Edges of the essential graph (ORB-SLAM III-D, Optimizer::OptimizeEssentialGraph): the spanning tree, the
+    loop-closure edges, and the covisibility edges with weight >= theta_min shared points (ORB-SLAM: 100).
+
+    The one builder of the essential graph: loop correction (slamkit.pipeline.loop_correction) adds the new loop
+    connections of the loop being closed to these. Each edge once as (a, b), a < b, sorted (keyframe ids).
+    """
     edges = {(min(a, b), max(a, b)) for a, b in spanning_tree.edges()}
     edges |= {(a, b) for a, b, w in covisibility.edges() if w >= theta_min}
     edges |= {(min(a, b), max(a, b)) for a, b in loop_edges if a != b}

@@ -241,7 +241,8 @@ class MapStore(Protocol):
     def update_connections(self, keyframe_id: int) -> None:
         """Recompute a keyframe's covisibility edges from its shared points (at least ``covisibility_min_shared``,
         else the single best so it is never isolated); a keyframe entering the spanning tree gets as parent the
-        keyframe it shares most points with (ORB-SLAM KeyFrame::UpdateConnections)."""
+        keyframe it shares most points with, except the map's first keyframe (the first added), the tree's root
+        (ORB-SLAM KeyFrame::UpdateConnections, ``mnId != InitKFid``): the tree never has a cycle."""
         ...
 
     def add_loop_edge(self, a: int, b: int) -> None:

@@ -19,7 +19,6 @@ from slamkit.map.graphs import (
     CovisibilityView,
     SpanningTree,
     SpanningTreeView,
-    essential_graph_edges,
 )
 from slamkit.map.ids import IdAllocator
 from slamkit.map.lock import ReadWriteLock
@@ -62,6 +61,7 @@ class InMemoryMapStore:
         self._origin: int | None = None  # cached smallest keyframe id (see origin_keyframe_id)
         self._covisibility = CovisibilityGraph()
         self._tree = SpanningTree()
+        self._first_keyframe: int | None = None  # the map's initial keyframe: the root of its spanning tree
         self._loop_edges: set[tuple[int, int]] = set()
         self._covisibility_view = CovisibilityView(self._covisibility)
         self._tree_view = SpanningTreeView(self._tree)
@@ -166,10 +166,6 @@ class InMemoryMapStore:
                     counts[other] = counts.get(other, 0) + 1
         return counts
 
-    def essential_graph(self, theta_min: int) -> list[tuple[int, int]]:
-        """Essential-graph edges (III-D) with the given covisibility threshold (ORB-SLAM: 100)."""
-        return essential_graph_edges(self._covisibility, self._tree, self._loop_edges, theta_min)
-
     # ---- mutations: entities ---------------------------------------------------------------------------
 
     def add_keyframe(self, keyframe: KeyFrame) -> None:
@@ -183,6 +179,8 @@ class InMemoryMapStore:
         self._kf_point_ids[kf_id] = own
         self._keyframes[kf_id] = keyframe
         self._covisibility.add_node(kf_id)
+        if self._first_keyframe is None:
+            self._first_keyframe = kf_id
         if self._origin is not None and kf_id < self._origin:
             self._origin = kf_id
         for idx in np.flatnonzero(own >= 0).tolist():
@@ -321,8 +319,11 @@ class InMemoryMapStore:
         shared = self.shared_point_counts(keyframe_id)
         self._covisibility.update_connections(keyframe_id, shared, self.covisibility_min_shared)
         if keyframe_id not in self._tree:
+            # ORB-SLAM KeyFrame::UpdateConnections: the map's initial keyframe gets no parent (mnId != InitKFid),
+            # else the two keyframes of the initialization would be each other's parent
             neighbors = self._covisibility.neighbors(keyframe_id)
-            self._tree.add(keyframe_id, neighbors[0] if neighbors else None)
+            root = keyframe_id == self._first_keyframe or not neighbors
+            self._tree.add(keyframe_id, None if root else neighbors[0])
 
     def add_loop_edge(self, a: int, b: int) -> None:
         self._loop_edges.add((min(a, b), max(a, b)))

@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -26,7 +24,7 @@ from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.map_points import refresh_points
-from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent, row_distance
+from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.projection import project_points, require_pinhole_image
 
 log = logging.getLogger("slamkit.mapping")
@@ -192,29 +190,22 @@ class LocalMapper:
     def _match_for_triangulation(self, kf1: KeyFrame, kf2: KeyFrame) -> tuple[I64, I64]:
         """Unmatched features of kf1 and kf2 with Hamming <= TH_LOW, on the epipolar line (distance^2 <
         3.84 sigma^2 of kf2's level, pipeline.chi2.epipolar), away from the epipole, best per feature,
-        one-to-one, rotation-consistent (ORB-SLAM SearchForTriangulation; thresholds from pipeline.matcher). As ORB-SLAM, only features under the same vocabulary node of the
-        direct index are compared when both keyframes have a bag of words; otherwise every pair is."""
+        one-to-one, rotation-consistent (ORB-SLAM SearchForTriangulation; thresholds from pipeline.matcher). As
+        ORB-SLAM, the candidates are those the place recognizer pairs (``PlaceRecognizer.candidate_pairs``: DBoW
+        compares only features under the same vocabulary node) when both keyframes have a bag of words;
+        otherwise every pair is a candidate."""
         empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
         matcher = self.cfg.matcher
         free1 = kf1.point_ids < 0
         free2 = kf2.point_ids < 0
         if not free1.any() or not free2.any():
             return empty
-        if kf1.bow is not None and kf2.bow is not None:
-            a, b, d = same_node_matches(
-                kf1.bow.direct_index,
-                kf2.bow.direct_index,
-                free1,
-                free2,
-                kf1.features.descriptors,
-                kf2.features.descriptors,
-                matcher.th_low,
+        if self.place is not None and kf1.bow is not None and kf2.bow is not None:
+            a, b, d = self.place.candidate_pairs(
+                kf1.features, kf1.bow, kf2.features, kf2.bow, free1, free2, max_distance=matcher.th_low
             )
         else:
-            f1, f2 = np.flatnonzero(free1), np.flatnonzero(free2)
-            dm = hamming_matrix(kf1.features.descriptors[f1], kf2.features.descriptors[f2])
-            ia, ib = np.nonzero(dm <= matcher.th_low)
-            a, b, d = f1[ia], f2[ib], dm[ia, ib].astype(np.int64)
+            a, b, d = close_pairs(kf1.features.descriptors, kf2.features.descriptors, free1, free2, matcher.th_low)
         if a.size == 0:
             return empty
         uv1 = kf1.features.uv_undist_px[a].astype(np.float64)
@@ -400,96 +391,6 @@ class LocalMapper:
                 if self.place is not None:
                     self.place.remove(k_id)
         return culled
-
-
-@numba.njit(cache=True, nogil=True)
-def _node_pair_matches(
-    nodes1: I64,
-    ptr1: I64,
-    feats1: I64,
-    nodes2: I64,
-    ptr2: I64,
-    feats2: I64,
-    free1: NDArray[np.bool_],
-    free2: NDArray[np.bool_],
-    desc1: NDArray[np.uint64],
-    desc2: NDArray[np.uint64],
-    max_distance: int,
-) -> tuple[I64, I64, I64]:  # pragma: no cover - compiled
-    """Merge the two sorted node lists; for every shared node, every (unmatched feature of 1, unmatched feature
-    of 2) pair within max_distance bits -> (a, b, distance), in node order, then a's, then b's."""
-    n_pairs = 0
-    i = j = 0
-    while i < nodes1.shape[0] and j < nodes2.shape[0]:
-        if nodes1[i] < nodes2[j]:
-            i += 1
-        elif nodes1[i] > nodes2[j]:
-            j += 1
-        else:
-            n_pairs += (ptr1[i + 1] - ptr1[i]) * (ptr2[j + 1] - ptr2[j])
-            i += 1
-            j += 1
-    a = np.empty(n_pairs, np.int64)
-    b = np.empty(n_pairs, np.int64)
-    d = np.empty(n_pairs, np.int64)
-    n = 0
-    i = j = 0
-    while i < nodes1.shape[0] and j < nodes2.shape[0]:
-        if nodes1[i] < nodes2[j]:
-            i += 1
-        elif nodes1[i] > nodes2[j]:
-            j += 1
-        else:
-            for s in range(ptr1[i], ptr1[i + 1]):
-                x = feats1[s]
-                if not free1[x]:
-                    continue
-                for t in range(ptr2[j], ptr2[j + 1]):
-                    y = feats2[t]
-                    if not free2[y]:
-                        continue
-                    dist = row_distance(desc1, x, desc2, y)
-                    if dist <= max_distance:
-                        a[n] = x
-                        b[n] = y
-                        d[n] = dist
-                        n += 1
-            i += 1
-            j += 1
-    return a[:n], b[:n], d[:n]
-
-
-def _direct_index_arrays(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
-    """A direct index (node -> feature indices) as sorted node ids (K,), offsets (K + 1,), features."""
-    nodes = sorted(di)
-    parts = [np.asarray(di[n], np.int64).ravel() for n in nodes]
-    sizes = np.array([p.size for p in parts], np.int64)
-    ptr = np.concatenate([np.zeros(1, np.int64), np.cumsum(sizes)]).astype(np.int64)
-    feats = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
-    return np.array(nodes, np.int64), ptr, feats
-
-
-def same_node_matches(
-    di1: Mapping[int, I64],
-    di2: Mapping[int, I64],
-    free1: NDArray[np.bool_],
-    free2: NDArray[np.bool_],
-    desc1: NDArray[np.uint8],
-    desc2: NDArray[np.uint8],
-    max_distance: int,
-) -> tuple[I64, I64, I64]:
-    """ORB-SLAM SearchForTriangulation's candidates: the pairs (feature a of kf1, feature b of kf2) under the
-    same direct-index node, both unmatched (free1 (N1,) / free2 (N2,) bool), with Hamming distance <=
-    max_distance -> (a, b, distance) arrays, in node order, then a, then b (one compiled pass, GIL released)."""
-    n1, p1, f1 = _direct_index_arrays(di1)
-    n2, p2, f2 = _direct_index_arrays(di2)
-    d1 = np.ascontiguousarray(desc1, np.uint8)
-    d2 = np.ascontiguousarray(desc2, np.uint8)
-    if d1.shape[1] % 8 or d1.shape[1] != d2.shape[1]:
-        raise ValueError(f"descriptors must be (N, D) uint8 with one D, a multiple of 8: {d1.shape}, {d2.shape}")
-    return _node_pair_matches(
-        n1, p1, f1, n2, p2, f2, free1, free2, d1.view(np.uint64), d2.view(np.uint64), int(max_distance)
-    )
 
 
 def _median_depth(kf: KeyFrame, store: MapStore) -> float:

@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.sim3 import Sim3
-from slamkit.interfaces import MapStore, Optimizer
+from slamkit.interfaces import MapStore
+from slamkit.map.graphs import essential_graph_edges
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.problems import EssentialGraphProblem, EssentialGraphResult
 
@@ -95,12 +96,12 @@ def essential_graph_problem(
     loop_connections: dict[int, set[int]],
     theta_min: int,
 ) -> tuple[EssentialGraphProblem, list[int]]:
-    """The essential graph of ORB-SLAM's OptimizeEssentialGraph with the loop keyframe fixed.
+    """The essential-graph problem of ORB-SLAM's OptimizeEssentialGraph with the loop keyframe fixed.
 
-    Edges: the new loop connections (those other than current-loop need theta_min shared points), the
-    spanning tree, earlier loop edges, and covisibility edges with at least theta_min shared points. Loop
-    connections are measured from the corrected poses, the other edges from the poses before correction;
-    initial values are the corrected poses.
+    Edges: the new loop connections (those other than current-loop need theta_min shared points), then the
+    essential graph of the map (slamkit.map.graphs.essential_graph_edges: spanning tree, earlier loop edges,
+    covisibility edges with at least theta_min shared points). Loop connections are measured from the corrected
+    poses, the other edges from the poses before correction; initial values are the corrected poses.
     """
     kf_ids = store.keyframe_ids()
     row = {k: i for i, k in enumerate(kf_ids)}
@@ -120,13 +121,8 @@ def essential_graph_problem(
             if (i, j) != (current_id, loop_kf_id) and cov.weight(i, j) < theta_min:
                 continue
             add(i, j, initial)
-    for p, c in store.spanning_tree.edges():
-        add(p, c, measured)
-    for a, b in store.loop_edges():
+    for a, b in essential_graph_edges(cov, store.spanning_tree, store.loop_edges(), theta_min):
         add(a, b, measured)
-    for a, b, w in cov.edges():
-        if w >= theta_min:
-            add(a, b, measured)
     pairs = sorted(edges)
     S_ij = (
         np.stack([(edges[i, j][row[i]] @ edges[i, j][row[j]].inverse()).matrix() for i, j in pairs])
@@ -163,19 +159,3 @@ def apply_essential_graph(
     for k in kf_ids:
         store.set_keyframe_pose(k, pose_of_sim3(Sim3.from_matrix(result.S_c_w[row[k]])))
     refresh_points(store, store.point_ids(), normals=True, descriptors=False)
-
-
-def optimize_essential_graph(
-    store: MapStore,
-    optimizer: Optimizer,
-    loop_kf_id: int,
-    current_id: int,
-    corr: LoopCorrection,
-    loop_connections: dict[int, set[int]],
-    theta_min: int,
-) -> tuple[EssentialGraphResult, int]:
-    """Build, solve and apply the essential graph; returns the result and the number of edges."""
-    problem, kf_ids = essential_graph_problem(store, loop_kf_id, current_id, corr, loop_connections, theta_min)
-    result = optimizer.optimize_essential_graph(problem)
-    apply_essential_graph(store, problem, result, kf_ids)
-    return result, int(problem.edge_i.shape[0])

@@ -1,7 +1,8 @@
 """Descriptor matching primitives of ORB-SLAM's ORBmatcher, vectorised with numba (nogil: they release the
 GIL so tracking and local mapping run side by side in the threaded runtime).
 
-- ``hamming_matrix``: all-pairs Hamming distance of 256-bit descriptors.
+- ``hamming_matrix``: all-pairs Hamming distance of 256-bit descriptors; ``close_pairs``: the pairs within a
+  distance (unrestricted triangulation candidates).
 - ``FeatureGrid`` + ``search_windows``: for each query (a predicted pixel position with a radius and a
   range of pyramid levels), the best and second-best descriptor among the features inside the window —
   the core of SearchByProjection and SearchForInitialization.
@@ -70,6 +71,22 @@ def hamming_rows(a: U8, b: U8) -> NDArray[np.int32]:
     """Row-wise distances: a, b (N, D) uint8 -> (N,) int32."""
     x = np.bitwise_xor(_as_words(a), _as_words(b))
     return _POPCOUNT8[x].sum(axis=1).astype(np.int32)
+
+
+def close_pairs(
+    desc1: U8, desc2: U8, mask1: NDArray[np.bool_], mask2: NDArray[np.bool_], max_distance: int
+) -> tuple[I64, I64, I64]:
+    """Every pair (a, b) of a feature of image 1 and a feature of image 2 allowed by the masks ((N1,) / (N2,)
+    bool) with Hamming distance <= max_distance bits -> (a, b, distance) (K,) int64 arrays, by a, then b.
+
+    The unrestricted candidates of ORB-SLAM's SearchForTriangulation: what local mapping compares when the
+    keyframes have no bag of words, and what a PlaceRecognizer without a vocabulary structure may return from
+    ``candidate_pairs``.
+    """
+    f1, f2 = np.flatnonzero(mask1), np.flatnonzero(mask2)
+    dm = hamming_matrix(desc1[f1], desc2[f2])
+    ia, ib = np.nonzero(dm <= max_distance)
+    return f1[ia], f2[ib], dm[ia, ib].astype(np.int64)
 
 
 @dataclass(frozen=True)

@@ -274,6 +274,55 @@ def test_covisibility_weights_are_shared_points_above_the_threshold(store: MapSt
     assert store.loop_edges() == [(k[0], k[3])]
 
 
+def assert_tree_has_no_cycle(store: MapStore) -> None:
+    """Following parents from any keyframe ends at a root within as many steps as there are keyframes."""
+    tree = store.spanning_tree
+    for kf_id in store.keyframe_ids():
+        seen = [kf_id]
+        parent = tree.parent(kf_id)
+        while parent is not None:
+            assert parent not in seen, f"a cycle in the spanning tree: {[*seen, parent]}"
+            seen.append(parent)
+            parent = tree.parent(parent)
+
+
+@pytest.mark.parametrize("shared_allocator", [False, True], ids=["own-ids", "atlas-ids"])
+def test_the_first_keyframe_of_a_map_is_the_root_of_its_spanning_tree(
+    make_store: StoreFactory, shared_allocator: bool
+) -> None:
+    """ORB-SLAM's initialization inserts two keyframes that share every point, then updates the connections of
+    both: the map's first keyframe gets no parent (KeyFrame::UpdateConnections, mnId != InitKFid), so the two are
+    not each other's parent. Also for a map whose ids do not start at 0 (a second map of an Atlas)."""
+    ids = IdAllocator()
+    if shared_allocator:
+        earlier = make_store(ids=ids)
+        add_keyframe(earlier)
+        add_keyframe(earlier)
+    store = make_store(ids=ids)
+    free = FreeFeatures()
+    k = [add_keyframe(store, 0.0), add_keyframe(store, 0.1)]
+    shared(store, k, 100, free)
+    store.update_connections(k[0])
+    store.update_connections(k[1])
+    tree = store.spanning_tree
+    assert tree.parent(k[0]) is None and tree.parent(k[1]) == k[0]
+    assert tree.children(k[0]) == [k[1]] and tree.children(k[1]) == []
+    # keyframes inserted by local mapping afterwards, and a connections update of the first one later on
+    for i in range(2, 6):
+        k.append(add_keyframe(store, 0.1 * i))
+        shared(store, [k[-2], k[-1]], 60, free, seed=10 * i)
+        shared(store, [k[0], k[-1]], 20, free, seed=10 * i + 5)
+        store.update_connections(k[-1])
+    for kf in k:
+        store.update_connections(kf)
+    assert tree.parent(k[0]) is None
+    assert [tree.parent(kf) for kf in k[1:]] == k[:-1]
+    assert_tree_has_no_cycle(store)
+    store.remove_keyframe(k[2])  # culling re-parents k[3] without a cycle
+    assert tree.parent(k[0]) is None and tree.parent(k[3]) in (k[0], k[1])
+    assert_tree_has_no_cycle(store)
+
+
 def test_the_min_shared_threshold_is_the_configured_one(make_store: StoreFactory) -> None:
     store = make_store(covisibility_min_shared=25)
     k = [add_keyframe(store, 0.1 * i) for i in range(3)]

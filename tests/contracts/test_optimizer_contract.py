@@ -18,6 +18,9 @@ Tolerances (stated here, derived from the noise: with ~300-1000 observations per
 - backends agree (after convergence, same problem): poses within 1e-3 m and 1e-3 rad.
 - camera models: monocular pose and bundle problems also come through a Kannala-Brandt lens (observations are raw
   fisheye pixels, slamkit.optim.synthetic.with_kannala_brandt), with the same tolerances.
+- tracking's compiled motion-only BA (slamkit.pipeline.pose_optimization, core's one, the alternative to a
+  backend's ``optimize_pose``) meets the motion-only contract on monocular and fisheye problems and agrees with
+  every backend.
 """
 
 from __future__ import annotations
@@ -43,8 +46,16 @@ from slamkit.optim.synthetic import (
     sim3_errors,
     with_kannala_brandt,
 )
+from slamkit.pipeline.pose_optimization import optimize_pose as compiled_pose_optimization
 from slamkit.plugins import ComponentRegistry
-from slamkit.problems import CAMERA_KANNALA_BRANDT, BundleProblem, EssentialGraphProblem, InertialTerms, PoseOnlyProblem
+from slamkit.problems import (
+    CAMERA_KANNALA_BRANDT,
+    BundleProblem,
+    EssentialGraphProblem,
+    InertialTerms,
+    PoseOnlyProblem,
+    PoseOnlyResult,
+)
 
 REGISTRY = ComponentRegistry.discover()
 NAMES = [c.spec.name for c in REGISTRY.components("optimizer")]
@@ -91,15 +102,14 @@ def _flag_rates(flagged: np.ndarray, planted: np.ndarray) -> tuple[float, float]
 # ---- motion-only BA --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("stereo_ratio", [0.0, 0.5, "fisheye"], ids=["mono", "stereo", "fisheye"])
-def test_pose_recovers_truth_and_flags_outliers(optimizer: Optimizer, stereo_ratio: float | str) -> None:
+def check_pose(optimize_pose: Callable[[PoseOnlyProblem], PoseOnlyResult], stereo_ratio: float | str) -> None:
     fisheye = stereo_ratio == "fisheye"
     problem, truth = make_pose_problem(
-        np.random.default_rng(11), n_points=300, stereo_ratio=0.0 if fisheye else stereo_ratio
+        np.random.default_rng(11), n_points=300, stereo_ratio=0.0 if fisheye else float(stereo_ratio)
     )
     if fisheye:
         problem = with_kannala_brandt(problem, truth)
-    result = optimizer.optimize_pose(problem)
+    result = optimize_pose(problem)
     rot, pos = pose_errors(result.T_c_w, truth.T_c_w)
     rot0, pos0 = pose_errors(problem.T_c_w_init, truth.T_c_w)
     assert rot <= POSE_ROT_RAD and pos <= POSE_POS_M, (rot, pos, rot0, pos0)
@@ -108,6 +118,18 @@ def test_pose_recovers_truth_and_flags_outliers(optimizer: Optimizer, stereo_rat
     assert recall >= RECALL_MIN and false_flag <= FALSE_FLAG_MAX, (recall, false_flag)
     assert result.cost_final < result.cost_initial
     assert result.iterations >= 1
+
+
+@pytest.mark.parametrize("stereo_ratio", [0.0, 0.5, "fisheye"], ids=["mono", "stereo", "fisheye"])
+def test_pose_recovers_truth_and_flags_outliers(optimizer: Optimizer, stereo_ratio: float | str) -> None:
+    check_pose(optimizer.optimize_pose, stereo_ratio)
+
+
+@pytest.mark.parametrize("stereo_ratio", [0.0, "fisheye"], ids=["mono", "fisheye"])
+def test_trackings_compiled_pose_optimization_meets_the_same_contract(stereo_ratio: float | str) -> None:
+    """Core's one motion-only BA (slamkit.pipeline.pose_optimization, ``pipeline.tracking.pose_optimization:
+    compiled``, monocular only) is held to the backends' motion-only contract; ``optimizer`` runs theirs."""
+    check_pose(compiled_pose_optimization, stereo_ratio)
 
 
 # ---- bundle adjustment -----------------------------------------------------------------------------------
@@ -332,6 +354,19 @@ def _pairwise(results: list[np.ndarray], errors: Callable[..., tuple[Any, ...]])
 
 
 needs_two = pytest.mark.skipif(len(NAMES) < 2, reason=f"only one optimizer registered ({NAMES})")
+
+
+@pytest.mark.parametrize("fisheye", [False, True], ids=["mono", "fisheye"])
+def test_backends_agree_with_trackings_compiled_pose_optimization(
+    all_optimizers: list[Optimizer], fisheye: bool
+) -> None:
+    problem, truth = make_pose_problem(np.random.default_rng(67), n_points=300)
+    if fisheye:
+        problem = with_kannala_brandt(problem, truth)
+    compiled = compiled_pose_optimization(problem).T_c_w
+    for name, opt in zip(NAMES, all_optimizers, strict=True):
+        rot, pos = pose_errors(opt.optimize_pose(problem).T_c_w, compiled)
+        assert rot <= AGREE_ROT_RAD and pos <= AGREE_POS_M, f"{name} vs compiled: rot {rot:.3g} rad, pos {pos:.3g} m"
 
 
 @needs_two

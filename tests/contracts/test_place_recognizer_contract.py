@@ -5,8 +5,8 @@ Parametrized over ``ComponentRegistry.discover().components("place")``, each bui
 synthetic room: eight places 100 frames (3.3 s) apart, and for each a second view 3 frames later.
 
 What a place recognizer promises (slamkit/interfaces.py PlaceRecognizer, ORB-SLAM III-E, V-C, VII-A):
-- ``transform`` is deterministic; its words are L1-normalised positive weights; its direct index lists each
-  feature at most once, within range;
+- ``transform`` is deterministic; its words are L1-normalised positive weights; its direct index (if it has one)
+  lists each feature at most once, within range;
 - ``score(a, a) = 1``, scores are symmetric and in [0, 1], and a second view of a place scores higher with it than
   the other places do (median);
 - a keyframe added is its own best query result (score 1); ``exclude`` leaves it out; after ``remove`` no query
@@ -15,7 +15,12 @@ What a place recognizer promises (slamkit/interfaces.py PlaceRecognizer, ORB-SLA
   query, and finds the place a second view was taken at; ``relocalization_candidates`` finds it too;
 - ``match`` returns (K, 2) int64 one-to-one index pairs within range, within ``max_distance`` bits, restricted by
   the masks, and on an image and its copy shifted by (9, -6) px at least 90 % of more than 100 pairs are correct
-  (the shift within 2 px x the level's scale); a looser ratio and no rotation check give at least as many pairs.
+  (the shift within 2 px x the level's scale); a looser ratio and no rotation check give at least as many pairs;
+- ``candidate_pairs`` (local mapping's triangulation candidates, ORB-SLAM SearchForTriangulation) returns each
+  pair once as (a, b, distance) int64 arrays, within range, restricted by the masks, with the pair's true Hamming
+  distance <= ``max_distance``, the same on every call; every pair ``match`` finds under the same masks and
+  distance is among them; on an image and its shifted copy it keeps at least half of the true correspondences
+  within ``max_distance`` (a recognizer with no structure returns every close pair: all of them).
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ from slamkit.features import Features
 from slamkit.interfaces import BowDescription, FeatureExtractor, PlaceRecognizer
 from slamkit.io.synthetic.dataset import SyntheticDataset
 from slamkit.pipeline.config import MatcherConfig
-from slamkit.pipeline.matching import hamming_rows
+from slamkit.pipeline.matching import close_pairs, hamming_rows
 from slamkit.plugins import ComponentRegistry
 
 REGISTRY = ComponentRegistry.discover()
@@ -136,6 +141,39 @@ def check_match(recognizer: PlaceRecognizer, extractor: FeatureExtractor, image:
     assert masked.shape[0] > 0 and mask1[masked[:, 0]].all() and mask2[masked[:, 1]].all()
 
 
+def check_candidate_pairs(recognizer: PlaceRecognizer, extractor: FeatureExtractor, image: np.ndarray) -> None:
+    f1 = extractor.extract(image)
+    f2 = extractor.extract(shifted(image))
+    b1, b2 = recognizer.transform(f1.descriptors), recognizer.transform(f2.descriptors)
+    th = MATCHER.th_low
+    mask1 = np.zeros(len(f1), bool)
+    mask1[::2] = True
+    mask2 = np.zeros(len(f2), bool)
+    mask2[: len(f2) // 2] = True
+    for m1, m2 in ((None, None), (mask1, mask2)):
+        a, b, d = recognizer.candidate_pairs(f1, b1, f2, b2, m1, m2, max_distance=th)
+        assert all(x.dtype == np.int64 and x.ndim == 1 for x in (a, b, d)) and a.size == b.size == d.size
+        assert a.size > 0
+        assert np.all((a >= 0) & (a < len(f1)) & (b >= 0) & (b < len(f2)))
+        if m1 is not None and m2 is not None:
+            assert m1[a].all() and m2[b].all(), "restricted by the masks"
+        np.testing.assert_array_equal(d, hamming_rows(f1.descriptors[a], f2.descriptors[b]))
+        assert d.max() <= th
+        pairs = set(zip(a.tolist(), b.tolist(), strict=True))
+        assert len(pairs) == a.size, "each pair once"
+        again = recognizer.candidate_pairs(f1, b1, f2, b2, m1, m2, max_distance=th)
+        assert all(np.array_equal(x, y) for x, y in zip((a, b, d), again, strict=True)), "deterministic"
+        matched = recognizer.match(f1, b1, f2, b2, 1.0, m1, m2, max_distance=th, rotation_bins=None)
+        assert set(map(tuple, matched.tolist())) <= pairs, "a pair match finds is a candidate"
+        if m1 is None:
+            # the true correspondences within the distance: most are candidates
+            ta, tb, _ = close_pairs(f1.descriptors, f2.descriptors, np.ones(len(f1), bool), np.ones(len(f2), bool), th)
+            err = np.linalg.norm(f2.uv_px[tb] - (f1.uv_px[ta] + np.array(SHIFT, np.float32)), axis=1)
+            true = (err <= 2.0 * f1.level_scale()[ta]) & (f1.level[ta] == f2.level[tb])
+            found = np.array([(x, y) in pairs for x, y in zip(ta[true].tolist(), tb[true].tolist(), strict=True)])
+            assert true.sum() > 100 and found.mean() >= 0.5, f"{found.mean():.2f} of {true.sum()} true pairs"
+
+
 # ---- the contract ----------------------------------------------------------------------------------------------
 
 
@@ -150,9 +188,10 @@ def test_transform_is_deterministic_and_well_formed(recognizer: PlaceRecognizer,
         assert dict(again.words) == dict(v.bow.words)
         weights = np.array(list(v.bow.words.values()))
         assert weights.size > 0 and np.all(weights > 0) and weights.sum() == pytest.approx(1.0, abs=1e-9)
-        indices = np.concatenate([np.asarray(ix).ravel() for ix in v.bow.direct_index.values()])
-        assert np.unique(indices).size == indices.size, "a feature in two direct-index nodes"
-        assert indices.min() >= 0 and indices.max() < len(v.features)
+        if v.bow.direct_index:  # the recognizer's own structure, if it has one
+            indices = np.concatenate([np.asarray(ix).ravel() for ix in v.bow.direct_index.values()])
+            assert np.unique(indices).size == indices.size, "a feature in two direct-index nodes"
+            assert indices.min() >= 0 and indices.max() < len(v.features)
     empty = recognizer.transform(np.zeros((0, 32), np.uint8))
     assert len(empty.words) == 0
 
@@ -205,6 +244,12 @@ def test_match(recognizer: PlaceRecognizer, extractor: FeatureExtractor, images:
     check_match(recognizer, extractor, images[PLACES[1]])
 
 
+def test_candidate_pairs(
+    recognizer: PlaceRecognizer, extractor: FeatureExtractor, images: dict[int, np.ndarray]
+) -> None:
+    check_candidate_pairs(recognizer, extractor, images[PLACES[1]])
+
+
 # ---- the suite catches a broken recognizer ---------------------------------------------------------------------
 
 
@@ -240,3 +285,30 @@ def test_suite_fails_on_broken_recognizers(extractor: FeatureExtractor, images: 
 
     with pytest.raises(AssertionError):
         check_match(_Broken(inner, match=unmasked), extractor, images[PLACES[1]])
+
+    def candidates_unmasked(
+        f1: Features, b1: BowDescription, f2: Features, b2: BowDescription, *_: Any, **kw: Any
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return inner.candidate_pairs(f1, b1, f2, b2, None, None, **kw)  # ignores the masks
+
+    def candidates_halved(*args: Any, **kwargs: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a, b, d = inner.candidate_pairs(*args, **kwargs)
+        return a[::2], b[::2], d[::2]  # loses pairs match would find
+
+    def candidates_unbounded(*args: Any, **kwargs: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return inner.candidate_pairs(*args, **{**kwargs, "max_distance": 256})  # ignores the distance bound
+
+    for broken in (candidates_unmasked, candidates_halved, candidates_unbounded):
+        with pytest.raises(AssertionError):
+            check_candidate_pairs(_Broken(inner, candidate_pairs=broken), extractor, images[PLACES[1]])
+
+    def every_close_pair(
+        f1: Features, b1: BowDescription, f2: Features, b2: BowDescription, m1: Any, m2: Any, *, max_distance: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ones1, ones2 = np.ones(len(f1), bool), np.ones(len(f2), bool)
+        return close_pairs(
+            f1.descriptors, f2.descriptors, ones1 if m1 is None else m1, ones2 if m2 is None else m2, max_distance
+        )
+
+    # the documented fallback of a recognizer without a vocabulary structure passes
+    check_candidate_pairs(_Broken(inner, candidate_pairs=every_close_pair), extractor, images[PLACES[1]])

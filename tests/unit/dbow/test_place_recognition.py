@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numpy.typing import NDArray
-from slamkit_dbow.matching import match_by_bow
+from slamkit_dbow.matching import match_by_bow, node_pairs
 from slamkit_dbow.recognizer import DbowPlaceRecognizer
 from slamkit_dbow.vocabulary import Vocabulary, VocabularyError
 
 from slamkit.features import Features
-from slamkit.interfaces import FeatureExtractor, PlaceRecognizer
+from slamkit.interfaces import BowDescription, FeatureExtractor, PlaceRecognizer
 from slamkit.io.synthetic.dataset import SyntheticDataset
 from slamkit.pipeline.config import MatcherConfig
 
@@ -120,3 +120,36 @@ def test_bow_matching_edge_cases(recognizer: DbowPlaceRecognizer, orb: FeatureEx
     assert match_by_bow(feats, bow, feats, empty, 0.75, **ORB_MATCHER).shape == (0, 2)
     with pytest.raises(VocabularyError, match=r"mask2 must be a \(\d+,\) bool array"):
         match_by_bow(feats, bow, feats, bow, 0.75, **ORB_MATCHER, mask2=np.ones(3, bool))
+
+
+def _features(descriptors: NDArray[np.uint8]) -> Features:
+    n = len(descriptors)
+    zeros = np.zeros((n, 2), np.float32)
+    return Features(
+        zeros, zeros, np.zeros(n, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32), descriptors, 1.2, 8
+    )
+
+
+def test_node_pairs_are_the_close_allowed_pairs_of_shared_nodes() -> None:
+    """SearchForTriangulation's FeatureVector walk on a hand-made direct index: shared nodes only, masked features
+    left out, within the distance, in node order, then a, then b (the direct index's order)."""
+    rng = np.random.default_rng(7)
+    d1 = rng.integers(0, 256, (6, 32), dtype=np.uint8)
+    d2 = rng.integers(0, 256, (7, 32), dtype=np.uint8)
+    d2[1] = d1[0]  # distance 0
+    d2[6] = d1[2] ^ np.uint8(1)  # distance 32 (one bit per byte)
+    bow1 = BowDescription({}, {3: np.array([0, 2, 5]), 7: np.array([1]), 9: np.array([4])})
+    bow2 = BowDescription({}, {3: np.array([1, 6, 5]), 7: np.array([0, 3]), 8: np.array([2])})
+    f1, f2 = _features(d1), _features(d2)
+    free1 = np.array([True, True, True, True, True, False])  # feature 5 of kf1 already has a point
+    free2 = np.array([True, True, True, False, True, True, True])  # feature 3 of kf2 too
+    a, b, d = node_pairs(f1, bow1, f2, bow2, free1, free2, 255)
+    assert list(zip(a.tolist(), b.tolist(), strict=True)) == [(0, 1), (0, 6), (0, 5), (2, 1), (2, 6), (2, 5), (1, 0)]
+    bits = np.unpackbits(d1[a] ^ d2[b], axis=1).sum(axis=1)
+    np.testing.assert_array_equal(d, bits)
+    a, b, d = node_pairs(f1, bow1, f2, bow2, free1, free2, 50)  # ORB-SLAM TH_LOW
+    assert list(zip(a.tolist(), b.tolist(), d.tolist(), strict=True)) == [(0, 1, 0), (2, 6, 32)]
+    a, _, _ = node_pairs(f1, bow1, f2, bow2, None, None, 255)  # no masks: feature 5 of kf1 pairs too
+    assert a.tolist() == [0, 0, 0, 2, 2, 2, 5, 5, 5, 1, 1]
+    with pytest.raises(VocabularyError, match=r"mask1 must be a \(6,\) bool array"):
+        node_pairs(f1, bow1, f2, bow2, np.ones(3, bool), free2, 50)

@@ -13,7 +13,7 @@ from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.map.graphs import CovisibilityGraph
+from slamkit.map.graphs import CovisibilityGraph, essential_graph_edges
 from slamkit.map.lock import ReadWriteLock
 from slamkit.map.store import InMemoryMapStore
 
@@ -84,12 +84,16 @@ def test_covisibility_threshold_spanning_tree_and_essential_graph() -> None:
     # spanning tree: parent = keyframe sharing the most points at insertion
     assert store.spanning_tree.parent(k[2]) == k[1] and store.spanning_tree.parent(k[3]) == k[2]
     store.add_loop_edge(k[3], k[0])
-    assert store.essential_graph(theta_min=100) == sorted(
+
+    def essential(theta_min: int) -> list[tuple[int, int]]:
+        return essential_graph_edges(store.covisibility, store.spanning_tree, store.loop_edges(), theta_min)
+
+    assert essential(100) == sorted(
         {tuple(sorted(e)) for e in store.spanning_tree.edges()} | {(k[0], k[1]), (k[0], k[3])}
     )
     # lowering theta_min adds the weaker covisibility edges
-    assert (k[1], k[2]) in store.essential_graph(theta_min=15)
-    assert len(store.essential_graph(theta_min=15)) >= len(store.essential_graph(theta_min=100))
+    assert (k[1], k[2]) in essential(15)
+    assert len(essential(15)) >= len(essential(100))
 
 
 def test_removing_a_keyframe_reparents_children_and_drops_orphan_points() -> None:

@@ -1,6 +1,6 @@
 """Local mapping on a small exact map: triangulation recovers the true points, the local BA runs on a snapshot
-without the map's write lock (a reader gets in while the optimizer works), and the Cholesky kernel and the
-direct-index candidate pairs the faster paths rely on are exact."""
+without the map's write lock (a reader gets in while the optimizer works), and the Cholesky kernel the faster
+path relies on is exact."""
 
 from __future__ import annotations
 
@@ -12,12 +12,13 @@ from slamkit_scipy.kernels import cholesky_solve_upper
 
 from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
-from slamkit.interfaces import AbortToken
+from slamkit.interfaces import AbortToken, BowDescription, PlaceRecognizer
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import LocalMappingConfig
-from slamkit.pipeline.local_mapping import LocalMapper, same_node_matches
+from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.map_points import refresh_points
+from slamkit.pipeline.matching import close_pairs
 from slamkit.plugins import ComponentRegistry
 from slamkit.problems import BundleProblem, BundleResult
 
@@ -92,12 +93,57 @@ class WatchingOptimizer:
         return getattr(self.inner, name)
 
 
-def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock() -> None:
+class WordsOnlyRecognizer:
+    """A place recognizer with no vocabulary structure to restrict matching: its bags of words carry no direct
+    index, and ``candidate_pairs`` returns every close pair, as the PlaceRecognizer protocol allows (words and the
+    keyframe database are DBoW's)."""
+
+    def __init__(self, inner: PlaceRecognizer) -> None:
+        self.inner = inner
+
+    def transform(self, descriptors: np.ndarray) -> BowDescription:
+        return BowDescription(self.inner.transform(descriptors).words)
+
+    def candidate_pairs(
+        self,
+        feats1: Features,
+        bow1: BowDescription,
+        feats2: Features,
+        bow2: BowDescription,
+        mask1: np.ndarray | None = None,
+        mask2: np.ndarray | None = None,
+        *,
+        max_distance: int,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        m1 = np.ones(len(feats1), bool) if mask1 is None else mask1
+        m2 = np.ones(len(feats2), bool) if mask2 is None else mask2
+        return close_pairs(feats1.descriptors, feats2.descriptors, m1, m2, max_distance)
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.inner, name)
+
+
+def place_recognizer(name: str | None) -> PlaceRecognizer | None:
+    if name is None:
+        return None
+    registry = ComponentRegistry.discover()
+    dbow: PlaceRecognizer = registry.instantiate("place", registry.get("place", "dbow").config_node())
+    return dbow if name == "dbow" else WordsOnlyRecognizer(dbow)  # type: ignore[return-value]
+
+
+@pytest.mark.parametrize("place_name", [None, "dbow", "words-only"])
+def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock(place_name: str | None) -> None:
+    """Without a place recognizer every pair of free features is a triangulation candidate; with one, the candidates
+    come from its ``candidate_pairs`` (DBoW: same vocabulary node; a recognizer without a direct index: every
+    pair), and local mapping reads nothing else of the bags of words."""
     xyz, desc = scene()
     store = InMemoryMapStore()
+    place = place_recognizer(place_name)
     kf0, kf1 = keyframe(store, 0.0, xyz, desc), keyframe(store, 0.3, xyz, desc)
     for kf in (kf0, kf1):
         store.add_keyframe(kf)
+        if place is not None:
+            store.set_keyframe_bow(kf.id, place.transform(kf.features.descriptors))
     for j in range(N_MAPPED):
         pid = store.new_point_id()
         store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
@@ -110,7 +156,7 @@ def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock() -> N
     tracked[:N_MAPPED] = np.arange(N_MAPPED)  # matched by tracking
     kf2 = keyframe(store, 0.6, xyz, desc, tracked)
     optimizer = WatchingOptimizer(store)
-    mapper = LocalMapper(LocalMappingConfig(), store, optimizer)  # type: ignore[arg-type]
+    mapper = LocalMapper(LocalMappingConfig(), store, optimizer, place)  # type: ignore[arg-type]
     out = mapper.step(kf2)
     assert optimizer.reader_got_in == [True]
     assert out.points_created >= 0.9 * (N_POINTS - N_MAPPED)
@@ -151,21 +197,3 @@ def test_cholesky_kernel_signals_an_indefinite_system_with_nan() -> None:
     S = np.array([[1.0, 2.0], [2.0, 1.0]])  # eigenvalues 3 and -1
     assert np.all(np.isnan(cholesky_solve_upper(S, np.ones(2))))
     assert np.all(np.isnan(cholesky_solve_upper(np.array([[np.nan]]), np.ones(1))))
-
-
-def test_direct_index_candidates_are_the_close_unmatched_pairs_of_shared_nodes() -> None:
-    rng = np.random.default_rng(7)
-    d1 = rng.integers(0, 256, (6, 32), dtype=np.uint8)
-    d2 = rng.integers(0, 256, (7, 32), dtype=np.uint8)
-    d2[1] = d1[0]  # distance 0
-    d2[6] = d1[2] ^ np.uint8(1)  # distance 32 (one bit per byte)
-    di1 = {3: np.array([0, 2, 5]), 7: np.array([1]), 9: np.array([4])}
-    di2 = {3: np.array([1, 6, 5]), 7: np.array([0, 3]), 8: np.array([2])}
-    free1 = np.array([True, True, True, True, True, False])  # feature 5 of kf1 already has a point
-    free2 = np.array([True, True, True, False, True, True, True])  # feature 3 of kf2 too
-    a, b, d = same_node_matches(di1, di2, free1, free2, d1, d2, 255)
-    assert list(zip(a.tolist(), b.tolist(), strict=True)) == [(0, 1), (0, 6), (0, 5), (2, 1), (2, 6), (2, 5), (1, 0)]
-    bits = np.unpackbits(d1[a] ^ d2[b], axis=1).sum(axis=1)
-    np.testing.assert_array_equal(d, bits)
-    a, b, d = same_node_matches(di1, di2, free1, free2, d1, d2, 50)  # ORB-SLAM TH_LOW
-    assert list(zip(a.tolist(), b.tolist(), d.tolist(), strict=True)) == [(0, 1, 0), (2, 6, 32)]

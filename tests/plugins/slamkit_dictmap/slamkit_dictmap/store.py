@@ -52,6 +52,7 @@ class DictMapStore:
         self._used_point_ids: set[int] = set()
         self._graph = CovisibilityGraph()
         self._tree = SpanningTree()
+        self._first: int | None = None  # the first keyframe added: the spanning tree's root
         self._loops: set[tuple[int, int]] = set()
         self._epoch = 0
 
@@ -163,6 +164,8 @@ class DictMapStore:
         self._kfs[k] = keyframe
         self._matches[k] = matches
         self._graph.add_node(k)
+        if self._first is None:
+            self._first = k
         for idx, pid in enumerate(matches.tolist()):
             if pid < 0:
                 continue
@@ -284,7 +287,7 @@ class DictMapStore:
         self._graph.update_connections(keyframe_id, shared, self.min_shared)
         if keyframe_id not in self._tree:
             best = self._graph.neighbors(keyframe_id)
-            self._tree.add(keyframe_id, best[0] if best else None)
+            self._tree.add(keyframe_id, best[0] if best and keyframe_id != self._first else None)
 
     def add_loop_edge(self, a: int, b: int) -> None:
         self._loops.add((min(a, b), max(a, b)))
