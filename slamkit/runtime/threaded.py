@@ -221,6 +221,8 @@ class ThreadedRunner:
         if self._fault is None and not self._mapping.stopping():
             out = self.tracker.make_keyframe(out)
         out.timings_ms["mapping_wait_ms"] = waited_ms
+        if "track_ms" in out.timings_ms:  # the wait holds tracking: it is part of the frame's tracking time
+            out.timings_ms["track_ms"] += waited_ms
         return out
 
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
