@@ -84,7 +84,8 @@ def test_a_failure_in_any_thread_stops_the_run_with_its_name_and_keeps_the_traje
         dataset_to_play_len = len(dataset)
     else:
         component = getattr(runner, target)
-        component.step = _fail_on_call(40 if thread == "tracking" else 8, message)(component.step)
+        method = "detect" if target == "loop_closer" else "step"  # loop closing's thread starts with detection
+        setattr(component, method, _fail_on_call(40 if thread == "tracking" else 8, message)(getattr(component, method)))
         dataset_to_play = dataset
         dataset_to_play_len = len(dataset)
 
