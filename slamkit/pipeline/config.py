@@ -155,6 +155,10 @@ class LoopClosingConfig:
     verify_min_matches: int = 30
     verify_max_misses: int = 2
     max_loop_rotation_deg: float = 20.0
+    min_keyframes_between_loops: int = 10
+    sim3_min_bow_matches: int = 20
+    loop_search_radius_px: float = 10.0
+    loop_fuse_radius_px: float = 4.0
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

@@ -55,14 +55,6 @@ log = logging.getLogger("slamkit.loop")
 
 I64 = NDArray[np.int64]
 
-#: ORB-SLAM: no loop detection within 10 keyframes of the map's creation or of the last loop.
-_MIN_KEYFRAMES_BETWEEN_LOOPS = 10
-#: ORB-SLAM ComputeSim3: BoW matches needed to try a candidate.
-_MIN_BOW_MATCHES = 20
-#: ORB-SLAM ComputeSim3: SearchByProjection(Scw) radius (th = 10) for the final loop check, px at level 0.
-_LOOP_SEARCH_RADIUS_PX = 10.0
-#: ORB-SLAM SearchAndFuse radius, px (ORBmatcher::Fuse with th = 4).
-_LOOP_FUSE_RADIUS_PX = 4.0
 
 
 @dataclass(frozen=True)
@@ -174,8 +166,8 @@ class LoopCloser:
                     # ORB-SLAM3: a keyframe that confirmed the pending loop is not searched for another one
                     out.reason = out.reason or "pending loop confirmed; more keyframes must agree"
                     return None
-            if kf.id < self.last_loop_kf_id + _MIN_KEYFRAMES_BETWEEN_LOOPS or (
-                self.store.n_keyframes() <= _MIN_KEYFRAMES_BETWEEN_LOOPS
+            if kf.id < self.last_loop_kf_id + self.cfg.min_keyframes_between_loops or (
+                self.store.n_keyframes() <= self.cfg.min_keyframes_between_loops
             ):
                 out.reason = "too close to the map's start or to the last loop"
                 return None
@@ -314,8 +306,8 @@ class LoopCloser:
                     rotation_bins=cfg.matcher.rotation_bins,
                 )
                 info["bow_matches"] = int(pairs.shape[0])
-                if pairs.shape[0] < _MIN_BOW_MATCHES:
-                    info["rejected"] = f"{pairs.shape[0]} BoW matches < {_MIN_BOW_MATCHES}"
+                if pairs.shape[0] < cfg.sim3_min_bow_matches:
+                    info["rejected"] = f"{pairs.shape[0]} BoW matches < {cfg.sim3_min_bow_matches}"
                     continue
                 i1, i2 = pairs[:, 0], pairs[:, 1]
                 require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
@@ -397,7 +389,7 @@ class LoopCloser:
         used = set(matched.values())
         rest = [p for p in window if p not in used]
         return project_window(
-            self.store, kf, S_cw, rest, _LOOP_SEARCH_RADIUS_PX, self.cfg.matcher.th_low, taken
+            self.store, kf, S_cw, rest, self.cfg.loop_search_radius_px, self.cfg.matcher.th_low, taken
         ).matches
 
     # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------
@@ -507,7 +499,7 @@ class LoopCloser:
                         store,
                         store.get_keyframe(k),
                         loop_points,
-                        _LOOP_FUSE_RADIUS_PX,
+                        self.cfg.loop_fuse_radius_px,
                         incoming_wins=True,
                         max_distance=self.cfg.matcher.th_low,
                         chi2_gate=self.cfg.chi2.fuse_mono,
