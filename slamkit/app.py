@@ -21,6 +21,7 @@ from slamkit.errors import ConfigError
 from slamkit.eval.outputs import PLUGIN_NAME as OUTPUTS_PLUGIN
 from slamkit.interfaces import Dataset, MapStore, Optimizer
 from slamkit.pipeline.config import PipelineConfig
+from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker
@@ -96,10 +97,11 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     background_optimizer = components["optimizer"]
     if kind == "threaded":
         background_optimizer = _background_optimizer(cfg, components["optimizer"])
-    mapper = LocalMapper(pipeline.local_mapping, store, background_optimizer, place)
+    pins = KeyFramePins()  # loop closing pins the keyframes it uses, local mapping's culling leaves them
+    mapper = LocalMapper(pipeline.local_mapping, store, background_optimizer, place, pins)
     loop_closer = None
     if place is not None:
-        loop_closer = LoopCloser(pipeline.loop_closing, store, background_optimizer, place, rng)
+        loop_closer = LoopCloser(pipeline.loop_closing, store, background_optimizer, place, rng, pins)
     progress = bool(cfg.runner.get("progress", True))
     events = EventDispatcher(registry.hook, critical={OUTPUTS_PLUGIN})
     runner: Runner

@@ -157,7 +157,7 @@ class LoopChecked:
     essential_graph_edges: edges of the essential graph optimized (0 without a correction). timings_ms: per stage.
     record: loop closing's full account of the keyframe as plain containers (candidates, consistency, BoW matches,
     Sim3 inliers and scale, verification, pending hypotheses: the fields of
-    ``slamkit.pipeline.loop_closing.LoopOutcome``), what a run's loops.json lists.
+    ``slamkit.pipeline.outcomes.LoopOutcome``), what a run's loops.json lists.
     """
 
     run_id: int

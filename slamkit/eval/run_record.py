@@ -18,7 +18,7 @@ from slamkit.events import (
     RunFinished,
     RunStarted,
 )
-from slamkit.pipeline.local_mapping import CulledKeyFrame
+from slamkit.pipeline.outcomes import CulledKeyFrame
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.sensors import Trajectory
 

@@ -81,12 +81,25 @@ class TrackingConfig:
     local_map_search_radius_px: float = 1.0
     local_map_search_radius_relocalized_px: float = 5.0
     local_map_covisible_keyframes: int = 80
+    local_map_neighbors_per_keyframe: int = 10
+    local_map_wide_search_frames_after_reloc: int = 2
     min_local_map_inliers: int = 30
     min_local_map_inliers_after_reloc: int = 50
     keyframe_min_frames_since_reloc: int = 20
     keyframe_max_frames_idle: int = 20
     keyframe_min_tracked_points: int = 50
     keyframe_max_ref_ratio: float = 0.9
+    keyframe_ref_min_observations: int = 3
+    keyframe_ref_min_observations_small_map: int = 2
+    reloc_min_bow_matches: int = 15
+    reloc_pnp_ransac_iterations: int = 300
+    reloc_pnp_ransac_confidence: float = 0.99
+    reloc_min_pnp_inliers: int = 10
+    reloc_search_radius_px: float = 10.0
+    reloc_search_max_distance: int = 100
+    reloc_search_radius_fine_px: float = 3.0
+    reloc_search_max_distance_fine: int = 64
+    reset_max_keyframes: int = 5
     init_feature_factor: float = 2.0
     init_min_features: int = 100
     init_min_matches: int = 100
@@ -142,6 +155,10 @@ class LoopClosingConfig:
     verify_min_matches: int = 30
     verify_max_misses: int = 2
     max_loop_rotation_deg: float = 20.0
+    min_keyframes_between_loops: int = 10
+    sim3_min_bow_matches: int = 20
+    loop_search_radius_px: float = 10.0
+    loop_fuse_radius_px: float = 4.0
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

@@ -16,6 +16,7 @@ from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.bundle import commit_bundle, snapshot_bundle
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame
+from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.projection import match_projected, require_pinhole_image
 
@@ -140,8 +141,8 @@ def create_initial_map(
     with store.write():
         kf_ini = new_keyframe(store, ref)
         kf_cur = new_keyframe(store, cur)
-        store.add_keyframe(kf_ini)
-        store.add_keyframe(kf_cur)
+        insert_keyframe(store, kf_ini)
+        insert_keyframe(store, kf_cur)
         for m in np.flatnonzero(result.triangulated):
             pid = store.new_point_id()
             i_ref, i_cur = int(ref_idx[m]), int(cur_idx[m])

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,39 +22,17 @@ from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
+from slamkit.pipeline.keyframe_insertion import insert_keyframe
+from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
+from slamkit.pipeline.outcomes import CulledKeyFrame, MappingOutcome
 from slamkit.pipeline.projection import project_points, require_pinhole_image
 
 log = logging.getLogger("slamkit.mapping")
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
-
-
-@dataclass(frozen=True)
-class CulledKeyFrame:
-    """A keyframe removed by culling, kept as a pose relative to its spanning-tree parent so frames that
-    referred to it can still be placed (ORB-SLAM keeps Tcp for the same reason)."""
-
-    kf_id: int
-    parent_id: int | None
-    T_kf_parent: F64
-    T_c_w: F64
-
-
-@dataclass
-class MappingOutcome:
-    """What local mapping did with one keyframe (counts and per-stage times in ms)."""
-
-    kf_id: int
-    points_culled: int = 0
-    points_created: int = 0
-    points_fused: int = 0
-    ba_outliers: int = 0
-    ba_aborted: bool = False
-    culled_keyframes: list[CulledKeyFrame] = field(default_factory=list)
-    timings_ms: dict[str, float] = field(default_factory=dict)
 
 
 class LocalMapper:
@@ -67,15 +44,18 @@ class LocalMapper:
         store: MapStore,
         optimizer: Optimizer,
         place: PlaceRecognizer | None = None,
+        pins: KeyFramePins | None = None,
     ) -> None:
+        """pins: keyframes loop closing is using (its ``LoopCloser.pins``), which keyframe culling leaves."""
         self.cfg = cfg
+        self.pins = pins if pins is not None else KeyFramePins()
         self.store = store
         self.optimizer = optimizer
         self.place = place  # describes each keyframe with a bag of words (ORB-SLAM ProcessNewKeyFrame)
         self.recent_points: list[int] = []
 
-    def step(self, kf: KeyFrame, already_in_map: bool = False, abort: AbortToken | None = None) -> MappingOutcome:
-        """Process one new keyframe (VI-A to VI-E)."""
+    def step(self, kf: KeyFrame, abort: AbortToken | None = None) -> MappingOutcome:
+        """Process one new keyframe (VI-A to VI-E): one tracking made, or one of the two of a new map."""
         out = MappingOutcome(kf.id)
         t = time.perf_counter()
 
@@ -88,7 +68,7 @@ class LocalMapper:
         # The write lock is taken per mutation phase (never across the matching, triangulation or BA work) so a
         # tracking thread is held up for short spells only.
         with self.store.write():
-            self._process_new_keyframe(kf, already_in_map)
+            self._process_new_keyframe(kf)
         lap("insert_ms")
         with self.store.write():
             out.points_culled = self._cull_recent_points(kf)
@@ -108,12 +88,11 @@ class LocalMapper:
 
     # ---- VI-A --------------------------------------------------------------------------------------
 
-    def _process_new_keyframe(self, kf: KeyFrame, already_in_map: bool) -> None:
+    def _process_new_keyframe(self, kf: KeyFrame) -> None:
+        """ORB-SLAM ProcessNewKeyFrame: insert the keyframe (a no-op for the two of a new map, which initialisation
+        inserted), describe it with a bag of words, update its covisibility connections."""
         store = self.store
-        if not already_in_map:
-            # the points tracking matched that are still in the map become the keyframe's observations
-            store.add_keyframe(kf)
-            refresh_points(store, kf.point_ids[kf.point_ids >= 0].tolist())  # normal, depth range, descriptor
+        insert_keyframe(store, kf)
         if self.place is not None and kf.bow is None:
             store.set_keyframe_bow(kf.id, self.place.transform(kf.features.descriptors))
         store.update_connections(kf.id)
@@ -370,7 +349,8 @@ class LocalMapper:
 
     def _cull_keyframes(self, kf: KeyFrame) -> list[CulledKeyFrame]:
         """Erase covisible keyframes whose points are 90% seen by at least three other keyframes at the same
-        or a finer scale (VI-E). The map's origin keyframe is never culled."""
+        or a finer scale (VI-E). The map's origin keyframe is never culled, nor a keyframe loop closing has pinned
+        (ORB-SLAM SetNotErase)."""
         cfg = self.cfg
         store = self.store
         origin = store.origin_keyframe_id()
@@ -379,7 +359,10 @@ class LocalMapper:
         if not candidates:
             return culled
         table = ObservationTable(store, candidates)
+        pinned = self.pins.snapshot()
         for k_id in candidates:
+            if k_id in pinned:
+                continue
             n_points, redundant = table.redundancy(k_id, cfg.keyframe_culling_min_observers)
             if n_points and redundant > cfg.keyframe_culling_redundancy * n_points:
                 k = store.get_keyframe(k_id)

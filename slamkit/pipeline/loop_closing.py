@@ -4,7 +4,11 @@ require enough matches, verify the hypothesis geometrically in other keyframes (
 ``loop_verification``; possibly over the next keyframes), then correct the loop (Sim3 propagation, loop
 fusion, essential graph).
 
-``LoopCloser.step(kf)`` runs after local mapping has processed ``kf``; every decision is recorded in a
+Detection and correction are two steps, as in ORB-SLAM (DetectLoop/ComputeSim3, then CorrectLoop):
+``LoopCloser.detect(kf)`` runs after local mapping has processed ``kf`` and *while local mapping goes on* (it reads
+the map under its read lock and pins the keyframes it uses, slamkit/pipeline/keyframe_pins.py, so culling leaves
+them); only an accepted loop's ``LoopCloser.correct(detection)`` needs local mapping stopped, which the runner
+does (ORB-SLAM CorrectLoop: RequestStop). ``step(kf)`` is the two in a row. Every decision is recorded in a
 ``LoopOutcome`` so a user can see why a loop was or was not closed.
 """
 
@@ -12,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +28,7 @@ from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.bundle import intrinsics_of, run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
+from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.loop_correction import (
     apply_essential_graph,
     apply_loop_correction,
@@ -42,6 +47,7 @@ from slamkit.pipeline.loop_verification import (
     loop_window,
     project_window,
 )
+from slamkit.pipeline.outcomes import LoopOutcome
 from slamkit.pipeline.projection import require_pinhole_image
 from slamkit.problems import Sim3Problem
 
@@ -49,37 +55,27 @@ log = logging.getLogger("slamkit.loop")
 
 I64 = NDArray[np.int64]
 
-#: ORB-SLAM: no loop detection within 10 keyframes of the map's creation or of the last loop.
-_MIN_KEYFRAMES_BETWEEN_LOOPS = 10
-#: ORB-SLAM ComputeSim3: BoW matches needed to try a candidate.
-_MIN_BOW_MATCHES = 20
-#: ORB-SLAM ComputeSim3: SearchByProjection(Scw) radius (th = 10) for the final loop check, px at level 0.
-_LOOP_SEARCH_RADIUS_PX = 10.0
-#: ORB-SLAM SearchAndFuse radius, px (ORBmatcher::Fuse with th = 4).
-_LOOP_FUSE_RADIUS_PX = 4.0
+
+
+@dataclass(frozen=True)
+class AcceptedLoop:
+    """A loop detection accepted: the loop keyframe, S_cw the current keyframe's corrected Sim3 pose (world to
+    camera) and matches (current keyframe's feature -> loop map point id)."""
+
+    loop_kf_id: int
+    S_cw: Sim3
+    matches: dict[int, int]
 
 
 @dataclass
-class LoopOutcome:
-    """What loop closing did with one keyframe.
+class LoopDetection:
+    """What :meth:`LoopCloser.detect` did at one keyframe: its outcome so far and the accepted loop (None: no loop to
+    correct). pinned: the accepted loop's two keyframes are still pinned (until corrected or released)."""
 
-    tried: one record per consistent candidate (BoW matches, Sim3 inliers, loop matches, and its geometric
-    verification: ``correction_rotation_deg`` the turn the loop would give the map, ``verification`` each
-    keyframe's check, ``agreeing`` the covisible keyframes that agreed; ``rejected`` says why). pending: the check of a pending loop hypothesis in this keyframe (ORB-SLAM3's confirmation
-    by the next keyframes), with its state: "agreed", "accepted", "missed" or "dropped".
-    """
-
-    kf_id: int
-    candidates: list[int] = field(default_factory=list)
-    consistent: list[int] = field(default_factory=list)
-    tried: list[dict[str, object]] = field(default_factory=list)
-    pending: dict[str, object] | None = None
-    loop_kf_id: int | None = None
-    matches: int = 0
-    scale: float = 1.0
-    essential_graph_edges: int = 0
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    reason: str = ""
+    kf: KeyFrame
+    outcome: LoopOutcome
+    loop: AcceptedLoop | None
+    pinned: bool = False
 
 
 @dataclass
@@ -98,8 +94,12 @@ class LoopCloser:
         optimizer: Optimizer,
         place: PlaceRecognizer,
         rng: np.random.Generator,
+        pins: KeyFramePins | None = None,
     ) -> None:
+        """pins: the keyframes loop closing is using, which local mapping's culling must leave (give local mapping
+        the same object)."""
         self.cfg = cfg
+        self.pins = pins if pins is not None else KeyFramePins()
         self.store = store
         self.optimizer = optimizer
         self.place = place
@@ -116,63 +116,114 @@ class LoopCloser:
         return self.store.covisibility.best_neighbors(kf_id, n) if kf_id in self.store.covisibility else []
 
     def step(self, kf: KeyFrame) -> LoopOutcome:
+        """Detection, then the correction of a loop it accepted (what the sequential runner does)."""
+        detection = self.detect(kf)
+        return self.correct(detection) if detection.loop is not None else detection.outcome
+
+    # ---- detection (local mapping goes on meanwhile) ------------------------------------------------------
+
+    def detect(self, kf: KeyFrame) -> LoopDetection:
+        """Look for a loop at ``kf`` (VII-A/B and ORB-SLAM3's verification) without stopping local mapping.
+
+        The map is read under its read lock, in phases (candidates and consistency; per candidate its BoW matches,
+        then, after the Sim3 RANSAC and optimization done without the lock, the guided search and verification);
+        the keyframes in use are pinned (``self.pins``) so local mapping's culling leaves them, and a point or
+        keyframe erased between phases is skipped. An accepted loop keeps ``kf`` and the loop keyframe pinned until
+        :meth:`correct` (or :meth:`release`). Ends by adding ``kf`` to the place recognizer's database."""
         out = LoopOutcome(kf.id)
         t0 = time.perf_counter()
-        if kf.bow is None or not self.store.has_keyframe(kf.id):
-            out.reason = "keyframe has no bag of words or was culled"
-            return out
+        with self.store.read():
+            if kf.bow is None or not self.store.has_keyframe(kf.id):
+                out.reason = "keyframe has no bag of words or was culled"
+                return LoopDetection(kf, out, None)
+            self.pins.pin(kf.id)
+        loop: AcceptedLoop | None = None
         try:
-            if not self.cfg.enabled:
-                out.reason = "loop closing disabled"
-                return out
-            found: tuple[int, Sim3, dict[int, int]] | None = None
+            loop = self._find_loop(kf, out, t0)
+        finally:
+            with self.store.read():
+                if self.store.has_keyframe(kf.id) and kf.bow is not None:
+                    self.place.add(kf.id, kf.bow)
+            if loop is None:
+                self.pins.unpin(kf.id)
+        if loop is not None:
+            self._pending = None
+            out.loop_kf_id, out.matches, out.scale = loop.loop_kf_id, len(loop.matches), loop.S_cw.s
+        return LoopDetection(kf, out, loop, pinned=loop is not None)
+
+    def _find_loop(self, kf: KeyFrame, out: LoopOutcome, t0: float) -> AcceptedLoop | None:
+        """The accepted loop at ``kf`` (pinned), or None with ``out.reason`` saying why not."""
+        assert kf.bow is not None
+        if not self.cfg.enabled:
+            out.reason = "loop closing disabled"
+            return None
+        with self.store.read():
             if self._pending is not None:
-                found = self._check_pending(kf, out)
-                if found is None and self._pending is not None and self._pending.misses == 0:
+                loop = self._check_pending(kf, out)
+                if loop is not None:
+                    return loop
+                if self._pending is not None and self._pending.misses == 0:
                     # ORB-SLAM3: a keyframe that confirmed the pending loop is not searched for another one
                     out.reason = out.reason or "pending loop confirmed; more keyframes must agree"
-                    return out
-            if found is not None:
-                return self._close(kf, found, out, t0)
-            if kf.id < self.last_loop_kf_id + _MIN_KEYFRAMES_BETWEEN_LOOPS or (
-                self.store.n_keyframes() <= _MIN_KEYFRAMES_BETWEEN_LOOPS
+                    return None
+            if kf.id < self.last_loop_kf_id + self.cfg.min_keyframes_between_loops or (
+                self.store.n_keyframes() <= self.cfg.min_keyframes_between_loops
             ):
                 out.reason = "too close to the map's start or to the last loop"
-                return out
+                return None
             out.consistent = self._detect(kf, out)
-            out.timings_ms["detect_ms"] = (time.perf_counter() - t0) * 1e3
-            if not out.consistent:
-                return out
-            t1 = time.perf_counter()
-            found = self._compute_sim3(kf, out)
-            out.timings_ms["sim3_ms"] = (time.perf_counter() - t1) * 1e3
-            if found is None:
-                out.reason = out.reason or "no candidate passed the Sim3 checks"
-                return out
-            return self._close(kf, found, out, t0)
+            self.pins.pin(*out.consistent)  # ORB-SLAM DetectLoop: SetNotErase on the consistent candidates
+        out.timings_ms["detect_ms"] = (time.perf_counter() - t0) * 1e3
+        if not out.consistent:
+            return None
+        t1 = time.perf_counter()
+        try:
+            loop = self._compute_sim3(kf, out)
         finally:
-            if self.store.has_keyframe(kf.id) and kf.bow is not None:
-                self.place.add(kf.id, kf.bow)
+            self.pins.unpin(*out.consistent)  # ORB-SLAM: SetErase on those not chosen
+        out.timings_ms["sim3_ms"] = (time.perf_counter() - t1) * 1e3
+        if loop is None:
+            out.reason = out.reason or "no candidate passed the Sim3 checks"
+        return loop
 
-    def _close(self, kf: KeyFrame, found: tuple[int, Sim3, dict[int, int]], out: LoopOutcome, t0: float) -> LoopOutcome:
-        """Correct the accepted loop ``found`` = (loop keyframe, S_cw, feature -> loop point matches)."""
-        loop_kf_id, S_cw, loop_matches = found
-        self._pending = None
-        out.loop_kf_id, out.matches, out.scale = loop_kf_id, len(loop_matches), S_cw.s
-        t2 = time.perf_counter()
-        self._correct(kf, loop_kf_id, S_cw, loop_matches, out)
-        out.timings_ms["correction_ms"] = (time.perf_counter() - t2) * 1e3
-        self.last_loop_kf_id = kf.id
-        self.loops.append(out)
+    def _accept(self, loop_kf_id: int, S_cw: Sim3, matches: dict[int, int]) -> AcceptedLoop:
+        """An accepted loop, its loop keyframe pinned until the correction (called under the read lock)."""
+        self.pins.pin(loop_kf_id)
+        return AcceptedLoop(loop_kf_id, S_cw, matches)
+
+    # ---- correction (local mapping parked) ------------------------------------------------------------------
+
+    def correct(self, detection: LoopDetection) -> LoopOutcome:
+        """Correct the loop ``detection`` accepted (VII-C/D); the caller keeps local mapping stopped meanwhile
+        (ORB-SLAM CorrectLoop: RequestStop). Releases the keyframes detection pinned."""
+        loop = detection.loop
+        if loop is None:
+            raise ValueError(f"keyframe {detection.outcome.kf_id}: detection accepted no loop to correct")
+        kf, out = detection.kf, detection.outcome
+        try:
+            t2 = time.perf_counter()
+            self._correct(kf, loop.loop_kf_id, loop.S_cw, loop.matches, out)
+            out.timings_ms["correction_ms"] = (time.perf_counter() - t2) * 1e3
+            self.last_loop_kf_id = kf.id
+            self.loops.append(out)
+        finally:
+            self.release(detection)
         log.info(
             "loop closed: keyframe %d <-> %d, %d matches, scale %.3f, %d essential-graph edges",
             kf.id,
-            loop_kf_id,
+            loop.loop_kf_id,
             out.matches,
             out.scale,
             out.essential_graph_edges,
         )
         return out
+
+    def release(self, detection: LoopDetection) -> None:
+        """Unpin the keyframes of an accepted loop (done by :meth:`correct`; call it for a loop that will not be
+        corrected, e.g. the run stops). Idempotent."""
+        if detection.loop is not None and detection.pinned:
+            self.pins.unpin(detection.kf.id, detection.loop.loop_kf_id)
+            detection.pinned = False
 
     # ---- VII-A: detection ----------------------------------------------------------------------------
 
@@ -222,40 +273,47 @@ class LoopCloser:
         xyz = np.stack([self.store.get_point(int(kf.point_ids[i])).xyz_w for i in feats])
         return np.asarray(xyz @ kf.T_c_w[:3, :3].T + kf.T_c_w[:3, 3])
 
-    def _compute_sim3(self, kf: KeyFrame, out: LoopOutcome) -> tuple[int, Sim3, dict[int, int]] | None:
+    def _compute_sim3(self, kf: KeyFrame, out: LoopOutcome) -> AcceptedLoop | None:
         """For each consistent candidate: BoW matches, Sim3 RANSAC, Sim3 optimization, then a guided search
-        of the candidate's neighbourhood points; the first candidate with enough matches is the loop."""
+        of the candidate's neighbourhood points; the first candidate with enough matches is the loop.
+
+        The map is read under the read lock before and after the RANSAC and optimization, which run on copied
+        arrays without it; a candidate or point erased in between is skipped."""
         cfg = self.cfg
         store = self.store
         assert kf.bow is not None
-        valid1 = np.array([p >= 0 and store.has_point(int(p)) for p in kf.point_ids], bool)
         for cand_id in out.consistent:
-            cand = store.get_keyframe(cand_id)
             info: dict[str, object] = {"candidate": cand_id}
             out.tried.append(info)
-            if cand.bow is None:
-                info["rejected"] = "no bag of words"
-                continue
-            valid2 = np.array([p >= 0 and store.has_point(int(p)) for p in cand.point_ids], bool)
-            pairs = self.place.match(
-                kf.features,
-                kf.bow,
-                cand.features,
-                cand.bow,
-                cfg.matcher.ratio_loop,
-                valid1,
-                valid2,
-                max_distance=cfg.matcher.th_low,
-                rotation_bins=cfg.matcher.rotation_bins,
-            )
-            info["bow_matches"] = int(pairs.shape[0])
-            if pairs.shape[0] < _MIN_BOW_MATCHES:
-                info["rejected"] = f"{pairs.shape[0]} BoW matches < {_MIN_BOW_MATCHES}"
-                continue
-            i1, i2 = pairs[:, 0], pairs[:, 1]
-            require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
-            require_pinhole_image(cand.camera, "loop closing (Sim3 RANSAC and optimization)")
-            xyz1, xyz2 = self._points_c(kf, i1), self._points_c(cand, i2)
+            with store.read():
+                if not store.has_keyframe(cand_id) or not store.has_keyframe(kf.id):
+                    info["rejected"] = "culled"
+                    continue
+                cand = store.get_keyframe(cand_id)
+                if cand.bow is None:
+                    info["rejected"] = "no bag of words"
+                    continue
+                valid2 = store.has_points(cand.point_ids)
+                pairs = self.place.match(
+                    kf.features,
+                    kf.bow,
+                    cand.features,
+                    cand.bow,
+                    cfg.matcher.ratio_loop,
+                    store.has_points(kf.point_ids),
+                    valid2,
+                    max_distance=cfg.matcher.th_low,
+                    rotation_bins=cfg.matcher.rotation_bins,
+                )
+                info["bow_matches"] = int(pairs.shape[0])
+                if pairs.shape[0] < cfg.sim3_min_bow_matches:
+                    info["rejected"] = f"{pairs.shape[0]} BoW matches < {cfg.sim3_min_bow_matches}"
+                    continue
+                i1, i2 = pairs[:, 0], pairs[:, 1]
+                require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
+                require_pinhole_image(cand.camera, "loop closing (Sim3 RANSAC and optimization)")
+                xyz1, xyz2 = self._points_c(kf, i1), self._points_c(cand, i2)
+                loop_pids = cand.point_ids[i2].copy()
             uv1 = kf.features.uv_undist_px[i1].astype(np.float64)
             uv2 = cand.features.uv_undist_px[i2].astype(np.float64)
             s1, s2 = kf.features.level_sigma2()[i1], cand.features.level_sigma2()[i2]
@@ -296,21 +354,29 @@ class LoopCloser:
             if opt.inliers.sum() < cfg.min_inliers_after_sim3_opt:
                 info["rejected"] = f"{int(opt.inliers.sum())} inliers after Sim3 optimization"
                 continue
-            S_12 = Sim3.from_matrix(opt.S_12)
-            S_cw = S_12 @ sim3_of_pose(cand.T_c_w)
-            matches = {int(a): int(cand.point_ids[b]) for a, b in zip(i1[opt.inliers], i2[opt.inliers], strict=True)}
-            window = loop_window(store, cand_id)
-            matches.update(self._search_loop_points(kf, S_cw, window, matches))
-            info["loop_matches"] = len(matches)
-            info["scale"] = S_12.s
-            if len(matches) < cfg.min_loop_matches:
-                info["rejected"] = f"{len(matches)} matches < {cfg.min_loop_matches}"
-                continue
-            if not cfg.geometric_verification:
-                return cand_id, S_cw, matches
-            verdict = self._verify(kf, cand_id, S_cw, window, matches, info)
-            if verdict is not None or (self._pending is not None and self._pending.last_kf_id == kf.id):
-                return verdict
+            with store.read():
+                if not store.has_keyframe(cand_id) or not store.has_keyframe(kf.id):
+                    info["rejected"] = "culled during the Sim3 optimization"
+                    continue
+                S_12 = Sim3.from_matrix(opt.S_12)
+                S_cw = S_12 @ sim3_of_pose(cand.T_c_w)
+                inlier_pids = loop_pids[opt.inliers]
+                alive = store.has_points(inlier_pids)
+                matches = {
+                    int(a): int(p) for a, p in zip(i1[opt.inliers][alive], inlier_pids[alive], strict=True)
+                }
+                window = loop_window(store, cand_id)
+                matches.update(self._search_loop_points(kf, S_cw, window, matches))
+                info["loop_matches"] = len(matches)
+                info["scale"] = S_12.s
+                if len(matches) < cfg.min_loop_matches:
+                    info["rejected"] = f"{len(matches)} matches < {cfg.min_loop_matches}"
+                    continue
+                if not cfg.geometric_verification:
+                    return self._accept(cand_id, S_cw, matches)
+                verdict = self._verify(kf, cand_id, S_cw, window, matches, info)
+                if verdict is not None or (self._pending is not None and self._pending.last_kf_id == kf.id):
+                    return verdict
         return None
 
     def _search_loop_points(
@@ -323,7 +389,7 @@ class LoopCloser:
         used = set(matched.values())
         rest = [p for p in window if p not in used]
         return project_window(
-            self.store, kf, S_cw, rest, _LOOP_SEARCH_RADIUS_PX, self.cfg.matcher.th_low, taken
+            self.store, kf, S_cw, rest, self.cfg.loop_search_radius_px, self.cfg.matcher.th_low, taken
         ).matches
 
     # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------
@@ -336,7 +402,7 @@ class LoopCloser:
         window: list[int],
         matches: dict[int, int],
         info: dict[str, object],
-    ) -> tuple[int, Sim3, dict[int, int]] | None:
+    ) -> AcceptedLoop | None:
         """Check the correction the hypothesis implies (ORB-SLAM3's rotation bound), then the hypothesis in the
         current keyframe and its covisible keyframes. Enough agreeing covisible keyframes accept the loop now;
         some keep it pending for the next keyframes; none reject it."""
@@ -361,7 +427,7 @@ class LoopCloser:
             info["rejected"] = f"verification: the current keyframe disagrees ({own.why})"
             return None
         if agreeing >= cfg.verify_coincidences:
-            return cand_id, S_cw, matches
+            return self._accept(cand_id, S_cw, matches)
         if agreeing == 0:
             info["rejected"] = "verification: no covisible keyframe agrees"
             return None
@@ -371,7 +437,7 @@ class LoopCloser:
         )
         return None
 
-    def _check_pending(self, kf: KeyFrame, out: LoopOutcome) -> tuple[int, Sim3, dict[int, int]] | None:
+    def _check_pending(self, kf: KeyFrame, out: LoopOutcome) -> AcceptedLoop | None:
         """ORB-SLAM3's confirmation of a pending loop by a new keyframe: carry the hypothesis to it with the
         tracked motion, check it there; accept after ``verify_coincidences`` agreeing keyframes, drop it after
         ``verify_max_misses`` consecutive disagreeing ones."""
@@ -395,7 +461,7 @@ class LoopCloser:
         if step.state == "dropped":
             self._pending = None
         if step.state == "accepted":
-            return pending.loop_kf_id, step.S_k_w, step.matches
+            return self._accept(pending.loop_kf_id, step.S_k_w, step.matches)
         return None
 
     # ---- VII-C/D: correction ----------------------------------------------------------------------------
@@ -433,7 +499,7 @@ class LoopCloser:
                         store,
                         store.get_keyframe(k),
                         loop_points,
-                        _LOOP_FUSE_RADIUS_PX,
+                        self.cfg.loop_fuse_radius_px,
                         incoming_wins=True,
                         max_distance=self.cfg.matcher.th_low,
                         chi2_gate=self.cfg.chi2.fuse_mono,

@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import invert_T
 from slamkit.interfaces import MapStore
-from slamkit.pipeline.local_mapping import CulledKeyFrame
+from slamkit.pipeline.outcomes import CulledKeyFrame
 from slamkit.sensors import Trajectory
 
 F64 = NDArray[np.float64]

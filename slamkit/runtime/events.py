@@ -49,9 +49,7 @@ from slamkit.events import (
 )
 from slamkit.geometry.se3 import invert_T
 from slamkit.interfaces import Dataset, MapStore
-from slamkit.pipeline.local_mapping import MappingOutcome
-from slamkit.pipeline.loop_closing import LoopOutcome
-from slamkit.pipeline.tracking import TrackingOutcome
+from slamkit.pipeline.outcomes import LoopOutcome, MappingOutcome, TrackingOutcome
 from slamkit.runtime.log import RunLog
 
 log = logging.getLogger("slamkit.events")
@@ -214,7 +212,7 @@ class RunEvents:
         (before local mapping sees its keyframes)."""
         if map_reset:
             self.map_id += 1
-        if out.already_in_map and out.new_keyframes and self.dispatcher.wants("slamkit_map_created"):
+        if out.initialized_map and out.new_keyframes and self.dispatcher.wants("slamkit_map_created"):
             self.dispatcher.emit(
                 "slamkit_map_created",
                 MapCreated(

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from slamkit.pipeline.local_mapping import MappingOutcome
-from slamkit.pipeline.loop_closing import LoopOutcome
-from slamkit.pipeline.tracking import TrackingOutcome
+from slamkit.pipeline.outcomes import LoopOutcome, MappingOutcome, TrackingOutcome
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 
 
@@ -53,6 +51,6 @@ def log_tracking_outcome(log: RunLog, recorder: TrajectoryRecorder, out: Trackin
         log.resets += 1
         recorder.clear()
     log.tracking.append(out)
-    if out.already_in_map and out.new_keyframes:
+    if out.initialized_map and out.new_keyframes:
         kf_ini = out.new_keyframes[0]
         recorder.record(kf_ini.frame_index, kf_ini.timestamp_s, kf_ini.T_c_w, kf_ini.id, kf_ini.T_c_w)

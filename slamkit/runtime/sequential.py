@@ -15,7 +15,8 @@ from tqdm import tqdm
 from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
-from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
+from slamkit.pipeline.outcomes import MappingState, TrackingOutcome, TrackingState
+from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
@@ -88,14 +89,19 @@ class SequentialRunner:
         return self.log
 
     def step(self, data: FrameData, camera: Camera) -> None:
-        """Track one frame, then map the keyframes it produced, then record its pose."""
+        """Track one frame, then map the keyframes it produced (and look for a loop at each), then record its pose.
+
+        Local mapping is always idle when a frame is tracked here (it runs to completion in between), so every
+        keyframe tracking wants is made. A map reset tracking asks for is carried out right after the frame."""
         was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
-        out = self.tracker.step(data, camera, mapping_idle=True)
+        out = self.tracker.step(data, camera, MappingState(idle=True, accepting_keyframes=True))
+        if out.reset_map:
+            self.tracker.reset()
         map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
         log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
         self._run_events.map_events(out, map_was_reset)
         for kf in out.new_keyframes:
-            mapped = self.mapper.step(kf, already_in_map=out.already_in_map)
+            mapped = self.mapper.step(kf)
             self.log.mapping.append(mapped)
             for culled in mapped.culled_keyframes:
                 self.recorder.on_culled(culled)
@@ -105,8 +111,10 @@ class SequentialRunner:
                 self._run_events.loop_checked(self.log.loops[-1])
         ref, T_ref_w = None, None
         if out.state == TrackingState.OK and out.T_c_w is not None:
-            ref = self.tracker.reference_kf_id
+            ref = out.reference_kf_id
             if ref is not None and self.store.has_keyframe(ref):
+                # the reference keyframe as it is after its mapping (and a loop correction), as slamkit has always
+                # recorded in this runner (the threaded runner records against out.T_ref_w, the pose tracking read)
                 T_ref_w = self.store.get_keyframe(ref).T_c_w
                 self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref, T_ref_w)
         # after the frame's keyframes were mapped: its pose is recorded against its reference keyframe as it is now

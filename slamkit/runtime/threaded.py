@@ -2,11 +2,22 @@
 
 Tracking runs in the calling thread (so Ctrl-C lands there); a frame-source thread plays the dataset (as fast as
 possible, or at its own frame rate with dropped frames counted); local mapping and loop closing are
-PipelineWorkers. Tracking hands new keyframes to local mapping and, when local mapping is busy, sets its abort
-token so the running local BA stops early (ORB-SLAM V-E). Local mapping hands processed keyframes to loop
-closing. Loop closing parks local mapping at a safe point (a Future) before it works on a keyframe and lets it go
-after, so no keyframe it uses is culled and a correction (under the map's write lock, bumping the map epoch) never
-meets a half-done local-mapping step. A map reset by tracking parks and empties both workers first.
+PipelineWorkers. Each decision has one owner:
+
+- Tracking is given local mapping's state as data each frame (``MappingState``: idle? accepting keyframes — not
+  while parked for a loop correction?) and decides about keyframes; the runner hands the keyframes it made to local
+  mapping (setting its abort token so a running local BA stops early, ORB-SLAM V-E). When tracking wants a keyframe
+  but local mapping is busy (``KeyFrameDecision.MAPPING_BUSY``), the runner acts: in real time it stops the running
+  local BA and no keyframe is made (ORB-SLAM); playing as fast as possible it waits for local mapping, then has the
+  tracker make the keyframe (docs/runtime.md).
+- Local mapping inserts every keyframe into the map (slamkit/pipeline/keyframe_insertion.py) and hands it to loop
+  closing. Frames are recorded against the reference keyframe's pose their outcome carries, so the runner never
+  needs a keyframe local mapping has not inserted yet.
+- Loop closing detects loops while local mapping goes on (the keyframes it uses are pinned so culling leaves them);
+  only the correction of an accepted loop parks local mapping at a safe point (a Future), after its queue, so a
+  correction (under the map's write lock, bumping the map epoch) never meets a half-done local-mapping step.
+- A map reset tracking asks for (``TrackingOutcome.reset_map``) is carried out here: both workers are parked and
+  emptied, then ``Tracker.reset`` runs.
 
 Any thread's exception stops the run: tracking stops taking frames, the other workers stop, and ``run`` raises
 PipelineThreadError naming the thread with its traceback; ``self.log`` and ``self.recorder`` keep everything done so
@@ -33,7 +44,8 @@ from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
-from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
+from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
+from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
@@ -47,8 +59,6 @@ log = logging.getLogger("slamkit.runner")
 #: How long the end of a run waits for a worker thread to finish its queue / to stop after a failure, s.
 DRAIN_TIMEOUT_S = 600.0
 STOP_TIMEOUT_S = 60.0
-
-MappingItem = tuple[KeyFrame, bool]
 
 
 class ThreadedRunner:
@@ -95,11 +105,10 @@ class ThreadedRunner:
         self._run_events = RunEvents(None, "threaded", store)
         self._fault: ThreadFault | None = None
         self._fault_lock = threading.Lock()
-        # keyframes tracking made that local mapping has not inserted yet: tracked frames may refer to them
-        self._pending_keyframes: dict[int, KeyFrame] = {}
         self._source: FrameSource | None = None
-        self._mapping: PipelineWorker[MappingItem] | None = None
+        self._mapping: PipelineWorker[KeyFrame] | None = None
         self._closing: PipelineWorker[KeyFrame] | None = None
+        self.mapping_parks_for_loops = 0  # times loop closing parked local mapping (once per loop correction)
 
     # ---- faults ------------------------------------------------------------------------------------
 
@@ -119,14 +128,13 @@ class ThreadedRunner:
 
     # ---- worker bodies --------------------------------------------------------------------------------
 
-    def _map_keyframe(self, item: MappingItem, abort: threading.Event) -> None:
+    def _map_keyframe(self, kf: KeyFrame, abort: threading.Event) -> None:
         """Local mapping thread: one keyframe (VI-A..E), then hand it to loop closing."""
-        kf, already_in_map = item
         assert self._mapping is not None
         if self._mapping.pending() > 0:
             abort.set()  # ORB-SLAM skips local BA while newer keyframes wait
         t_start = time.perf_counter()
-        outcome = self.mapper.step(kf, already_in_map=already_in_map, abort=abort)
+        outcome = self.mapper.step(kf, abort=abort)
         self.log.mapping.append(outcome)
         if "local_ba_ms" in outcome.timings_ms:
             # the stages ran in the order of their timings: the BA began after the ones listed before it
@@ -134,7 +142,6 @@ class ThreadedRunner:
             before = sum(outcome.timings_ms[k] for k in stages[: stages.index("local_ba_ms")])
             ba_start = t_start + before / 1e3
             self.log.local_ba_wall_s.append((ba_start, ba_start + outcome.timings_ms["local_ba_ms"] / 1e3))
-        self._pending_keyframes.pop(kf.id, None)
         for culled in outcome.culled_keyframes:
             self.recorder.on_culled(culled)
         self._run_events.keyframe_mapped(outcome)
@@ -142,17 +149,25 @@ class ThreadedRunner:
             self._closing.submit(kf)
 
     def _close_loops(self, kf: KeyFrame, abort: threading.Event) -> None:
-        """Loop closing thread: detect (and correct) a loop at one keyframe with local mapping parked."""
+        """Loop closing thread: detect a loop at one keyframe while local mapping goes on; only the correction of
+        an accepted loop parks local mapping (after its queue: every keyframe is in the map the correction moves),
+        as ORB-SLAM's CorrectLoop requests local mapping to stop."""
         assert self.loop_closer is not None
-        with self._parked(self._mapping, finish_queue=True):
-            if not self.store.has_keyframe(kf.id):
-                return  # culled by local mapping before loop closing reached it
-            self.log.loops.append(self.loop_closer.step(kf))
-            self._run_events.loop_checked(self.log.loops[-1])
+        detection = self.loop_closer.detect(kf)  # culled meanwhile: the outcome says so
+        outcome = detection.outcome
+        if detection.loop is not None:
+            try:
+                with self._parked(self._mapping, finish_queue=True):
+                    self.mapping_parks_for_loops += 1
+                    outcome = self.loop_closer.correct(detection)
+            finally:
+                self.loop_closer.release(detection)
+        self.log.loops.append(outcome)
+        self._run_events.loop_checked(outcome)
 
     @contextlib.contextmanager
     def _parked(
-        self, *workers: PipelineWorker[MappingItem] | PipelineWorker[KeyFrame] | None, finish_queue: bool = False
+        self, *workers: PipelineWorker[KeyFrame] | None, finish_queue: bool = False
     ) -> Iterator[None]:
         """Park workers at a safe point for the duration of the block (raises if one of them died); with
         finish_queue they first process what is queued."""
@@ -177,50 +192,62 @@ class ThreadedRunner:
                     dropped = worker.clear()
                     if dropped:
                         log.info("map reset: %s dropped %d queued keyframes", worker.name, dropped)
-            self._pending_keyframes.clear()
             yield
 
     # ---- tracking (the calling thread) --------------------------------------------------------------
 
-    def _keyframe_wanted_while_mapping_busy(self) -> bool:
-        """Tracking wants a keyframe but local mapping is busy (V-E condition 2 fails).
+    def _mapping_state(self) -> MappingState:
+        """Local mapping's state for the tracker (ORB-SLAM AcceptKeyFrames / isStopped || stopRequested)."""
+        assert self._mapping is not None
+        stopping = self._mapping.stopping()
+        return MappingState(idle=self._mapping.idle() and not stopping, accepting_keyframes=not stopping)
+
+    def _keyframe_wanted_while_mapping_busy(self, out: TrackingOutcome) -> TrackingOutcome:
+        """Tracking wants a keyframe but local mapping is busy (V-E condition 2 fails: ``out.keyframe`` is
+        MAPPING_BUSY).
 
         Real time: stop the running local BA so mapping becomes free soon, and do not insert (ORB-SLAM: the
-        next frames will ask again). As fast as possible: wait for local mapping to finish and insert, so
-        tracking does not outrun mapping on a recorded sequence — a live camera gives mapping the time the
-        frame period leaves it, and aborting every local BA because frames come faster than any camera would
-        starve the map of its optimization."""
+        next frames will ask again). As fast as possible: wait for local mapping to finish, then have the tracker
+        make the keyframe, so tracking does not outrun mapping on a recorded sequence — a live camera gives mapping
+        the time the frame period leaves it, and aborting every local BA because frames come faster than any camera
+        would starve the map of its optimization. The wait is reported as ``mapping_wait_ms``."""
         assert self._mapping is not None
         if self.realtime:
             self._mapping.abort.set()
-            return False
+            return out
+        t0 = time.perf_counter()
         self._mapping.wait_idle()
-        return self._fault is None and not self._mapping.stopping()
-
-    def _keyframe_pose(self, kf_id: int) -> KeyFrame | None:
-        if self.store.has_keyframe(kf_id):
-            return self.store.get_keyframe(kf_id)
-        return self._pending_keyframes.get(kf_id)
+        waited_ms = (time.perf_counter() - t0) * 1e3
+        if self._fault is None and not self._mapping.stopping():
+            out = self.tracker.make_keyframe(out)
+        out.timings_ms["mapping_wait_ms"] = waited_ms
+        if "track_ms" in out.timings_ms:  # the wait holds tracking: it is part of the frame's tracking time
+            out.timings_ms["track_ms"] += waited_ms
+        return out
 
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
         assert self._mapping is not None
         was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
-        out = self.tracker.step(data, camera, mapping_idle=self._mapping.idle() and not self._mapping.stopping())
+        out = self.tracker.step(data, camera, self._mapping_state())
+        if out.keyframe == KeyFrameDecision.MAPPING_BUSY:
+            out = self._keyframe_wanted_while_mapping_busy(out)
+        if out.reset_map:
+            with self._quiesced_for_reset():
+                self.tracker.reset()
         map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
         log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
         self._run_events.map_events(out, map_was_reset)
         if out.new_keyframes and not self._mapping.idle():
             self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
         for kf in out.new_keyframes:
-            self._pending_keyframes[kf.id] = kf
-            self._mapping.submit((kf, out.already_in_map))
+            self._mapping.submit(kf)
         ref_id, T_ref_w = None, None
-        if out.state == TrackingState.OK and out.T_c_w is not None:
-            ref_id = self.tracker.reference_kf_id
-            ref = self._keyframe_pose(ref_id) if ref_id is not None else None
-            if ref is not None and ref_id is not None:
-                T_ref_w = ref.T_c_w
-                self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref_id, T_ref_w)
+        if out.state == TrackingState.OK and out.T_c_w is not None and out.T_ref_w is not None:
+            # recorded against the reference keyframe's pose as tracking read it (the frame's own pose when it became
+            # that keyframe), so a keyframe local mapping has not inserted yet is never needed
+            ref_id, T_ref_w = out.reference_kf_id, out.T_ref_w
+            assert ref_id is not None
+            self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref_id, T_ref_w)
         self._run_events.frame_tracked(out, map_was_reset, ref_id, T_ref_w)
         return out
 
@@ -264,10 +291,6 @@ class ThreadedRunner:
         if self.loop_closer is not None:
             self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault, nice)
         self._lower_optimizer_process_priority()
-        self.tracker.reset_guard = self._quiesced_for_reset
-        mapping = self._mapping
-        self.tracker.keyframes_allowed = lambda: not mapping.stopping()
-        self.tracker.on_mapping_busy = self._keyframe_wanted_while_mapping_busy
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
         workers = [w for w in (self._mapping, self._closing) if w is not None]
         for thread in (self._source, *workers):
@@ -344,7 +367,7 @@ class ThreadedRunner:
         if self.realtime and isinstance(pid, int) and optimizer is not self.tracker.optimizer:
             lower_process_priority(pid, self.background_niceness)
 
-    def _drain(self, workers: list[PipelineWorker[MappingItem] | PipelineWorker[KeyFrame]]) -> None:
+    def _drain(self, workers: list[PipelineWorker[KeyFrame]]) -> None:
         """End of the sequence: let local mapping, then loop closing, finish their queues."""
         for worker in workers:  # mapping first: it feeds loop closing
             worker.stop(drain=True)
@@ -358,7 +381,7 @@ class ThreadedRunner:
                 self._on_fault(fault)
                 return
 
-    def _stop_all(self, workers: list[PipelineWorker[MappingItem] | PipelineWorker[KeyFrame]]) -> None:
+    def _stop_all(self, workers: list[PipelineWorker[KeyFrame]]) -> None:
         for worker in workers:
             worker.stop(drain=False)
         for worker in workers:

@@ -10,7 +10,7 @@ import pytest
 from slamkit.app import build_runner
 from slamkit.config import compose_config
 from slamkit.eval.run_metrics import runner_metrics
-from slamkit.pipeline.loop_closing import LoopOutcome
+from slamkit.pipeline.outcomes import LoopOutcome
 
 
 def run_with_loops(*overrides: str) -> tuple[dict[str, Any], list[LoopOutcome]]:

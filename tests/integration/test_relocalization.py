@@ -35,3 +35,25 @@ def test_kidnapped_camera_relocalizes_within_five_frames() -> None:
     relocated = ate.errors_m[ate.t_s >= outcomes[jump + first_ok].timestamp_s - 1e-6]
     assert relocated.size >= 40
     assert relocated.max() < 0.02 * scene_scale
+
+
+def test_relocalization_thresholds_are_read_from_the_config() -> None:
+    """The same jump with V-C's BoW-match threshold swept out of reach: no candidate is tried, tracking stays lost
+    (with the default 15 it relocalizes within 5 frames, above)."""
+    cfg = compose_config(
+        [
+            "runner=sequential",
+            "runner.progress=false",
+            "dataset.skip=[300,790]",
+            "dataset.max_frames=310",  # 300 frames before the jump, 10 after
+            "pipeline.loop_closing.enabled=false",
+            "pipeline.tracking.reloc_min_bow_matches=100000",
+        ]
+    )
+    runner, dataset = build_runner(cfg)
+    runner.run(dataset, dataset.camera)
+    outcomes = runner.log.tracking
+    jump = next(i for i, o in enumerate(outcomes) if o.frame_index == 300)
+    assert outcomes[jump - 1].state == TrackingState.OK
+    assert len(outcomes) - jump == 10
+    assert all(o.state == TrackingState.LOST and o.method == "relocalization" for o in outcomes[jump + 1 :])

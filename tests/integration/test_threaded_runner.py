@@ -20,7 +20,7 @@ from slamkit.config import compose_config
 from slamkit.eval.run_metrics import runner_metrics
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.runtime.threaded import ThreadedRunner
-from slamkit.runtime.workers import PipelineThreadError
+from slamkit.runtime.workers import PipelineThreadError, PipelineWorker
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -84,7 +84,8 @@ def test_a_failure_in_any_thread_stops_the_run_with_its_name_and_keeps_the_traje
         dataset_to_play_len = len(dataset)
     else:
         component = getattr(runner, target)
-        component.step = _fail_on_call(40 if thread == "tracking" else 8, message)(component.step)
+        method = "detect" if target == "loop_closer" else "step"  # loop closing's thread starts with detection
+        setattr(component, method, _fail_on_call(40 if thread == "tracking" else 8, message)(getattr(component, method)))
         dataset_to_play = dataset
         dataset_to_play_len = len(dataset)
 
@@ -253,3 +254,26 @@ def test_warm_up_leaves_the_tracker_untouched() -> None:
     runner.tracker.warm_up(dataset.camera)
     assert runner.tracker.state.value == "not_initialized" and runner.tracker.init.reference is None
     assert runner.store.n_keyframes() == 0 and runner.store.n_points() == 0
+
+
+def test_loop_detection_runs_without_parking_local_mapping(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 13: loop closing looks at every keyframe while local mapping goes on; local mapping is parked only to
+    correct an accepted loop (ORB-SLAM CorrectLoop: RequestStop), so it is parked exactly once per loop closed (the
+    runner used to park it for every keyframe loop closing looked at). Every keyframe detection pinned is
+    released."""
+    pauses: list[str] = []
+    real_pause = PipelineWorker.pause
+
+    def counting_pause(self: PipelineWorker[Any], finish_queue: bool = False) -> Any:
+        pauses.append(self.name)
+        return real_pause(self, finish_queue)
+
+    monkeypatch.setattr(PipelineWorker, "pause", counting_pause)
+    runner, dataset = _runner()
+    log = runner.run(dataset, dataset.camera)
+    detections = [lp for lp in log.loops if lp.reason != "keyframe has no bag of words or was culled"]
+    closed = sum(lp.loop_kf_id is not None for lp in log.loops)
+    assert len(detections) >= 5, "loop closing looked at the keyframes"
+    assert pauses.count("local-mapping") == runner.mapping_parks_for_loops == closed
+    assert runner.loop_closer is not None
+    assert runner.loop_closer.pins.total_pinned >= len(detections) and not runner.loop_closer.pins.snapshot()

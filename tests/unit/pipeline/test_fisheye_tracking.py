@@ -19,6 +19,7 @@ from slamkit.optim.synthetic import pose_errors
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
 from slamkit.pipeline.map_points import refresh_points
+from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState
 from slamkit.pipeline.tracking import Tracker, TrackingState
 from slamkit.plugins import ComponentRegistry
 from slamkit.sensors import FrameData
@@ -100,7 +101,9 @@ class RecordedFrontEnd:
         pass
 
 
-def tracker_on_known_map(seed: int, camera: Camera) -> tuple[Tracker, list[np.ndarray], dict[int, Observations]]:
+def tracker_on_known_map(
+    seed: int, camera: Camera, cfg: TrackingConfig | None = None
+) -> tuple[Tracker, list[np.ndarray], dict[int, Observations]]:
     rng = np.random.default_rng(seed)
     xyz, desc = scene(rng)
     poses = true_poses()
@@ -120,7 +123,7 @@ def tracker_on_known_map(seed: int, camera: Camera) -> tuple[Tracker, list[np.nd
     optimizer = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
     initializer = registry.instantiate("initializer", {"_target_": registry.get("initializer", "twoview").spec.target})
     frontend: FrontEnd = RecordedFrontEnd(records)
-    tracker = Tracker(TrackingConfig(), frontend, initializer, optimizer, store, np.random.default_rng(0))
+    tracker = Tracker(cfg or TrackingConfig(), frontend, initializer, optimizer, store, np.random.default_rng(0))
     # tracking as it stands right after the keyframe was made from frame 0
     last = Frame.create(0, 0.0, camera, kf_record, ImageBounds.of(camera))
     last.T_c_w = poses[0].copy()
@@ -159,3 +162,64 @@ def test_other_scenes(seed: int) -> None:
         assert out.T_c_w is not None, out.message
         rot, pos = pose_errors(out.T_c_w, poses[i])
         assert rot < 2e-5 and pos < 1e-4, (seed, i, rot, pos)
+
+
+# ---- local mapping's state as data (issue 13 item 4): a Tracker stepped by a test, no runner ---------------------
+
+#: Frame 1 wants a keyframe: the keyframe's points, seen by it alone, count for V-E condition 4 (ORB-SLAM counts
+#: points with 2 observations while the map has at most two keyframes), and as frame 1 sees nearly all of them the
+#: ratio of condition 4 is raised above 1.
+WANTS_KEYFRAME = TrackingConfig(keyframe_ref_min_observations_small_map=1, keyframe_max_ref_ratio=1.5)
+
+
+@pytest.mark.parametrize(
+    ("mapping", "decision"),
+    [
+        (MappingState(idle=True, accepting_keyframes=True), KeyFrameDecision.INSERT),
+        (MappingState(idle=False, accepting_keyframes=True), KeyFrameDecision.MAPPING_BUSY),
+        (MappingState(idle=True, accepting_keyframes=False), KeyFrameDecision.MAPPING_STOPPED),
+    ],
+)
+def test_the_tracker_decides_keyframes_from_the_mapping_state_it_is_given(
+    mapping: MappingState, decision: KeyFrameDecision
+) -> None:
+    tracker, _, _ = tracker_on_known_map(0, CAMERA, WANTS_KEYFRAME)
+    kf_id = tracker.reference_kf_id
+    assert kf_id is not None
+    out = tracker.step(FrameData(1, 1.0, np.zeros((1, 1), np.uint8)), CAMERA, mapping)
+    assert out.state == TrackingState.OK and out.T_c_w is not None, out.message
+    assert out.keyframe == decision
+    if decision == KeyFrameDecision.INSERT:
+        (kf,) = out.new_keyframes
+        # made from the frame, not put in the map (local mapping inserts it), and the frame's new reference
+        assert kf.frame_index == 1 and np.array_equal(kf.T_c_w, out.T_c_w)
+        assert not tracker.store.has_keyframe(kf.id)
+        assert tracker.reference_kf_id == kf.id == out.reference_kf_id
+        assert out.T_ref_w is not None and np.array_equal(out.T_ref_w, out.T_c_w)
+        return
+    assert out.new_keyframes == [] and tracker.reference_kf_id == kf_id
+    # the frame is recorded against the keyframe in the map, with its pose as tracking read it
+    assert out.reference_kf_id == kf_id and out.T_ref_w is not None
+    assert np.array_equal(out.T_ref_w, tracker.store.get_keyframe(kf_id).T_c_w)
+    if decision == KeyFrameDecision.MAPPING_BUSY:
+        # the runner waited for local mapping: the tracker makes the keyframe it wanted
+        made = tracker.make_keyframe(out)
+        assert made.keyframe == KeyFrameDecision.INSERT and made.new_keyframes[0].frame_index == 1
+        assert tracker.reference_kf_id == made.new_keyframes[0].id == made.reference_kf_id
+        with pytest.raises(ValueError, match="no keyframe is pending"):
+            tracker.make_keyframe(made)
+    else:
+        with pytest.raises(ValueError, match="no keyframe is pending"):
+            tracker.make_keyframe(out)
+
+
+def test_a_tracker_lost_in_a_small_map_asks_for_a_reset_and_resets_only_when_told() -> None:
+    tracker, _, _ = tracker_on_known_map(0, CAMERA)
+    # a view of nothing the map holds: random keypoints with random descriptors
+    blank, _ = record(CAMERA, np.eye(4), np.zeros((0, 3)), np.zeros((0, 32), np.uint8), np.random.default_rng(9), 300)
+    tracker.frontend.records[1] = blank  # type: ignore[attr-defined]
+    out = tracker.step(FrameData(1, 1.0, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert out.state == TrackingState.LOST and out.reset_map
+    assert tracker.store.n_keyframes() == 1, "the tracker does not reset the map itself"
+    tracker.reset()  # what the runner does, with local mapping and loop closing parked
+    assert tracker.store.n_keyframes() == 0 and tracker.state == TrackingState.NOT_INITIALIZED

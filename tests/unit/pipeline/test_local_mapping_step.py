@@ -16,6 +16,8 @@ from slamkit.interfaces import AbortToken, BowDescription, PlaceRecognizer
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import LocalMappingConfig
+from slamkit.pipeline.keyframe_insertion import insert_keyframe
+from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.matching import close_pairs
@@ -197,3 +199,53 @@ def test_cholesky_kernel_signals_an_indefinite_system_with_nan() -> None:
     S = np.array([[1.0, 2.0], [2.0, 1.0]])  # eigenvalues 3 and -1
     assert np.all(np.isnan(cholesky_solve_upper(S, np.ones(2))))
     assert np.all(np.isnan(cholesky_solve_upper(np.array([[np.nan]]), np.ones(1))))
+
+
+@pytest.mark.parametrize("pinned", [(), (2,)])
+def test_keyframe_culling_leaves_the_keyframes_loop_closing_pinned(pinned: tuple[int, ...]) -> None:
+    """Five keyframes 5 cm apart see the same 200 points: culling (VI-E) at the last erases the redundant ones in
+    order (1 and 2; then 3 is seen by too few others), but never one loop closing pinned (ORB-SLAM SetNotErase)."""
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kfs = [keyframe(store, 0.05 * i, xyz, desc) for i in range(5)]
+    for kf in kfs:
+        store.add_keyframe(kf)
+    for j in range(N_MAPPED):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
+        for kf in kfs:
+            store.add_observation(pid, kf.id, j)
+    refresh_points(store, store.point_ids())
+    for kf in kfs:
+        store.update_connections(kf.id)
+    pins = KeyFramePins()
+    pins.pin(*pinned)
+    mapper = LocalMapper(LocalMappingConfig(), store, None, pins=pins)  # type: ignore[arg-type]
+    with store.write():
+        culled = {c.kf_id for c in mapper._cull_keyframes(kfs[4])}
+    assert culled == ({1, 3} if pinned else {1, 2})
+    assert all(store.has_keyframe(k) for k in pinned)
+
+
+def test_the_one_keyframe_inserter_turns_tracked_matches_into_observations_once() -> None:
+    """slamkit/pipeline/keyframe_insertion.py: a keyframe tracking made enters the map with its tracked points as
+    observations (their viewing data refreshed); inserting a keyframe the map holds (the two of a new map, which
+    local mapping processes after initialisation inserted them) changes nothing."""
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kf0 = keyframe(store, 0.0, xyz, desc)
+    assert insert_keyframe(store, kf0)
+    for j in range(N_MAPPED):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), kf0.id, kf0.id))
+        store.add_observation(pid, kf0.id, j)
+    refresh_points(store, store.point_ids())
+    tracked = np.full(N_POINTS, -1, np.int64)
+    tracked[:N_MAPPED] = np.arange(N_MAPPED)
+    kf1 = keyframe(store, 0.3, xyz, desc, tracked)
+    before = store.get_point(0).normal_w.copy()
+    assert insert_keyframe(store, kf1)
+    assert all(store.get_point(p).observations == {kf0.id: p, kf1.id: p} for p in range(N_MAPPED))
+    assert not np.allclose(store.get_point(0).normal_w, before), "normals refreshed with the new view"
+    assert not insert_keyframe(store, kf1) and not insert_keyframe(store, kf0)
+    assert store.n_keyframes() == 2 and store.get_point(0).observations == {kf0.id: 0, kf1.id: 0}

@@ -191,7 +191,7 @@ def test_the_loop_closer_accepts_a_revisit_its_covisibles_confirm(world: World) 
     info: dict[str, object] = {}
     S_cw = Sim3.from_se3(pose_at(0.05, 0.3))
     verdict = closer._verify(world.store.get_keyframe(ids[0]), world.loop_ids[0], S_cw, window, {0: 0}, info)
-    assert verdict is not None and verdict[0] == world.loop_ids[0] and verdict[1] is S_cw
+    assert verdict is not None and verdict.loop_kf_id == world.loop_ids[0] and verdict.S_cw is S_cw
     assert info["agreeing"] == 3 and "rejected" not in info
     assert info["correction_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
 
@@ -273,6 +273,8 @@ def test_the_loop_closer_records_a_pending_loop_and_closes_it_on_the_third_agree
     assert third.loop_kf_id == world.loop_ids[0] and third.matches > 0.95 * (N_WALL + N_OTHER)
     # the correction moved the drifted keyframe back to its true pose
     assert np.allclose(world.store.get_keyframe(ids[2]).T_c_w, pose_at(xs[2], 0.3), atol=1e-6)
+    # detection pinned the keyframes it used against culling; the correction released them
+    assert closer.pins.total_pinned >= 3 and not closer.pins.snapshot()
 
 
 @pytest.mark.parametrize(

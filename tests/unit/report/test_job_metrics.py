@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from slamkit.eval.run_metrics import loop_summaries
-from slamkit.pipeline.loop_closing import LoopOutcome
+from slamkit.pipeline.outcomes import LoopOutcome
 from slamkit.runtime.log import RunLog
 
 

@@ -1,0 +1,150 @@
+"""The records the pipeline's steps and the runners exchange: what tracking, local mapping and loop closing did
+with one frame or keyframe (their *outcomes*), and what the runner tells tracking about local mapping
+(:class:`MappingState`).
+
+They live here, not in the algorithm modules, so that a runner, the run log, the lifecycle events and the
+evaluation read them without importing an algorithm, and an algorithm's module holds only its algorithm. Each
+record is plain data: ids, counts, (4, 4) poses ``T_c_w`` (world to camera, metres), timings in ms.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from slamkit.map.entities import KeyFrame
+
+F64 = NDArray[np.float64]
+
+
+class TrackingState(StrEnum):
+    NOT_INITIALIZED = "not_initialized"
+    OK = "ok"
+    LOST = "lost"
+
+
+class KeyFrameDecision(StrEnum):
+    """Tracking's new-keyframe decision for one frame (ORB-SLAM V-E, slamkit/pipeline/tracking/keyframe_decision.py).
+
+    INSERT: the frame became a keyframe (in ``TrackingOutcome.new_keyframes``). NOT_NEEDED: condition 1, 3 or 4
+    fails (or the frame was not tracked). MAPPING_STOPPED: local mapping is parked for a loop correction and
+    accepts no keyframe (ORB-SLAM NeedNewKeyFrame: ``isStopped() || stopRequested()``). MAPPING_BUSY: a keyframe is
+    wanted but condition 2 fails (local mapping busy, too few frames since the last keyframe): the runner acts on
+    it (real time: stop the running local BA; as fast as possible: wait for local mapping, then
+    ``Tracker.make_keyframe``; docs/runtime.md).
+    """
+
+    INSERT = "insert"
+    NOT_NEEDED = "not_needed"
+    MAPPING_STOPPED = "mapping_stopped"
+    MAPPING_BUSY = "mapping_busy"
+
+
+@dataclass(frozen=True)
+class MappingState:
+    """Local mapping's state as the runner sees it when a frame is tracked (ORB-SLAM: ``AcceptKeyFrames`` and
+    ``isStopped``/``stopRequested``), given to ``Tracker.step`` as data.
+
+    idle: nothing queued and no keyframe in progress (V-E condition 2). accepting_keyframes: False while local
+    mapping is parked (or asked to park) for a loop correction: tracking then makes no keyframe.
+    """
+
+    idle: bool = True
+    accepting_keyframes: bool = True
+
+
+@dataclass
+class TrackingOutcome:
+    """What tracking did with one frame.
+
+    T_c_w: (4, 4) estimated pose (None when not tracked). inliers: map points matched after the last pose
+    optimization. new_keyframes: keyframes made from this frame, for local mapping: the tracked frame's keyframe
+    (not in the map yet: local mapping inserts it), or the two keyframes of a new map (``initialized_map``: put in
+    the map by initialisation, local mapping processes them next). keyframe: the V-E decision. reference_kf_id /
+    T_ref_w: the keyframe the frame's pose is recorded against and its (4, 4) T_c_w as tracking last read it (the
+    frame's own pose when it became that keyframe), so a runner never needs a keyframe local mapping has not
+    inserted yet. reset_map: tracking was lost in a map too small to keep (ORB-SLAM: "Track lost soon after
+    initialisation, reseting..."): the runner parks the workers and calls ``Tracker.reset``. timings_ms: per stage.
+    """
+
+    frame_index: int
+    timestamp_s: float
+    state: TrackingState
+    T_c_w: F64 | None
+    n_features: int
+    inliers: int
+    method: str
+    new_keyframes: list[KeyFrame] = field(default_factory=list)
+    initialized_map: bool = False
+    keyframe: KeyFrameDecision = KeyFrameDecision.NOT_NEEDED
+    reference_kf_id: int | None = None
+    T_ref_w: F64 | None = None
+    reset_map: bool = False
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class CulledKeyFrame:
+    """A keyframe removed by culling, kept as a pose relative to its spanning-tree parent so frames that
+    referred to it can still be placed (ORB-SLAM keeps Tcp for the same reason)."""
+
+    kf_id: int
+    parent_id: int | None
+    T_kf_parent: F64
+    T_c_w: F64
+
+
+@dataclass
+class MappingOutcome:
+    """What local mapping did with one keyframe (counts and per-stage times in ms)."""
+
+    kf_id: int
+    points_culled: int = 0
+    points_created: int = 0
+    points_fused: int = 0
+    ba_outliers: int = 0
+    ba_aborted: bool = False
+    culled_keyframes: list[CulledKeyFrame] = field(default_factory=list)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class LoopOutcome:
+    """What loop closing did with one keyframe.
+
+    tried: one record per consistent candidate (BoW matches, Sim3 inliers, loop matches, and its geometric
+    verification: ``correction_rotation_deg`` the turn the loop would give the map, ``verification`` each
+    keyframe's check, ``agreeing`` the covisible keyframes that agreed; ``rejected`` says why). pending: the check
+    of a pending loop hypothesis in this keyframe (ORB-SLAM3's confirmation by the next keyframes), with its state:
+    "agreed", "accepted", "missed" or "dropped". loop_kf_id: the loop keyframe of an accepted loop (its correction
+    follows: ``LoopCloser.correct``).
+    """
+
+    kf_id: int
+    candidates: list[int] = field(default_factory=list)
+    consistent: list[int] = field(default_factory=list)
+    tried: list[dict[str, object]] = field(default_factory=list)
+    pending: dict[str, object] | None = None
+    loop_kf_id: int | None = None
+    matches: int = 0
+    scale: float = 1.0
+    essential_graph_edges: int = 0
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    reason: str = ""
+
+
+__all__ = [
+    "CulledKeyFrame",
+    "KeyFrameDecision",
+    "LoopOutcome",
+    "MappingOutcome",
+    "MappingState",
+    "TrackingOutcome",
+    "TrackingState",
+]

@@ -1,0 +1,120 @@
+"""ORB-SLAM sec. V-D: tracking the local map (Tracking::TrackLocalMap: UpdateLocalKeyFrames, SearchLocalPoints,
+PoseOptimization). The caller holds the map's read lock."""
+
+from __future__ import annotations
+
+from collections import Counter
+from itertools import chain
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.interfaces import MapStore
+from slamkit.pipeline.config import TrackingConfig
+from slamkit.pipeline.frame import Frame
+from slamkit.pipeline.projection import frustum_test, match_projected, project_points, radius_by_viewing_cos
+from slamkit.pipeline.tracking.frame_pose import PoseRefiner
+
+I64 = NDArray[np.int64]
+
+
+def local_keyframes(frame: Frame, store: MapStore, cfg: TrackingConfig) -> tuple[list[int], int | None]:
+    """V-D: K1 (keyframes sharing points with the frame, most shared first), then K2 (each K1's
+    ``local_map_neighbors_per_keyframe`` best covisible neighbours, spanning-tree children and parent), at most
+    ``local_map_covisible_keyframes`` in all -> (local keyframe ids, K_ref: the K1 keyframe sharing the most points,
+    None when the frame matched no point)."""
+    matched = [store.get_point(p) for p in frame.point_ids[frame.point_ids >= 0].tolist()]
+    counts = Counter(chain.from_iterable(p.observations for p in matched))
+    if not counts:
+        return [], None
+    k1 = sorted(counts, key=lambda k: (-counts[k], k))
+    limit = cfg.local_map_covisible_keyframes
+    local = list(k1[:limit])
+    seen = set(local)
+    tree = store.spanning_tree
+    for kf_id in list(local):
+        if len(local) >= limit:
+            break
+        extra = store.covisibility.best_neighbors(kf_id, cfg.local_map_neighbors_per_keyframe)
+        extra += tree.children(kf_id)
+        parent = tree.parent(kf_id)
+        if parent is not None:
+            extra.append(parent)
+        for other in extra:
+            if other not in seen and len(local) < limit and store.has_keyframe(other):
+                local.append(other)
+                seen.add(other)
+    return local, k1[0]
+
+
+def track_local_map(
+    frame: Frame, store: MapStore, cfg: TrackingConfig, refiner: PoseRefiner, wide_search: bool
+) -> tuple[int, int | None]:
+    """V-D: project the local map's points with the five filters, match, optimize the pose again.
+
+    wide_search: the frame follows a relocalization closely (radius ``local_map_search_radius_relocalized_px``).
+    Returns (inliers: matched points observed by some keyframe, K_ref or None when the frame matched no point)."""
+    frame.point_ids[~store.has_points(frame.point_ids)] = -1
+    local_kfs, reference_kf_id = local_keyframes(frame, store, cfg)
+    matched = np.unique(frame.point_ids[frame.point_ids >= 0])
+    store.increase_visible(matched)
+    if local_kfs:
+        ids = np.concatenate([store.get_keyframe(k).point_ids for k in local_kfs])
+        candidates = np.setdiff1d(np.unique(ids[ids >= 0]), matched, assume_unique=True)
+        if candidates.size:
+            search_local_points(frame, candidates.astype(np.int64), store, cfg, wide_search)
+    assert frame.T_c_w is not None
+    refiner.optimize(frame, frame.T_c_w)
+    found = frame.point_ids[(frame.point_ids >= 0) & ~frame.outlier]
+    if found.size == 0:
+        return 0, reference_kf_id
+    store.increase_found(found)
+    return int(np.count_nonzero(store.point_rows(found, "n_observations") > 0)), reference_kf_id
+
+
+def search_local_points(frame: Frame, candidates: I64, store: MapStore, cfg: TrackingConfig, wide_search: bool) -> None:
+    """ORB-SLAM SearchLocalPoints: the frustum test of every candidate (sorted point ids not matched yet), then the
+    search around the projections of the visible ones. Attributes are read only as far as a point gets: the
+    position of all, the viewing data of those projecting into the image, the descriptor of the visible ones."""
+    feats = frame.features
+    assert frame.T_c_w is not None
+    xyz = store.point_rows(candidates, "xyz_w")
+    uv, _, in_image = project_points(frame.T_c_w, xyz, frame.camera)
+    in_image &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
+    s = np.flatnonzero(in_image)
+    if s.size == 0:
+        return
+    near = candidates[s]
+    test = frustum_test(
+        frame.T_c_w,
+        frame.camera,
+        frame.bounds,
+        xyz[s],
+        store.point_rows(near, "normal_w"),
+        store.point_rows(near, "d_min_m"),
+        store.point_rows(near, "d_max_m"),
+        cfg.local_map_min_view_cos,
+        feats.scale_factor,
+        feats.n_levels,
+    )
+    v = np.flatnonzero(test.visible)
+    visible = near[v]
+    store.increase_visible(visible)
+    th = cfg.local_map_search_radius_relocalized_px if wide_search else cfg.local_map_search_radius_px
+    level = test.predicted_level[v]
+    radius = th * radius_by_viewing_cos(test.view_cos[v]) * np.power(feats.scale_factor, level)
+    m = match_projected(
+        feats,
+        frame.point_ids >= 0,
+        frame.bounds,
+        test.uv_px[v],
+        store.point_rows(visible, "descriptor"),
+        radius,
+        level - 1,
+        level,
+        cfg.matcher.th_high,
+        cfg.matcher.ratio_local_map,
+        None,
+        None,
+    )
+    frame.point_ids[m.feature] = candidates[s[v[m.query]]]

@@ -1,0 +1,89 @@
+"""ORB-SLAM sec. V-B, first case: the constant-velocity motion model (Tracking::TrackWithMotionModel) and the
+last frame's pose following its reference keyframe (Tracking::UpdateLastFrame).
+
+The caller holds the map's read lock. Poses are (4, 4) ``T_c_w``; the velocity is ``T_cur_last``."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.geometry.se3 import SE3, invert_T
+from slamkit.interfaces import MapStore
+from slamkit.pipeline.config import TrackingConfig
+from slamkit.pipeline.frame import Frame
+from slamkit.pipeline.projection import match_projected, project_points
+from slamkit.pipeline.tracking.frame_pose import PoseRefiner
+
+F64 = NDArray[np.float64]
+
+
+def update_last_frame(store: MapStore, last: Frame, T_l_r: F64 | None) -> None:
+    """ORB-SLAM UpdateLastFrame: the last frame's pose follows its reference keyframe (T_l_r (4, 4): its pose
+    relative to that keyframe when it was tracked), so corrections of the map (local BA, loop closing) reach the
+    motion model's starting point."""
+    if T_l_r is None or last.ref_kf_id is None:
+        return
+    if store.has_keyframe(last.ref_kf_id):
+        last.T_c_w = T_l_r @ store.get_keyframe(last.ref_kf_id).T_c_w
+
+
+def pose_relative_to_reference(store: MapStore, frame: Frame) -> F64 | None:
+    """(4, 4) T_c_r of a tracked frame relative to its reference keyframe (None when that keyframe is not in the
+    map, e.g. the keyframe just made from the frame, which local mapping has not inserted yet)."""
+    ref = frame.ref_kf_id
+    if ref is None or frame.T_c_w is None or not store.has_keyframe(ref):
+        return None
+    return frame.T_c_w @ invert_T(store.get_keyframe(ref).T_c_w)
+
+
+def velocity(frame: Frame, last: Frame | None) -> F64 | None:
+    """(4, 4) T_cur_last of two consecutive tracked frames (None when the last one has no pose);
+    re-orthonormalised: products of poses drift off SO(3) and optimizers reject them."""
+    if frame.T_c_w is None or last is None or last.T_c_w is None:
+        return None
+    return SE3.from_matrix(frame.T_c_w @ invert_T(last.T_c_w), orthonormalize=True).matrix()
+
+
+def track_with_motion_model(
+    frame: Frame, last: Frame, T_cur_last: F64, store: MapStore, cfg: TrackingConfig, refiner: PoseRefiner
+) -> bool:
+    """V-B: predict the pose with constant velocity, search the last frame's points around their projection
+    (radius th * scale of their level, twice as wide when fewer than ``min_motion_model_matches``), optimize the
+    pose; success with at least ``min_inliers_after_pose_opt`` inliers (sets frame.point_ids, frame.T_c_w)."""
+    assert last.T_c_w is not None
+    T_pred = SE3.from_matrix(T_cur_last @ last.T_c_w, orthonormalize=True).matrix()
+    valid = np.flatnonzero(store.has_points(last.point_ids) & ~last.outlier)
+    if valid.size == 0:
+        return False
+    pids = last.point_ids[valid]
+    xyz = store.point_rows(pids, "xyz_w")
+    desc = store.point_rows(pids, "descriptor")
+    uv, _, inside = project_points(T_pred, xyz, frame.camera)
+    inside &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
+    q = np.flatnonzero(inside)
+    last_level = last.features.level[valid[q]].astype(np.int64)
+    scale = np.power(frame.features.scale_factor, last_level)
+    for th in (cfg.motion_model_search_radius_px, 2.0 * cfg.motion_model_search_radius_px):
+        frame.point_ids[:] = -1
+        m = match_projected(
+            frame.features,
+            np.zeros(len(frame.features), bool),
+            frame.bounds,
+            uv[q],
+            desc[q],
+            th * scale,
+            last_level - 1,
+            last_level + 1,
+            cfg.matcher.th_high,
+            None,
+            last.features.angle_deg[valid[q]].astype(np.float64),
+            cfg.matcher.rotation_bins,
+        )
+        frame.point_ids[m.feature] = pids[q[m.query]]
+        if len(m) >= cfg.min_motion_model_matches:
+            break
+    if np.count_nonzero(frame.point_ids >= 0) < cfg.min_motion_model_matches:
+        return False
+    refiner.optimize(frame, T_pred)
+    return refiner.discard_outliers(frame) >= cfg.min_inliers_after_pose_opt

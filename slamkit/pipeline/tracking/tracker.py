@@ -1,0 +1,327 @@
+"""The Tracker (ORB-SLAM sec. V): the tracking thread's state machine and the order of its steps.
+
+``Tracker.step(data, camera, mapping)`` handles one frame: ORB extraction by the front end, initialisation
+(sec. IV) until a map exists, then the initial pose from the constant-velocity motion model or the reference
+keyframe (V-B, :mod:`.motion_model`, :mod:`.reference_keyframe`) or, when lost, relocalization (V-C,
+:mod:`.relocalization`), tracking of the local map (V-D, :mod:`.local_map`) and the new-keyframe decision (V-E,
+:mod:`.keyframe_decision`). It returns a :class:`~slamkit.pipeline.outcomes.TrackingOutcome`.
+
+One owner per decision. Tracking decides; the runner, which owns the threads, carries out what needs them:
+
+- local mapping's state comes in as data (:class:`~slamkit.pipeline.outcomes.MappingState`), filled by the runner
+  each frame; nothing is installed into the tracker;
+- a keyframe tracking makes is *not* put in the map here: it travels in ``outcome.new_keyframes`` to local mapping,
+  whose insertion (slamkit/pipeline/keyframe_insertion.py) is the only one;
+- "a keyframe is wanted but local mapping is busy" is the outcome's ``keyframe = MAPPING_BUSY``: the runner stops
+  the running local BA (real time) or waits for local mapping and then calls :meth:`Tracker.make_keyframe`;
+- a map reset decided by tracking (lost in a map of at most ``reset_max_keyframes`` keyframes) is the outcome's
+  ``reset_map``: the runner parks local mapping and loop closing and calls :meth:`Tracker.reset`, so the tracker
+  never calls into the runner and no thread works on keyframes being removed.
+
+Deterministic given the rng (the initializer's RANSAC).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
+from slamkit.map.entities import KeyFrame
+from slamkit.pipeline.config import TrackingConfig
+from slamkit.pipeline.frame import Frame, ImageBounds
+from slamkit.pipeline.initialization import MonocularInitialization, create_initial_map, new_keyframe
+from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
+from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
+from slamkit.pipeline.tracking.frame_pose import PoseRefiner
+from slamkit.pipeline.tracking.keyframe_decision import KeyFrameFacts, decide_keyframe, reference_min_observations
+from slamkit.pipeline.tracking.local_map import track_local_map
+from slamkit.pipeline.tracking.motion_model import (
+    pose_relative_to_reference,
+    track_with_motion_model,
+    update_last_frame,
+    velocity,
+)
+from slamkit.pipeline.tracking.reference_keyframe import track_reference_keyframe
+from slamkit.pipeline.tracking.relocalization import relocalize
+from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
+from slamkit.sensors import FrameData
+
+log = logging.getLogger("slamkit.tracking")
+
+F64 = NDArray[np.float64]
+
+#: Local mapping's state for a tracker with no local mapping thread beside it (a test stepping a tracker alone).
+IDLE_MAPPING = MappingState(idle=True, accepting_keyframes=True)
+
+
+class Tracker:
+    """The tracking thread's logic, one frame at a time (deterministic given the rng)."""
+
+    def __init__(
+        self,
+        cfg: TrackingConfig,
+        frontend: FrontEnd,
+        initializer: Initializer,
+        optimizer: Optimizer,
+        store: MapStore,
+        rng: np.random.Generator,
+        place: PlaceRecognizer | None = None,
+        pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
+    ) -> None:
+        """frontend: turns each packet into the frame's observation record (it holds the feature extractors).
+        pose_optimizer: motion-only BA of tracking; default the compiled one of
+        slamkit.pipeline.pose_optimization (same algorithm as ``Optimizer.optimize_pose``, a few hundred times
+        cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend."""
+        self.cfg = cfg
+        self.frontend = frontend
+        self.optimizer = optimizer
+        self.optimize_pose = pose_optimizer or motion_only_ba
+        self.store = store
+        self.place = place  # bag of words: reference-keyframe matching and relocalization (ORB-SLAM V-B, V-C)
+        self.refiner = PoseRefiner(cfg, store, self.optimize_pose)
+        self.relocalizations = 0
+        self.state = TrackingState.NOT_INITIALIZED
+        self.init = MonocularInitialization(cfg, initializer, rng)
+        self.last_frame: Frame | None = None
+        self.velocity: F64 | None = None  # T_cur_last of the last two tracked frames
+        self.reference_kf_id: int | None = None
+        self.last_kf_frame_index = -(10**9)
+        self.last_reloc_frame_index = -(10**9)
+        self._bounds: dict[int, ImageBounds] = {}
+        self._last_T_l_r: F64 | None = None
+        self._frame_bow: BowDescription | None = None
+
+    # ---- public ------------------------------------------------------------------------------
+
+    def warm_up(self, camera: Camera) -> None:
+        """Run the front end's feature extractors once on a synthetic image and throw the result away (the first
+        extraction loads compiled kernels: 20-30 ms a timed run should not spend on its first frame). Changes no
+        state of the tracker."""
+        self.frontend.warm_up(camera)
+
+    def step(self, data: FrameData, camera: Camera, mapping: MappingState = IDLE_MAPPING) -> TrackingOutcome:
+        """Track one frame. camera: the dataset's (left) camera. mapping: local mapping's state now (the runner's;
+        default: idle, for a tracker stepped without a local mapping thread)."""
+        t0 = time.perf_counter()
+        initializing = self.state == TrackingState.NOT_INITIALIZED
+        # ORB-SLAM extracts twice the features on frames used for monocular initialisation: the front end's job
+        features = self.frontend.observe(data, camera, initializing)
+        t1 = time.perf_counter()
+        frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
+        timings = {"extract_ms": (t1 - t0) * 1e3}
+        outcome = self._initialize(frame) if initializing else self._track(frame, timings, mapping)
+        timings["track_ms"] = (time.perf_counter() - t0) * 1e3
+        outcome.timings_ms.update(timings)
+        return outcome
+
+    def make_keyframe(self, outcome: TrackingOutcome) -> TrackingOutcome:
+        """Make the keyframe the last step wanted when local mapping was busy (``outcome.keyframe ==
+        MAPPING_BUSY``), once the runner has waited for local mapping; returns the outcome with it."""
+        frame = self.last_frame
+        if outcome.keyframe != KeyFrameDecision.MAPPING_BUSY or frame is None or frame.index != outcome.frame_index:
+            raise ValueError(f"frame {outcome.frame_index}: no keyframe is pending for the last tracked frame")
+        kf = self._new_keyframe(frame)
+        return dataclasses.replace(
+            outcome,
+            new_keyframes=[kf],
+            keyframe=KeyFrameDecision.INSERT,
+            reference_kf_id=kf.id,
+            T_ref_w=kf.T_c_w,
+            timings_ms=dict(outcome.timings_ms),
+        )
+
+    def reset(self) -> None:
+        """Forget the map and start initialising again. Called by the runner when an outcome asks for it
+        (``reset_map``), with local mapping and loop closing parked."""
+        with self.store.write():
+            for kf_id in self.store.keyframe_ids():
+                self.store.remove_keyframe(kf_id)
+                if self.place is not None:
+                    self.place.remove(kf_id)
+        self.state = TrackingState.NOT_INITIALIZED
+        self.init.reset()
+        self.last_frame = None
+        self.velocity = None
+        self.reference_kf_id = None
+
+    # ---- initialisation ------------------------------------------------------------------------
+
+    def _initialize(self, frame: Frame) -> TrackingOutcome:
+        attempt, matches = self.init.attempt(frame)
+        outcome = TrackingOutcome(
+            frame.index,
+            frame.timestamp_s,
+            TrackingState.NOT_INITIALIZED,
+            None,
+            len(frame.features),
+            0,
+            "initialize",
+            message=attempt.reason,
+        )
+        if matches is None or attempt.result is None:
+            return outcome
+        ref = self.init.reference
+        assert ref is not None
+        made = create_initial_map(
+            self.store, self.optimizer, ref, frame, matches[0], matches[1], attempt.result, self.cfg
+        )
+        if isinstance(made, str):
+            self.init.reset()
+            outcome.message = made
+            return outcome
+        kf_ini, kf_cur = made
+        frame.T_c_w = kf_cur.T_c_w.copy()
+        frame.point_ids = kf_cur.point_ids.copy()
+        frame.ref_kf_id = kf_cur.id
+        self.reference_kf_id = kf_cur.id
+        self.last_kf_frame_index = frame.index
+        self.last_frame = frame
+        self.velocity = None
+        self.state = TrackingState.OK
+        self.init.reset()
+        outcome.state = TrackingState.OK
+        outcome.T_c_w = frame.T_c_w.copy()
+        outcome.inliers = kf_cur.n_tracked_points()
+        outcome.new_keyframes = [kf_ini, kf_cur]
+        outcome.initialized_map = True
+        outcome.keyframe = KeyFrameDecision.INSERT
+        outcome.reference_kf_id, outcome.T_ref_w = kf_cur.id, kf_cur.T_c_w
+        outcome.message = f"initialised ({attempt.result.model}, {attempt.matches} matches)"
+        return outcome
+
+    # ---- tracking --------------------------------------------------------------------------------
+
+    def _track(self, frame: Frame, timings: dict[str, float], mapping: MappingState) -> TrackingOutcome:
+        cfg = self.cfg
+        store = self.store
+        t0 = time.perf_counter()
+        with store.read():
+            method = "lost"
+            ok = False
+            self._frame_bow = None
+            if self.state == TrackingState.LOST:
+                method = "relocalization"
+                ok = self._relocalize(frame)
+            elif self.state == TrackingState.OK and self.last_frame is not None:
+                last = self.last_frame
+                update_last_frame(store, last, self._last_T_l_r)
+                if self.velocity is not None:
+                    ok = track_with_motion_model(frame, last, self.velocity, store, cfg, self.refiner)
+                    method = "motion_model"
+                if not ok:
+                    assert last.T_c_w is not None
+                    ok = track_reference_keyframe(
+                        frame, self.reference_kf_id, last.T_c_w, store, cfg, self.refiner, self.place, self._frame_bow_of(frame)
+                    )
+                    method = "reference_keyframe"
+            t1 = time.perf_counter()
+            inliers = 0
+            if ok:
+                since_reloc = frame.index - self.last_reloc_frame_index
+                wide = since_reloc < cfg.local_map_wide_search_frames_after_reloc
+                inliers, reference = track_local_map(frame, store, cfg, self.refiner, wide)
+                if reference is not None:
+                    self.reference_kf_id = reference
+                recent_reloc = since_reloc < cfg.keyframe_min_frames_since_reloc
+                needed = cfg.min_local_map_inliers_after_reloc if recent_reloc else cfg.min_local_map_inliers
+                ok = inliers >= needed
+            t2 = time.perf_counter()
+        timings["initial_pose_ms"] = (t1 - t0) * 1e3
+        timings["local_map_ms"] = (t2 - t1) * 1e3
+        if not ok:
+            return self._lost(frame, method)
+        assert frame.T_c_w is not None
+        self.velocity = None if method == "relocalization" else velocity(frame, self.last_frame)
+        self.state = TrackingState.OK
+        frame.point_ids[frame.outlier] = -1
+        frame.outlier[:] = False
+        frame.ref_kf_id = self.reference_kf_id
+        outcome = TrackingOutcome(
+            frame.index, frame.timestamp_s, TrackingState.OK, frame.T_c_w.copy(), len(frame.features), inliers, method
+        )
+        outcome.keyframe = decide_keyframe(self._keyframe_facts(frame, inliers, mapping), cfg)
+        if outcome.keyframe == KeyFrameDecision.INSERT:
+            kf = self._new_keyframe(frame)
+            outcome.new_keyframes = [kf]
+            outcome.reference_kf_id, outcome.T_ref_w = kf.id, kf.T_c_w
+        else:
+            self.last_frame = frame
+            self._last_T_l_r = pose_relative_to_reference(store, frame)
+            ref = self.reference_kf_id
+            with store.read():
+                if ref is not None and store.has_keyframe(ref):
+                    outcome.reference_kf_id, outcome.T_ref_w = ref, store.get_keyframe(ref).T_c_w
+        return outcome
+
+    def _new_keyframe(self, frame: Frame) -> KeyFrame:
+        """The keyframe made from the tracked frame (put in the map by local mapping); it becomes the reference."""
+        kf = new_keyframe(self.store, frame, frame.point_ids)
+        self.reference_kf_id = kf.id
+        frame.ref_kf_id = kf.id
+        self.last_kf_frame_index = frame.index
+        self.last_frame = frame
+        self._last_T_l_r = pose_relative_to_reference(self.store, frame)  # None: not in the map yet
+        return kf
+
+    def _keyframe_facts(self, frame: Frame, inliers: int, mapping: MappingState) -> KeyFrameFacts:
+        """The numbers of V-E's conditions, read from the map under its read lock."""
+        store = self.store
+        with store.read():
+            n_kfs = store.n_keyframes()
+            n_ref: int | None = None
+            if self.reference_kf_id is not None and store.has_keyframe(self.reference_kf_id):
+                ref = store.get_keyframe(self.reference_kf_id)
+                ref_ids = ref.point_ids[store.has_points(ref.point_ids)]
+                n_obs = store.point_rows(ref_ids, "n_observations") if ref_ids.size else np.zeros(0, np.int64)
+                n_ref = int(np.count_nonzero(n_obs >= reference_min_observations(n_kfs, self.cfg)))
+        return KeyFrameFacts(
+            frame.index, self.last_kf_frame_index, self.last_reloc_frame_index, inliers, n_ref, n_kfs, mapping
+        )
+
+    def _relocalize(self, frame: Frame) -> bool:
+        """V-C (needs the place recognizer); on success the keyframe it relocalized against becomes the reference."""
+        if self.place is None:
+            return False
+        kf_id = relocalize(frame, self._frame_bow_of(frame)(), self.store, self.place, self.cfg, self.refiner)
+        if kf_id is None:
+            return False
+        self.reference_kf_id = kf_id
+        frame.ref_kf_id = kf_id
+        self.last_reloc_frame_index = frame.index
+        self.relocalizations += 1
+        return True
+
+    def _frame_bow_of(self, frame: Frame) -> Callable[[], BowDescription]:
+        """The frame's bag of words, computed on first use (reference keyframe, relocalization)."""
+
+        def bow() -> BowDescription:
+            assert self.place is not None
+            if self._frame_bow is None:
+                self._frame_bow = self.place.transform(frame.features.descriptors)
+            return self._frame_bow
+
+        return bow
+
+    def _lost(self, frame: Frame, method: str) -> TrackingOutcome:
+        self.state = TrackingState.LOST
+        self.velocity = None
+        msg = f"tracking lost at frame {frame.index} ({method})"
+        reset = self.store.n_keyframes() <= self.cfg.reset_max_keyframes
+        if reset:
+            msg += f"; the map has {self.store.n_keyframes()} keyframes: reset and initialise again"
+        log.info(msg)
+        return TrackingOutcome(
+            frame.index, frame.timestamp_s, self.state, None, len(frame.features), 0, method, message=msg, reset_map=reset
+        )
+
+    def _bounds_of(self, camera: Camera) -> ImageBounds:
+        key = id(camera)
+        if key not in self._bounds:
+            self._bounds[key] = ImageBounds.of(camera)
+        return self._bounds[key]
