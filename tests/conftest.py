@@ -19,11 +19,10 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 TEST_PLUGINS_DIR = REPO_ROOT / "tests" / "plugins"
 
 
-@contextmanager
-def _plugins_installed(target: Path, *distributions: str) -> Iterator[Path]:
-    """pip-install the example plugin distributions ``tests/plugins/<name>`` into ``target`` (a real install, as a
-    third party's would be) and put ``target`` on sys.path for the duration of the block."""
-    for dist in distributions:
+def pip_install_into(target: Path, *sources: Path) -> Path:
+    """pip-install the distributions at ``sources`` (folders with a pyproject) into ``target`` without their
+    dependencies or build isolation: a real install, as a user's or a third party's would be. Returns target."""
+    for source in sources:
         subprocess.run(
             [
                 sys.executable,
@@ -35,10 +34,24 @@ def _plugins_installed(target: Path, *distributions: str) -> Iterator[Path]:
                 "--no-build-isolation",
                 "--target",
                 str(target),
-                str(TEST_PLUGINS_DIR / dist),
+                str(source),
             ],
             check=True,
         )
+    return target
+
+
+@pytest.fixture(scope="session")
+def pip_install() -> Callable[..., Path]:
+    """``pip_install(target, *sources)``: see pip_install_into."""
+    return pip_install_into
+
+
+@contextmanager
+def _plugins_installed(target: Path, *distributions: str) -> Iterator[Path]:
+    """pip-install the example plugin distributions ``tests/plugins/<name>`` into ``target`` and put ``target`` on
+    sys.path for the duration of the block."""
+    pip_install_into(target, *(TEST_PLUGINS_DIR / dist for dist in distributions))
     sys.path.insert(0, str(target))
     try:
         yield target

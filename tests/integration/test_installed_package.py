@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -13,24 +14,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def plain_install(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    target = tmp_path_factory.mktemp("plain_install")
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--no-deps",
-            "--no-build-isolation",
-            "--target",
-            str(target),
-            str(REPO_ROOT),
-        ],
-        check=True,
-    )
-    return target
+def plain_install(tmp_path_factory: pytest.TempPathFactory, pip_install: Callable[..., Path]) -> Path:
+    return pip_install(tmp_path_factory.mktemp("plain_install"), REPO_ROOT)
 
 
 def run_installed(target: Path, cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:

@@ -10,7 +10,7 @@ import logging
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -32,25 +32,9 @@ PLUGINS_DIR = Path(__file__).resolve().parents[1] / "plugins"
 
 
 @pytest.fixture(scope="module")
-def hookcount_site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+def hookcount_site(tmp_path_factory: pytest.TempPathFactory, pip_install: Callable[..., Path]) -> Iterator[Path]:
     """pip-installs the example distribution into a private folder (not on this process's sys.path)."""
-    target = tmp_path_factory.mktemp("site")
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--no-deps",
-            "--no-build-isolation",
-            "--target",
-            str(target),
-            str(PLUGINS_DIR / "slamkit_hookcount"),
-        ],
-        check=True,
-    )
-    yield target
+    yield pip_install(tmp_path_factory.mktemp("site"), PLUGINS_DIR / "slamkit_hookcount")
 
 
 def run_with_hookcount(site: Path, out: Path, *overrides: str) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -7,7 +7,7 @@ import json
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
@@ -23,25 +23,9 @@ PLUGINS_DIR = Path(__file__).resolve().parents[1] / "plugins"
 
 
 @pytest.fixture(scope="module")
-def installed_plugins(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+def installed_plugins(tmp_path_factory: pytest.TempPathFactory, pip_install: Callable[..., Path]) -> Iterator[Path]:
     """pip-installs the example distributions into a private folder and puts it on sys.path."""
-    target = tmp_path_factory.mktemp("site")
-    for dist in ("slamkit_gftt", "slamkit_broken"):
-        subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "pip",
-                "install",
-                "--quiet",
-                "--no-deps",
-                "--no-build-isolation",
-                "--target",
-                str(target),
-                str(PLUGINS_DIR / dist),
-            ],
-            check=True,
-        )
+    target = pip_install(tmp_path_factory.mktemp("site"), PLUGINS_DIR / "slamkit_gftt", PLUGINS_DIR / "slamkit_broken")
     sys.path.insert(0, str(target))
     try:
         yield target
