@@ -20,6 +20,7 @@ from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
+from slamkit.runtime.workers import raised_by_ctrl_c
 from slamkit.sensors import FrameData
 
 log = logging.getLogger("slamkit.runner")
@@ -80,6 +81,10 @@ class SequentialRunner:
                     f"{out.state.value} kf={self.store.n_keyframes()} mp={self.store.n_points()}", refresh=False
                 )
         except BaseException as exc:
+            if isinstance(exc, Exception) and raised_by_ctrl_c(exc):
+                # Ctrl-C inside a callback from compiled code: an interrupt all the same
+                ended_by = KeyboardInterrupt()
+                raise ended_by from exc
             ended_by = exc
             raise
         finally:

@@ -51,7 +51,7 @@ from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
 from slamkit.runtime.source import END, FrameSource
-from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault
+from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault, raised_by_ctrl_c
 from slamkit.sensors import FrameData
 
 log = logging.getLogger("slamkit.runner")
@@ -327,6 +327,8 @@ class ThreadedRunner:
                 out = self._track(item, camera)
                 self.log.tracking_wall_s.append((t_track, time.perf_counter()))
             except Exception as exc:  # reported like any other thread's failure
+                if raised_by_ctrl_c(exc):
+                    raise KeyboardInterrupt from exc
                 self._on_fault(ThreadFault("tracking", exc, traceback.format_exc()))
                 break
             if on_frame is not None:

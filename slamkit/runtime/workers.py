@@ -35,6 +35,20 @@ class PipelineThreadError(SlamkitError):
         self.formatted_traceback = formatted_traceback
 
 
+def raised_by_ctrl_c(exc: BaseException) -> bool:
+    """Whether Ctrl-C caused ``exc``. Python runs the SIGINT handler at the next bytecode of the main thread; when
+    that bytecode is a callback from compiled code (numba unpickling a constant at the end of a nogil kernel, say),
+    the KeyboardInterrupt reaches the caller wrapped in a SystemError, with the interrupt as its cause."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
 @dataclass(frozen=True)
 class ThreadFault:
     """An exception that ended a pipeline thread."""

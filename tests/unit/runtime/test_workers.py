@@ -127,3 +127,31 @@ def test_a_failing_source_reports_its_fault() -> None:
     src.start()
     src.join(timeout=5)
     assert faults and faults[0].thread_name == "frame-source" and "img003.png" in str(faults[0].exc)
+
+
+def test_ctrl_c_wrapped_by_a_callback_from_compiled_code_is_recognised() -> None:
+    """Ctrl-C handled inside a callback from compiled code reaches the caller as a SystemError whose cause chain
+    holds the KeyboardInterrupt (seen with numba's unpickling callback); the runners treat it as Ctrl-C."""
+    from slamkit.runtime.workers import raised_by_ctrl_c
+
+    def wrapped() -> SystemError:
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as inner:
+                raise SystemError("<function _numba_unpickle> returned a result with an exception set") from inner
+        except SystemError as outer:
+            try:
+                raise SystemError("CPUDispatcher(<function kernel>) returned a result with an exception set") from outer
+            except SystemError as top:
+                return top
+
+    assert raised_by_ctrl_c(wrapped())
+    assert raised_by_ctrl_c(KeyboardInterrupt())
+    assert not raised_by_ctrl_c(SystemError("a real failure"))
+    plain = ValueError("bad input")
+    plain.__context__ = RuntimeError("while handling this")
+    assert not raised_by_ctrl_c(plain)
+    looped = ValueError("a")
+    looped.__cause__ = looped  # a cycle in the chain ends the walk
+    assert not raised_by_ctrl_c(looped)
