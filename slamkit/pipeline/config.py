@@ -95,6 +95,8 @@ class TrackingConfig:
     init_ba_iterations: int = 20
     pose_rounds: int = 4
     pose_iterations_per_round: int = 10
+    reset_lost_map_max_keyframes: int = 10
+    time_recently_lost_s: float = 3.0
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

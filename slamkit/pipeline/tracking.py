@@ -23,11 +23,13 @@ from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import SE3, invert_T
 from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.bundle import intrinsics_of, problem_camera
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
 from slamkit.pipeline.initialization import MonocularInitialization, create_initial_map, new_keyframe
+from slamkit.pipeline.lost import LostDecision, LostPolicy, LostRecord, decide_when_lost
 from slamkit.pipeline.map_points import predict_level
 from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
@@ -45,8 +47,6 @@ _K2_NEIGHBORS_PER_KF = 10
 #: ORB-SLAM Relocalization: at least 15 BoW matches, PnP needs 10 inliers (its BoW ratio: pipeline.matcher).
 _RELOC_MIN_BOW_MATCHES = 15
 _RELOC_MIN_PNP_INLIERS = 10
-#: A map this small is reset when tracking is lost (ORB-SLAM: "Track lost soon after initialisation").
-_RESET_IF_LOST_WITH_KEYFRAMES = 5
 
 
 class TrackingState(StrEnum):
@@ -86,7 +86,7 @@ class Tracker:
         frontend: FrontEnd,
         initializer: Initializer,
         optimizer: Optimizer,
-        store: MapStore,
+        atlas: Atlas,
         rng: np.random.Generator,
         place: PlaceRecognizer | None = None,
         pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
@@ -99,7 +99,9 @@ class Tracker:
         self.frontend = frontend
         self.optimizer = optimizer
         self.optimize_pose = pose_optimizer or motion_only_ba
-        self.store = store
+        self.atlas = atlas  # the maps; tracking works on the active one (``store``)
+        self.lost_policy = LostPolicy(cfg.reset_lost_map_max_keyframes, cfg.time_recently_lost_s)
+        self._lost_since_s: float | None = None  # timestamp of the first frame of the current lost spell
         self.place = place  # bag of words: reference-keyframe matching and relocalization (ORB-SLAM V-B, V-C)
         self.relocalizations = 0
         self.state = TrackingState.NOT_INITIALIZED
@@ -118,6 +120,11 @@ class Tracker:
         self.keyframes_allowed: Callable[[], bool] = lambda: True
         # a keyframe is wanted but local mapping is busy (V-E condition 2): True inserts it anyway
         self.on_mapping_busy: Callable[[], bool] = lambda: False
+
+    @property
+    def store(self) -> MapStore:
+        """The active map of the Atlas."""
+        return self.atlas.active
 
     # ---- public ------------------------------------------------------------------------------
 
@@ -142,13 +149,21 @@ class Tracker:
         return outcome
 
     def reset(self) -> None:
-        """Forget the map and start initialising again (inside ``reset_guard``: the threaded runner parks local
-        mapping and loop closing there, so no thread works on keyframes that are being removed)."""
-        with self.reset_guard(), self.store.write():
-            for kf_id in self.store.keyframe_ids():
-                self.store.remove_keyframe(kf_id)
-                if self.place is not None:
-                    self.place.remove(kf_id)
+        """Erase the active map's keyframes and start initialising again (inside ``reset_guard``: the threaded
+        runner parks local mapping and loop closing there and drops their queued keyframes)."""
+        with self.reset_guard():
+            self.atlas.reset_active()
+        self._restart()
+
+    def start_new_map(self) -> None:
+        """Keep the active map in the Atlas and initialise a new active map (ORB-SLAM3 CreateMapInAtlas; inside
+        ``reset_guard``, as ``reset``)."""
+        with self.reset_guard():
+            self.atlas.create_map()
+        self._restart()
+
+    def _restart(self) -> None:
+        self._lost_since_s = None
         self.state = TrackingState.NOT_INITIALIZED
         self.init.reset()
         self.last_frame = None
@@ -234,6 +249,7 @@ class Tracker:
         if not ok:
             return self._lost(frame, method)
         assert frame.T_c_w is not None
+        self._lost_since_s = None
         if method == "relocalization" or self.last_frame is None or self.last_frame.T_c_w is None:
             self.velocity = None
         else:
@@ -285,9 +301,17 @@ class Tracker:
         self.state = TrackingState.LOST
         self.velocity = None
         msg = f"tracking lost at frame {frame.index} ({method})"
-        if self.store.n_keyframes() <= _RESET_IF_LOST_WITH_KEYFRAMES:
-            msg += f"; the map has {self.store.n_keyframes()} keyframes: reset and initialise again"
+        if self._lost_since_s is None:
+            self._lost_since_s = frame.timestamp_s
+        n_kfs = self.store.n_keyframes()
+        decision = decide_when_lost(LostRecord(n_kfs, frame.timestamp_s - self._lost_since_s), self.lost_policy)
+        if decision == LostDecision.RESET_MAP:
+            msg += f"; the map has {n_kfs} keyframes: reset and initialise again"
             self.reset()
+        elif decision == LostDecision.NEW_MAP:
+            msg += f"; relocalization failed for {self.lost_policy.time_recently_lost_s:g} s: the map ({n_kfs} keyframes)"
+            msg += " stays in the Atlas, a new map starts"
+            self.start_new_map()
         log.info(msg)
         return TrackingOutcome(
             frame.index, frame.timestamp_s, self.state, None, len(frame.features), 0, method, message=msg
@@ -571,7 +595,9 @@ class Tracker:
         if self.place is None:
             return False
         bow = self._bow_of(frame)
-        for kf_id, _ in self.place.relocalization_candidates(bow, self.store.covisibility.best_neighbors):
+        # candidates of every map, grouped in their own maps; only the active map's are tried (ORB-SLAM3
+        # DetectRelocalizationCandidates(F, pMap): pKFi->GetMap() != pMap -> skipped)
+        for kf_id, _ in self.place.relocalization_candidates(bow, self.atlas.best_neighbors):
             if not self.store.has_keyframe(kf_id):
                 continue
             kf = self.store.get_keyframe(kf_id)

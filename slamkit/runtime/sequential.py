@@ -13,6 +13,7 @@ from typing import Any
 from tqdm import tqdm
 
 from slamkit.interfaces import Camera, Dataset, MapStore
+from slamkit.map.atlas import Atlas, MapChange
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
 from slamkit.pipeline.tracking import Tracker, TrackingOutcome, TrackingState
@@ -31,7 +32,7 @@ class SequentialRunner:
         self,
         tracker: Tracker,
         mapper: LocalMapper,
-        store: MapStore,
+        atlas: Atlas,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
         events: EventDispatcher | None = None,
@@ -40,12 +41,17 @@ class SequentialRunner:
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
-        self.store = store
+        self.atlas = atlas
         self.recorder = TrajectoryRecorder()
         self.progress = progress
         self.log = RunLog()
         self.events = events
-        self._run_events = RunEvents(None, "sequential", store)
+        self._run_events = RunEvents(None, "sequential", atlas)
+
+    @property
+    def store(self) -> MapStore:
+        """The active map of the Atlas."""
+        return self.atlas.active
 
     def run(
         self,
@@ -60,7 +66,7 @@ class SequentialRunner:
         run_dir / config: where the run's files go and its resolved config, handed to the lifecycle hooks
         (``slamkit_run_started``; the built-in outputs plugin writes the run directory from its events).
         """
-        self._run_events = RunEvents(self.events, "sequential", self.store)
+        self._run_events = RunEvents(self.events, "sequential", self.atlas)
         self._run_events.started(dataset, run_dir, config, threaded=False)
         start = time.perf_counter()
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
@@ -89,11 +95,12 @@ class SequentialRunner:
 
     def step(self, data: FrameData, camera: Camera) -> None:
         """Track one frame, then map the keyframes it produced, then record its pose."""
-        was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
+        map_before = self.atlas.active_id
         out = self.tracker.step(data, camera, mapping_idle=True)
-        map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
-        log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
-        self._run_events.map_events(out, map_was_reset)
+        map_change = self.atlas.change_since(map_before)  # reset, or a new map with the old one kept
+        map_was_reset = map_change == MapChange.RESET
+        log_tracking_outcome(self.log, self.recorder, out, map_change)
+        self._run_events.map_events(out)
         for kf in out.new_keyframes:
             mapped = self.mapper.step(kf, already_in_map=out.already_in_map)
             self.log.mapping.append(mapped)

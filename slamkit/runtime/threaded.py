@@ -30,6 +30,7 @@ from typing import Any
 from tqdm import tqdm
 
 from slamkit.interfaces import Camera, Dataset, MapStore
+from slamkit.map.atlas import Atlas, MapChange
 from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
@@ -69,7 +70,7 @@ class ThreadedRunner:
         self,
         tracker: Tracker,
         mapper: LocalMapper,
-        store: MapStore,
+        atlas: Atlas,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
         realtime: bool = False,
@@ -82,7 +83,7 @@ class ThreadedRunner:
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
-        self.store = store
+        self.atlas = atlas
         self.recorder = TrajectoryRecorder()
         self.progress = progress
         self.realtime = realtime
@@ -92,7 +93,7 @@ class ThreadedRunner:
         self.gil_switch_interval_s = gil_switch_interval_s
         self.log = RunLog(runner="threaded")
         self.events = events
-        self._run_events = RunEvents(None, "threaded", store)
+        self._run_events = RunEvents(None, "threaded", atlas)
         self._fault: ThreadFault | None = None
         self._fault_lock = threading.Lock()
         # keyframes tracking made that local mapping has not inserted yet: tracked frames may refer to them
@@ -100,6 +101,11 @@ class ThreadedRunner:
         self._source: FrameSource | None = None
         self._mapping: PipelineWorker[MappingItem] | None = None
         self._closing: PipelineWorker[KeyFrame] | None = None
+
+    @property
+    def store(self) -> MapStore:
+        """The active map of the Atlas."""
+        return self.atlas.active
 
     # ---- faults ------------------------------------------------------------------------------------
 
@@ -204,11 +210,12 @@ class ThreadedRunner:
 
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
         assert self._mapping is not None
-        was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
+        map_before = self.atlas.active_id
         out = self.tracker.step(data, camera, mapping_idle=self._mapping.idle() and not self._mapping.stopping())
-        map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
-        log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
-        self._run_events.map_events(out, map_was_reset)
+        map_change = self.atlas.change_since(map_before)  # reset, or a new map with the old one kept
+        map_was_reset = map_change == MapChange.RESET
+        log_tracking_outcome(self.log, self.recorder, out, map_change)
+        self._run_events.map_events(out)
         if out.new_keyframes and not self._mapping.idle():
             self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
         for kf in out.new_keyframes:
@@ -239,7 +246,7 @@ class ThreadedRunner:
         Raises PipelineThreadError when a pipeline thread failed; KeyboardInterrupt passes through after the
         threads stopped. ``slamkit_run_finished`` fires in every case, after the pipeline threads stopped.
         """
-        self._run_events = RunEvents(self.events, "threaded", self.store)
+        self._run_events = RunEvents(self.events, "threaded", self.atlas)
         self._run_events.started(dataset, run_dir, config, threaded=True)
         ended_by: BaseException | None = None
         try:

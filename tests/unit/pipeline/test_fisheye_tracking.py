@@ -13,6 +13,7 @@ from slamkit.features import Features, Observations
 from slamkit.geometry import KannalaBrandtCamera
 from slamkit.geometry.so3 import so3_exp
 from slamkit.interfaces import Camera, FrontEnd
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.optim.synthetic import pose_errors
@@ -120,7 +121,7 @@ def tracker_on_known_map(seed: int, camera: Camera) -> tuple[Tracker, list[np.nd
     optimizer = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
     initializer = registry.instantiate("initializer", {"_target_": registry.get("initializer", "twoview").spec.target})
     frontend: FrontEnd = RecordedFrontEnd(records)
-    tracker = Tracker(TrackingConfig(), frontend, initializer, optimizer, store, np.random.default_rng(0))
+    tracker = Tracker(TrackingConfig(), frontend, initializer, optimizer, Atlas.of(store), np.random.default_rng(0))
     # tracking as it stands right after the keyframe was made from frame 0
     last = Frame.create(0, 0.0, camera, kf_record, ImageBounds.of(camera))
     last.T_c_w = poses[0].copy()

@@ -13,6 +13,7 @@ from slamkit_scipy.kernels import cholesky_solve_upper
 from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import AbortToken
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import LocalMappingConfig
@@ -110,7 +111,7 @@ def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock() -> N
     tracked[:N_MAPPED] = np.arange(N_MAPPED)  # matched by tracking
     kf2 = keyframe(store, 0.6, xyz, desc, tracked)
     optimizer = WatchingOptimizer(store)
-    mapper = LocalMapper(LocalMappingConfig(), store, optimizer)  # type: ignore[arg-type]
+    mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), optimizer)  # type: ignore[arg-type]
     out = mapper.step(kf2)
     assert optimizer.reader_got_in == [True]
     assert out.points_created >= 0.9 * (N_POINTS - N_MAPPED)
