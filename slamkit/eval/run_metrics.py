@@ -241,7 +241,7 @@ def map_metrics(
 
 
 class InProcessRun(Protocol):
-    """A runner driven in-process (tests, ``slamkit bench``): its own account of the run, trajectory and map."""
+    """A runner driven in-process (tests, ``slamkit bench``): its own account of the run, trajectory and maps."""
 
     @property
     def log(self) -> RunAccount: ...
@@ -249,17 +249,19 @@ class InProcessRun(Protocol):
     def recorder(self) -> Any: ...
     @property
     def store(self) -> Any: ...
+    @property
+    def atlas(self) -> Any: ...
 
 
 def runner_metrics(runner: InProcessRun, dataset: Any) -> dict[str, Any]:
     """:func:`run_metrics` of a runner that ran in this process, from its ``RunLog``, trajectory recorder and
-    store: the numbers its metrics.json has (the outputs plugin computes them from the lifecycle events)."""
+    active map: the numbers its metrics.json has when the run kept one map (the outputs plugin computes them from
+    the lifecycle events, for every map of the Atlas; a runner's recorder holds the active map's frames only, so
+    here ``maps`` lists the active map alone)."""
     store = runner.store
-    return run_metrics(
-        runner.log,
-        MapSnapshot.of_store(store, 0),
-        runner.recorder.frames(store),
-        runner.recorder.keyframes(store),
-        str(getattr(dataset, "name", "?")),
-        dataset.ground_truth,
-    )
+    snapshot = MapSnapshot.of_store(store, int(runner.atlas.active_id))
+    frames, keyframes = runner.recorder.frames(store), runner.recorder.keyframes(store)
+    gt = dataset.ground_truth
+    metrics = run_metrics(runner.log, snapshot, frames, keyframes, str(getattr(dataset, "name", "?")), gt)
+    metrics["maps"] = [map_metrics(snapshot, frames, keyframes, gt)]
+    return metrics
