@@ -309,8 +309,9 @@ class Tracker:
             msg += f"; the map has {n_kfs} keyframes: reset and initialise again"
             self.reset()
         elif decision == LostDecision.NEW_MAP:
-            msg += f"; relocalization failed for {self.lost_policy.time_recently_lost_s:g} s: the map ({n_kfs} keyframes)"
-            msg += " stays in the Atlas, a new map starts"
+            limit_s = self.lost_policy.time_recently_lost_s
+            msg += f"; relocalization failed for {limit_s:g} s: the map ({n_kfs} keyframes) stays in the Atlas"
+            msg += ", a new map starts"
             self.start_new_map()
         log.info(msg)
         return TrackingOutcome(

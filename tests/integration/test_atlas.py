@@ -109,3 +109,23 @@ def test_long_loop_with_a_jump_ends_with_two_maps(tmp_path: Path) -> None:
     for entry in metrics["maps"]:
         if entry["keyframes"] > 10:
             assert entry["ate_rmse_m"] is not None and entry["ate_rmse_m"] < 1.0
+
+
+def test_the_threaded_runner_starts_the_second_map_with_its_workers_parked(tmp_path: Path) -> None:
+    """Same jump with ORB-SLAM's three threads: local mapping and loop closing are parked and their queues
+    dropped while the active map changes; the first map is kept and the run directory lists both."""
+    cfg = compose_config(["runner=threaded", *ROOM_JUMP[1:]])
+    runner, dataset = build_runner(cfg)
+    log = runner.run(dataset, dataset.camera, run_dir=tmp_path, config={"seed": 0})
+    atlas = runner.atlas
+    assert atlas.map_ids() == [0, 1] and log.new_maps == 1
+    first, second = atlas.get(0), atlas.get(1)
+    assert first.n_keyframes() > 10
+    assert not set(first.keyframe_ids()) & set(second.keyframe_ids())
+    assert not set(first.point_ids()) & set(second.point_ids())
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert [(m["id"], m["keyframes"]) for m in metrics["maps"]] == [
+        (0, first.n_keyframes()),
+        (1, second.n_keyframes()),
+    ]
+    assert (tmp_path / "maps" / "0" / "trajectory.tum").is_file() and (tmp_path / "maps" / "1").is_dir()
