@@ -225,3 +225,25 @@ def test_a_tracker_lost_in_a_small_map_asks_for_a_reset_and_resets_only_when_tol
     assert tracker.store.n_keyframes() == 1, "the tracker does not reset the map itself"
     tracker.reset()  # what the runner does, with local mapping and loop closing parked
     assert tracker.store.n_keyframes() == 0 and tracker.state == TrackingState.NOT_INITIALIZED
+
+
+def test_a_tracker_lost_for_too_long_in_a_kept_map_asks_for_a_new_map_and_starts_it_only_when_told() -> None:
+    # a map bigger than the reset threshold (0 here) is kept: relocalization for 0.5 s, then a new map (ORB-SLAM3)
+    cfg = TrackingConfig(reset_lost_map_max_keyframes=0, time_recently_lost_s=0.5)
+    tracker, _, _ = tracker_on_known_map(0, CAMERA, cfg)
+    # an Atlas that can start maps, holding the known map as map 0
+    tracker.atlas = Atlas(lambda ids: InMemoryMapStore(ids=ids), None, first=tracker.store)
+    blank, _ = record(CAMERA, np.eye(4), np.zeros((0, 3)), np.zeros((0, 32), np.uint8), np.random.default_rng(9), 300)
+    for i in (1, 2, 3):
+        tracker.frontend.records[i] = blank  # type: ignore[attr-defined]
+    first = tracker.step(FrameData(1, 1.0, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert first.state == TrackingState.LOST and first.lost_decision == LostDecision.RELOCALIZE
+    within = tracker.step(FrameData(2, 1.5, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert within.lost_decision == LostDecision.RELOCALIZE, "0.5 s lost is not more than 0.5 s"
+    out = tracker.step(FrameData(3, 1.6, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert out.lost_decision == LostDecision.NEW_MAP
+    assert tracker.atlas.map_ids() == [0] and tracker.store.n_keyframes() == 1, "the tracker changes no map itself"
+    tracker.start_new_map()  # what the runner does, with local mapping and loop closing parked
+    assert tracker.atlas.map_ids() == [0, 1] and tracker.atlas.active_id == 1
+    assert tracker.atlas.get(0).n_keyframes() == 1 and tracker.store.n_keyframes() == 0
+    assert tracker.state == TrackingState.NOT_INITIALIZED and tracker.refiner.store is tracker.store
