@@ -19,7 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from slamkit.errors import ConfigError
 from slamkit.eval.outputs import PLUGIN_NAME as OUTPUTS_PLUGIN
-from slamkit.interfaces import Dataset, MapStore, Optimizer
+from slamkit.interfaces import Dataset, Optimizer
+from slamkit.map.atlas import Atlas
 from slamkit.pipeline.config import PipelineConfig
 from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.local_mapping import LocalMapper
@@ -42,7 +43,8 @@ def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, 
     built: dict[str, Any] = {}
     from slamkit.optim.factory import build_optimizer
 
-    for kind in ("dataset", "features", "place", "initializer", "optimizer", "map"):
+    # the maps (``map``) are built by the Atlas, each with the Atlas's id allocator (build_runner)
+    for kind in ("dataset", "features", "place", "initializer", "optimizer"):
         node = cfg.get(kind)
         if node is None or "_target_" not in node:
             continue
@@ -66,9 +68,13 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     components = build_components(cfg, registry)
     dataset: Dataset = components["dataset"]
     pipeline = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline, resolve=True))  # type: ignore[arg-type]
-    store: MapStore = components["map"]
     rng = np.random.default_rng(int(cfg.seed))
     place = components.get("place")  # None: no relocalization, no loop closing
+    map_node = cfg.get("map")
+    if map_node is None or "_target_" not in map_node:
+        raise ConfigError("map: missing; expected a map store (map=memory)")
+    # every map of the Atlas is a store of the configured kind sharing the Atlas's ids; one keyframe database
+    atlas = Atlas(lambda ids: registry.instantiate("map", map_node, ids=ids), place)
     init_extractor = None
     factor = pipeline.tracking.init_feature_factor
     if factor != 1 and "n_features" in cfg.features:
@@ -86,7 +92,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         frontend,
         components["initializer"],
         components["optimizer"],
-        store,
+        atlas,
         rng,
         place,
         pose_optimizer=_pose_optimizer(pipeline.tracking.pose_optimization, components["optimizer"]),
@@ -98,10 +104,10 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     if kind == "threaded":
         background_optimizer = _background_optimizer(cfg, components["optimizer"])
     pins = KeyFramePins()  # loop closing pins the keyframes it uses, local mapping's culling leaves them
-    mapper = LocalMapper(pipeline.local_mapping, store, background_optimizer, place, pins)
+    mapper = LocalMapper(pipeline.local_mapping, atlas, background_optimizer, place, pins)
     loop_closer = None
     if place is not None:
-        loop_closer = LoopCloser(pipeline.loop_closing, store, background_optimizer, place, rng, pins)
+        loop_closer = LoopCloser(pipeline.loop_closing, atlas, background_optimizer, place, rng, pins)
     progress = bool(cfg.runner.get("progress", True))
     events = EventDispatcher(registry.hook, critical={OUTPUTS_PLUGIN})
     runner: Runner
@@ -109,7 +115,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         runner = ThreadedRunner(
             tracker,
             mapper,
-            store,
+            atlas,
             progress=progress,
             loop_closer=loop_closer,
             realtime=bool(cfg.runner.get("realtime", False)),
@@ -120,7 +126,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             events=events,
         )
     else:
-        runner = SequentialRunner(tracker, mapper, store, progress=progress, loop_closer=loop_closer, events=events)
+        runner = SequentialRunner(tracker, mapper, atlas, progress=progress, loop_closer=loop_closer, events=events)
     return runner, dataset
 
 

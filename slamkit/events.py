@@ -87,7 +87,8 @@ class InitialKeyFrame:
 
 @dataclass(frozen=True)
 class MapCreated:
-    """A map was created: tracking initialised it (the first map of the run, or a new one after a reset).
+    """A map was created: tracking initialised it (the first map of the run, the active map again after a reset, or
+    a new map of the Atlas after tracking was lost for good; ``map_id`` is its Atlas id, slamkit/map/atlas.py).
 
     keyframes: the initialisation's keyframes (monocular: the reference frame's first, then the current frame's),
     with their poses at initialisation. n_points: map points triangulated by the initialisation. Fired before the
@@ -253,7 +254,8 @@ class RunFinished:
 
     status: "ok", "failed" or "interrupted". error: the exception that ended the run, one line per
     ``traceback.format_exception_only`` (None when ok). failed_thread: the pipeline thread whose exception
-    stopped the run (threaded runner). maps: every map at the end (today one). resets: map resets by tracking.
+    stopped the run (threaded runner). maps: every map of the Atlas at the end, ascending ids. resets: map resets
+    by tracking.
     wall_s: wall time of the run, s; sequence_s: time span of the frames played, s; frames_dropped: frames
     real-time playback dropped; realtime_factor: sequence over wall time (None when unknown); preloaded_mb:
     memory of frames read before playback, MiB.

@@ -5,11 +5,14 @@ For a run with a run directory (``RunStarted.run_dir``; ``slamkit run`` gives Hy
 the run's account from its events (slamkit/eval/run_record.py) and, at ``slamkit_run_finished`` (also after a
 failure or Ctrl-C: a run that fails late keeps what it has), writes:
 
-- trajectory.tum: every frame with an estimated pose, T_w_c (TUM: t x y z qx qy qz qw);
-- keyframes.tum: the final map's keyframes;
+- trajectory.tum: every frame with an estimated pose, T_w_c (TUM: t x y z qx qy qz qw), in the run's main map:
+  the map of the Atlas with the most keyframes (ORB-SLAM3 SaveTrajectoryEuRoC), the only one in most runs;
+- keyframes.tum: that map's keyframes;
+- maps/<id>/trajectory.tum, maps/<id>/keyframes.tum, maps/<id>/frames.csv: the same for each map of the Atlas
+  (frames.csv: the frames tracking handled while that map was active);
 - config.yaml: the run's resolved config;
 - metrics.json: :func:`slamkit.eval.run_metrics.run_metrics` plus ``status``, ``seed`` (and ``error``,
-  ``failed_thread`` when it failed);
+  ``failed_thread`` when it failed), and ``maps``: one :func:`slamkit.eval.run_metrics.map_metrics` entry per map;
 - frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe that had
   loop candidates or a pending hypothesis (why a loop was or was not closed);
 - trajectory.png: the trajectory aligned to the ground truth (Sim3) when there is one.
@@ -23,6 +26,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -108,7 +112,7 @@ def write_outputs(out_dir: Path, record: RunRecord) -> dict[str, Any]:
     """Write what the run has (also after a failure) and return its metrics."""
     from omegaconf import OmegaConf
 
-    from slamkit.eval.run_metrics import run_metrics
+    from slamkit.eval.run_metrics import map_metrics, run_metrics
     from slamkit.io.trajectory_io import write_trajectory
 
     started, finished = record.started, record.finished
@@ -120,7 +124,17 @@ def write_outputs(out_dir: Path, record: RunRecord) -> dict[str, Any]:
     write_trajectory(out_dir / "trajectory.tum", frames, "tum")
     write_trajectory(out_dir / "keyframes.tum", keyframes, "tum")
     (out_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(dict(started.config))))
-    metrics = run_metrics(record, record.final_map, frames, keyframes, started.dataset, started.ground_truth)
+    gt = started.ground_truth
+    metrics = run_metrics(record, record.main_map, frames, keyframes, started.dataset, gt, record.maps)
+    metrics["maps"] = []
+    for snap in record.maps:
+        map_dir = out_dir / "maps" / str(snap.map_id)
+        map_dir.mkdir(parents=True, exist_ok=True)
+        map_frames, map_keyframes = record.frames(snap), record.keyframes(snap)
+        write_trajectory(map_dir / "trajectory.tum", map_frames, "tum")
+        write_trajectory(map_dir / "keyframes.tum", map_keyframes, "tum")
+        _write_frames_csv(map_dir / "frames.csv", [o for o in record.tracking if o.map_id == snap.map_id])
+        metrics["maps"].append(map_metrics(snap, map_frames, map_keyframes, gt))
     metrics["status"] = finished.status
     metrics["seed"] = int(started.config["seed"]) if "seed" in started.config else None
     if finished.error:
@@ -129,7 +143,6 @@ def write_outputs(out_dir: Path, record: RunRecord) -> dict[str, Any]:
         metrics["failed_thread"] = finished.failed_thread
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float) + "\n")
     write_run_logs(out_dir, record)
-    gt = started.ground_truth
     if len(frames) >= 3:
         try:
             from slamkit.eval.metrics import compute_ate
@@ -154,10 +167,20 @@ def write_run_logs(out_dir: Path, record: RunRecord) -> None:
     """frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe
     (candidates, consistency, BoW matches, Sim3 inliers and scale, corrections), so a user can see why a loop
     was or was not closed."""
-    with (out_dir / "frames.csv").open("w", newline="") as f:
+    _write_frames_csv(out_dir / "frames.csv", record.tracking)
+    loops = [
+        dict(lp.record)
+        for lp in record.loops
+        if lp.record.get("candidates") or lp.record.get("pending") or lp.loop_kf_id is not None
+    ]
+    (out_dir / "loops.json").write_text(json.dumps(loops, indent=2, default=float) + "\n")
+
+
+def _write_frames_csv(path: Path, tracking: Sequence[FrameTracked]) -> None:
+    with path.open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["frame", "timestamp_s", "state", "method", "features", "inliers", "track_ms", "message"])
-        for o in record.tracking:
+        for o in tracking:
             writer.writerow(
                 [
                     o.frame_index,
@@ -170,12 +193,6 @@ def write_run_logs(out_dir: Path, record: RunRecord) -> None:
                     o.message,
                 ]
             )
-    loops = [
-        dict(lp.record)
-        for lp in record.loops
-        if lp.record.get("candidates") or lp.record.get("pending") or lp.loop_kf_id is not None
-    ]
-    (out_dir / "loops.json").write_text(json.dumps(loops, indent=2, default=float) + "\n")
 
 
 __all__ = ["PLUGIN_NAME", "RunOutputs", "plugin", "write_outputs", "write_run_logs"]

@@ -138,11 +138,13 @@ def run_metrics(
     keyframes: Trajectory,
     dataset_name: str,
     ground_truth: Trajectory | None,
+    all_maps: Sequence[MapSnapshot] = (),
 ) -> dict[str, Any]:
     """metrics.json of a run: counts, timings, and accuracy against the ground truth when there is one.
 
-    final_map: the map at the end (keyframe and point counts, keyframe times for the false-loop check).
-    frames / keyframes: the estimated trajectories, T_w_c per timestamp.
+    final_map: the run's map (keyframe and point counts; with several maps in the Atlas the one whose trajectory
+    ``frames`` is, the biggest). frames / keyframes: the estimated trajectories, T_w_c per timestamp.
+    all_maps: every map of the Atlas (their keyframe times judge the loops closed in each; default: final_map).
     """
     track_ms = [o.timings_ms["track_ms"] for o in run.tracking if "track_ms" in o.timings_ms]
     extract_ms = [o.timings_ms["extract_ms"] for o in run.tracking if "extract_ms" in o.timings_ms]
@@ -200,15 +202,46 @@ def run_metrics(
             metrics[f"{name}ate_matched_poses"] = ate.matched_poses
             metrics[f"{name}ate_rmse_pct_of_path"] = 100.0 * ate.rmse_m / max(metrics["path_length_m"], 1e-12)
         metrics["ate_align"] = "sim3"
-        metrics["loops_false"] = count_false_loops(run, final_map.keyframe_timestamps(), ground_truth)
+        times = {k: t for m in (all_maps or (final_map,)) for k, t in m.keyframe_timestamps().items()}
+        metrics["loops_false"] = count_false_loops(run, times, ground_truth)
     else:
         metrics["path_length_m"] = path_length_m(frames)
         metrics["path_length_source"] = "estimate (no ground truth; arbitrary scale for monocular)"
     return metrics
 
 
+def map_metrics(
+    snapshot: MapSnapshot, frames: Trajectory, keyframes: Trajectory, ground_truth: Trajectory | None
+) -> dict[str, Any]:
+    """One entry of metrics.json's ``maps``: a map of the Atlas with its frames and keyframes (T_w_c), and the
+    accuracy of each against the ground truth after a Sim3 alignment of that map alone (each map has its own
+    frame and, monocular, its own scale). ``ate_rmse_m`` / ``kf_ate_rmse_m`` are null with the reason in
+    ``ate_error`` / ``kf_ate_error`` when there is no ground truth or too few poses to align."""
+    entry: dict[str, Any] = {
+        "id": snapshot.map_id,
+        "frames": len(frames),
+        "keyframes": snapshot.n_keyframes,
+        "points": snapshot.n_points,
+    }
+    from slamkit.eval.metrics import compute_ate
+
+    for name, traj in (("", frames), ("kf_", keyframes)):
+        entry[f"{name}ate_rmse_m"] = None
+        if ground_truth is None:
+            entry[f"{name}ate_error"] = "no ground truth"
+            continue
+        try:
+            ate = compute_ate(ground_truth, traj, align="sim3", max_diff_s=0.01)
+        except (EvaluationError, SlamkitError) as exc:
+            entry[f"{name}ate_error"] = str(exc)
+            continue
+        entry[f"{name}ate_rmse_m"] = ate.rmse_m
+        entry[f"{name}ate_matched_poses"] = ate.matched_poses
+    return entry
+
+
 class InProcessRun(Protocol):
-    """A runner driven in-process (tests, ``slamkit bench``): its own account of the run, trajectory and map."""
+    """A runner driven in-process (tests, ``slamkit bench``): its own account of the run, trajectory and maps."""
 
     @property
     def log(self) -> RunAccount: ...
@@ -216,17 +249,19 @@ class InProcessRun(Protocol):
     def recorder(self) -> Any: ...
     @property
     def store(self) -> Any: ...
+    @property
+    def atlas(self) -> Any: ...
 
 
 def runner_metrics(runner: InProcessRun, dataset: Any) -> dict[str, Any]:
     """:func:`run_metrics` of a runner that ran in this process, from its ``RunLog``, trajectory recorder and
-    store: the numbers its metrics.json has (the outputs plugin computes them from the lifecycle events)."""
+    active map: the numbers its metrics.json has when the run kept one map (the outputs plugin computes them from
+    the lifecycle events, for every map of the Atlas; a runner's recorder holds the active map's frames only, so
+    here ``maps`` lists the active map alone)."""
     store = runner.store
-    return run_metrics(
-        runner.log,
-        MapSnapshot.of_store(store, 0),
-        runner.recorder.frames(store),
-        runner.recorder.keyframes(store),
-        str(getattr(dataset, "name", "?")),
-        dataset.ground_truth,
-    )
+    snapshot = MapSnapshot.of_store(store, int(runner.atlas.active_id))
+    frames, keyframes = runner.recorder.frames(store), runner.recorder.keyframes(store)
+    gt = dataset.ground_truth
+    metrics = run_metrics(runner.log, snapshot, frames, keyframes, str(getattr(dataset, "name", "?")), gt)
+    metrics["maps"] = [map_metrics(snapshot, frames, keyframes, gt)]
+    return metrics

@@ -3,7 +3,9 @@
 It keeps the same records a runner keeps in its ``RunLog`` (one per frame, per keyframe mapped, per keyframe loop
 closing processed) and the trajectory the way ORB-SLAM records it (each frame relative to its reference keyframe,
 resolved against the keyframes' final poses at the end), so :func:`slamkit.eval.run_metrics.run_metrics` gives the
-same numbers from either.
+same numbers from either. Frames are recorded per map of the Atlas (``FrameTracked.map_id``): each map has its own
+trajectory, and the run's main trajectory is that of the map with the most keyframes (ORB-SLAM3
+System::SaveTrajectoryEuRoC writes the biggest map's).
 """
 
 from __future__ import annotations
@@ -36,27 +38,38 @@ class RunRecord:
         self.mapping: list[KeyFrameInserted] = []
         self.loops: list[LoopChecked] = []
         self.finished: RunFinished | None = None
-        self._trajectory = TrajectoryRecorder()
+        self._trajectories: dict[int, TrajectoryRecorder] = {}  # map id -> that map's frames
+
+    def _trajectory(self, map_id: int) -> TrajectoryRecorder:
+        recorder = self._trajectories.get(map_id)
+        if recorder is None:
+            recorder = self._trajectories[map_id] = TrajectoryRecorder()
+        return recorder
 
     # ---- events ----------------------------------------------------------------------------------
 
     def on_map_created(self, event: MapCreated) -> None:
         # the initialisation's reference frame became keyframe 0: it has an estimated pose too
         first = event.keyframes[0]
-        self._trajectory.record(first.frame_index, first.timestamp_s, first.T_c_w, first.kf_id, first.T_c_w)
+        self._trajectory(event.map_id).record(
+            first.frame_index, first.timestamp_s, first.T_c_w, first.kf_id, first.T_c_w
+        )
 
     def on_frame_tracked(self, event: FrameTracked) -> None:
-        if event.map_reset:
-            self._trajectory.clear()  # the poses so far live in a map that no longer exists
+        # after a map reset the poses recorded so far live under the erased map's id, which no map has any more
         self.tracking.append(event)
         if event.T_c_r is not None and event.reference_kf_id is not None:
-            self._trajectory.record_relative(event.frame_index, event.timestamp_s, event.reference_kf_id, event.T_c_r)
+            self._trajectory(event.map_id).record_relative(
+                event.frame_index, event.timestamp_s, event.reference_kf_id, event.T_c_r
+            )
 
     def on_keyframe_inserted(self, event: KeyFrameInserted) -> None:
         self.mapping.append(event)
 
     def on_keyframe_culled(self, event: KeyFrameCulled) -> None:
-        self._trajectory.on_culled(CulledKeyFrame(event.kf_id, event.parent_id, event.T_kf_parent, event.T_c_w))
+        self._trajectory(event.map_id).on_culled(
+            CulledKeyFrame(event.kf_id, event.parent_id, event.T_kf_parent, event.T_c_w)
+        )
 
     def on_loop_checked(self, event: LoopChecked) -> None:
         self.loops.append(event)
@@ -96,19 +109,26 @@ class RunRecord:
         return self._finished().preloaded_mb
 
     @property
-    def final_map(self) -> MapSnapshot:
-        """The active map at the end of the run."""
-        return self._finished().maps[-1]
+    def maps(self) -> tuple[MapSnapshot, ...]:
+        """Every map of the Atlas at the end of the run, ascending ids."""
+        return self._finished().maps
+
+    @property
+    def main_map(self) -> MapSnapshot:
+        """The map with the most keyframes (ties: the lowest id), whose trajectory is the run's (ORB-SLAM3
+        SaveTrajectoryEuRoC / SaveKeyFrameTrajectoryEuRoC keep the biggest map)."""
+        return max(self.maps, key=lambda m: (m.n_keyframes, -m.map_id))
 
     # ---- trajectories ----------------------------------------------------------------------------
 
-    def frames(self) -> Trajectory:
-        """Every recorded frame's pose T_w_c, against the keyframes' final poses."""
-        return self._trajectory.frames_at(self.final_map.keyframe_poses())
+    def frames(self, snapshot: MapSnapshot | None = None) -> Trajectory:
+        """Every frame recorded in a map (default: the main map), T_w_c against its keyframes' final poses."""
+        snap = self.main_map if snapshot is None else snapshot
+        return self._trajectory(snap.map_id).frames_at(snap.keyframe_poses())
 
-    def keyframes(self) -> Trajectory:
-        """The final map's keyframes, T_w_c in time order."""
-        snap = self.final_map
+    def keyframes(self, snapshot: MapSnapshot | None = None) -> Trajectory:
+        """A map's keyframes (default: the main map's), T_w_c in time order."""
+        snap = self.main_map if snapshot is None else snapshot
         order = sorted(range(snap.n_keyframes), key=lambda i: snap.keyframe_timestamps_s[i])
         if not order:
             return Trajectory(snap.keyframe_timestamps_s[:0], snap.T_w_c[:0])

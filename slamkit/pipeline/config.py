@@ -99,7 +99,6 @@ class TrackingConfig:
     reloc_search_max_distance: int = 100
     reloc_search_radius_fine_px: float = 3.0
     reloc_search_max_distance_fine: int = 64
-    reset_max_keyframes: int = 5
     init_feature_factor: float = 2.0
     init_min_features: int = 100
     init_min_matches: int = 100
@@ -108,6 +107,8 @@ class TrackingConfig:
     init_ba_iterations: int = 20
     pose_rounds: int = 4
     pose_iterations_per_round: int = 10
+    reset_lost_map_max_keyframes: int = 10
+    time_recently_lost_s: float = 3.0
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

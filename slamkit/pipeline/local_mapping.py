@@ -17,6 +17,7 @@ from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.so3 import hat
 from slamkit.geometry.twoview import triangulate_points
 from slamkit.interfaces import AbortToken, MapStore, Optimizer, PlaceRecognizer
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
@@ -41,7 +42,7 @@ class LocalMapper:
     def __init__(
         self,
         cfg: LocalMappingConfig,
-        store: MapStore,
+        atlas: Atlas,
         optimizer: Optimizer,
         place: PlaceRecognizer | None = None,
         pins: KeyFramePins | None = None,
@@ -49,10 +50,15 @@ class LocalMapper:
         """pins: keyframes loop closing is using (its ``LoopCloser.pins``), which keyframe culling leaves."""
         self.cfg = cfg
         self.pins = pins if pins is not None else KeyFramePins()
-        self.store = store
+        self.atlas = atlas  # the maps; local mapping works on the active one (``store``)
         self.optimizer = optimizer
         self.place = place  # describes each keyframe with a bag of words (ORB-SLAM ProcessNewKeyFrame)
         self.recent_points: list[int] = []
+
+    @property
+    def store(self) -> MapStore:
+        """The active map of the Atlas."""
+        return self.atlas.active
 
     def step(self, kf: KeyFrame, abort: AbortToken | None = None) -> MappingOutcome:
         """Process one new keyframe (VI-A to VI-E): one tracking made, or one of the two of a new map."""

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from slamkit.geometry.sim3 import Sim3
 from slamkit.geometry.sim3_ransac import ransac_sim3
 from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.bundle import intrinsics_of, run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LoopClosingConfig
@@ -90,7 +91,7 @@ class LoopCloser:
     def __init__(
         self,
         cfg: LoopClosingConfig,
-        store: MapStore,
+        atlas: Atlas,
         optimizer: Optimizer,
         place: PlaceRecognizer,
         rng: np.random.Generator,
@@ -100,7 +101,7 @@ class LoopCloser:
         the same object)."""
         self.cfg = cfg
         self.pins = pins if pins is not None else KeyFramePins()
-        self.store = store
+        self.atlas = atlas  # the maps; loop closing works on the active one (``store``)
         self.optimizer = optimizer
         self.place = place
         self.rng = rng
@@ -111,6 +112,11 @@ class LoopCloser:
         self._thresholds = VerificationThresholds(
             cfg.verify_search_radius_px, cfg.verify_min_matches, cfg.matcher.th_low
         )
+
+    @property
+    def store(self) -> MapStore:
+        """The active map of the Atlas."""
+        return self.atlas.active
 
     def _neighbors(self, kf_id: int, n: int) -> list[int]:
         return self.store.covisibility.best_neighbors(kf_id, n) if kf_id in self.store.covisibility else []
@@ -237,7 +243,9 @@ class LoopCloser:
         strong = cov.neighbors(kf.id, cfg.candidate_min_covisible_weight) or cov.neighbors(kf.id)
         scores = [self.place.score(kf.bow, b) for n in strong if (b := self.store.get_keyframe(n).bow) is not None]
         min_score = min(scores) if scores else 0.0
-        connected = {kf.id, *cov.neighbors(kf.id)}
+        # the other maps' keyframes are left out like the connected ones: a loop is searched in the active map only
+        # (ORB-SLAM3 DetectLoopCandidates: "it must be in the same map"; merging maps is a later step)
+        connected = {kf.id, *cov.neighbors(kf.id)} | self.atlas.keyframes_outside_active()
         candidates = [
             k
             for k, _ in self.place.loop_candidates(kf.bow, connected, min_score, self._neighbors)

@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.pipeline.lost import LostDecision
+
 if TYPE_CHECKING:
     from slamkit.map.entities import KeyFrame
 
@@ -68,8 +70,10 @@ class TrackingOutcome:
     the map by initialisation, local mapping processes them next). keyframe: the V-E decision. reference_kf_id /
     T_ref_w: the keyframe the frame's pose is recorded against and its (4, 4) T_c_w as tracking last read it (the
     frame's own pose when it became that keyframe), so a runner never needs a keyframe local mapping has not
-    inserted yet. reset_map: tracking was lost in a map too small to keep (ORB-SLAM: "Track lost soon after
-    initialisation, reseting..."): the runner parks the workers and calls ``Tracker.reset``. timings_ms: per stage.
+    inserted yet. lost_decision: on a frame tracking could not track, what to do (slamkit/pipeline/lost.py,
+    ORB-SLAM3): RELOCALIZE keeps trying; RESET_MAP (a map too small to keep) and NEW_MAP (relocalization failed for
+    too long: the map stays in the Atlas) are carried out by the runner, which parks the workers and calls
+    ``Tracker.reset`` / ``Tracker.start_new_map``; None when the frame was not lost. timings_ms: per stage.
     """
 
     frame_index: int
@@ -84,7 +88,7 @@ class TrackingOutcome:
     keyframe: KeyFrameDecision = KeyFrameDecision.NOT_NEEDED
     reference_kf_id: int | None = None
     T_ref_w: F64 | None = None
-    reset_map: bool = False
+    lost_decision: LostDecision | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     message: str = ""
 

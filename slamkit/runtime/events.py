@@ -48,7 +48,8 @@ from slamkit.events import (
     RunStarted,
 )
 from slamkit.geometry.se3 import invert_T
-from slamkit.interfaces import Dataset, MapStore
+from slamkit.interfaces import Dataset
+from slamkit.map.atlas import Atlas
 from slamkit.pipeline.outcomes import LoopOutcome, MappingOutcome, TrackingOutcome
 from slamkit.runtime.log import RunLog
 
@@ -187,12 +188,17 @@ class RunEvents:
     tracking thread, ``keyframe_mapped`` from local mapping's, ``loop_checked`` from loop closing's.
     """
 
-    def __init__(self, dispatcher: EventDispatcher | None, runner: str, store: MapStore) -> None:
+    def __init__(self, dispatcher: EventDispatcher | None, runner: str, atlas: Atlas) -> None:
         self.dispatcher = dispatcher or EventDispatcher()
         self.runner = runner
-        self.store = store
+        self.atlas = atlas
         self.run_id = uuid.uuid4().int >> 65  # unique within the process (and beyond), fits an int64
-        self.map_id = 0
+
+    @property
+    def map_id(self) -> int:
+        """The active map's id in the Atlas (events of local mapping and loop closing are about the active map: the
+        runner parks them while the active map changes)."""
+        return self.atlas.active_id
 
     def started(self, dataset: Dataset, run_dir: Path | None, config: Mapping[str, Any] | None, threaded: bool) -> None:
         event = RunStarted(
@@ -207,11 +213,9 @@ class RunEvents:
         self.dispatcher.start(threaded)
         self.dispatcher.emit("slamkit_run_started", event)
 
-    def map_events(self, out: TrackingOutcome, map_reset: bool) -> None:
-        """Right after tracking a frame: count a map reset, and fire map_created when the frame initialised a map
-        (before local mapping sees its keyframes)."""
-        if map_reset:
-            self.map_id += 1
+    def map_events(self, out: TrackingOutcome) -> None:
+        """Right after tracking a frame: fire map_created when the frame initialised the active map (before local
+        mapping sees its keyframes)."""
         if out.initialized_map and out.new_keyframes and self.dispatcher.wants("slamkit_map_created"):
             self.dispatcher.emit(
                 "slamkit_map_created",
@@ -224,7 +228,7 @@ class RunEvents:
                         InitialKeyFrame(kf.id, kf.frame_index, kf.timestamp_s, kf.T_c_w.copy())
                         for kf in out.new_keyframes
                     ),
-                    n_points=len(self.store.point_ids()),
+                    n_points=len(self.atlas.active.point_ids()),
                 ),
             )
 
@@ -326,7 +330,7 @@ class RunEvents:
                         status=status,
                         error=None if exc is None else describe_exception(exc),
                         failed_thread=run.failed_thread,
-                        maps=(MapSnapshot.of_store(self.store, self.map_id),),
+                        maps=tuple(MapSnapshot.of_store(store, map_id) for map_id, store in self.atlas.items()),
                         resets=run.resets,
                         wall_s=run.wall_s,
                         sequence_s=run.sequence_s,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from slamkit.map.atlas import MapChange
 from slamkit.pipeline.outcomes import LoopOutcome, MappingOutcome, TrackingOutcome
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 
@@ -13,9 +14,10 @@ class RunLog:
     """Everything a run did.
 
     tracking: one outcome per frame tracking received (in order). mapping / loops: one outcome per keyframe local
-    mapping / loop closing processed. frames_dropped: frames that real-time playback delivered while tracking
-    was busy and that were replaced by a newer one before tracking took them (0 when playing as fast as
-    possible). sequence_s: time span of the frames played (last minus first timestamp, s). wall_s: wall time of
+    mapping / loop closing processed. resets: active maps erased because tracking was lost soon after initialising
+    them; new_maps: maps kept in the Atlas when tracking was lost for good (a new active map started).
+    frames_dropped: frames that real-time playback delivered while tracking was busy and that were replaced by a
+    newer one before tracking took them (0 when playing as fast as possible). sequence_s: time span of the frames played (last minus first timestamp, s). wall_s: wall time of
     the run, s. failed_thread: name of the pipeline thread whose exception stopped the run, if any.
     preloaded_mb: memory held by frames read into memory before playback (``runner.preload``), MiB.
     """
@@ -24,6 +26,7 @@ class RunLog:
     mapping: list[MappingOutcome] = field(default_factory=list)
     loops: list[LoopOutcome] = field(default_factory=list)
     resets: int = 0
+    new_maps: int = 0
     wall_s: float = 0.0
     frames_dropped: int = 0
     sequence_s: float = 0.0
@@ -43,13 +46,19 @@ class RunLog:
         return self.sequence_s / self.wall_s
 
 
-def log_tracking_outcome(log: RunLog, recorder: TrajectoryRecorder, out: TrackingOutcome, map_was_reset: bool) -> None:
-    """What every runner does after tracking a frame: count a map reset (the trajectory so far lived in the map
-    that is gone, so it is forgotten), log the outcome, and record the initialisation's reference frame, which
-    became keyframe 0 and has an estimated pose too."""
-    if map_was_reset:
-        log.resets += 1
+def log_tracking_outcome(
+    log: RunLog, recorder: TrajectoryRecorder, out: TrackingOutcome, map_change: MapChange | None
+) -> None:
+    """What every runner does after tracking a frame: count a map reset or a new map, log the outcome, and record
+    the initialisation's reference frame, which became keyframe 0 and has an estimated pose too. The runner's
+    recorder holds the active map's frames: it starts again when the active map changes (the run directory keeps
+    every map's frames: the outputs plugin records them per map from the lifecycle events)."""
+    if map_change is not None:
         recorder.clear()
+    if map_change == MapChange.RESET:
+        log.resets += 1
+    elif map_change == MapChange.NEW_MAP:
+        log.new_maps += 1
     log.tracking.append(out)
     if out.initialized_map and out.new_keyframes:
         kf_ini = out.new_keyframes[0]

@@ -13,8 +13,10 @@ from typing import Any
 from tqdm import tqdm
 
 from slamkit.interfaces import Camera, Dataset, MapStore
+from slamkit.map.atlas import Atlas, MapChange
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
+from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.outcomes import MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import TrajectoryRecorder
@@ -33,7 +35,7 @@ class SequentialRunner:
         self,
         tracker: Tracker,
         mapper: LocalMapper,
-        store: MapStore,
+        atlas: Atlas,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
         events: EventDispatcher | None = None,
@@ -42,12 +44,17 @@ class SequentialRunner:
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
-        self.store = store
+        self.atlas = atlas
         self.recorder = TrajectoryRecorder()
         self.progress = progress
         self.log = RunLog()
         self.events = events
-        self._run_events = RunEvents(None, "sequential", store)
+        self._run_events = RunEvents(None, "sequential", atlas)
+
+    @property
+    def store(self) -> MapStore:
+        """The active map of the Atlas."""
+        return self.atlas.active
 
     def run(
         self,
@@ -62,7 +69,7 @@ class SequentialRunner:
         run_dir / config: where the run's files go and its resolved config, handed to the lifecycle hooks
         (``slamkit_run_started``; the built-in outputs plugin writes the run directory from its events).
         """
-        self._run_events = RunEvents(self.events, "sequential", self.store)
+        self._run_events = RunEvents(self.events, "sequential", self.atlas)
         self._run_events.started(dataset, run_dir, config, threaded=False)
         start = time.perf_counter()
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
@@ -97,14 +104,18 @@ class SequentialRunner:
         """Track one frame, then map the keyframes it produced (and look for a loop at each), then record its pose.
 
         Local mapping is always idle when a frame is tracked here (it runs to completion in between), so every
-        keyframe tracking wants is made. A map reset tracking asks for is carried out right after the frame."""
-        was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
+        keyframe tracking wants is made. A map reset or a new map tracking asks for is carried out right after the
+        frame."""
+        map_before = self.atlas.active_id
         out = self.tracker.step(data, camera, MappingState(idle=True, accepting_keyframes=True))
-        if out.reset_map:
+        if out.lost_decision == LostDecision.RESET_MAP:
             self.tracker.reset()
-        map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
-        log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
-        self._run_events.map_events(out, map_was_reset)
+        elif out.lost_decision == LostDecision.NEW_MAP:
+            self.tracker.start_new_map()
+        map_change = self.atlas.change_since(map_before)  # reset, or a new map with the old one kept
+        map_was_reset = map_change == MapChange.RESET
+        log_tracking_outcome(self.log, self.recorder, out, map_change)
+        self._run_events.map_events(out)
         for kf in out.new_keyframes:
             mapped = self.mapper.step(kf)
             self.log.mapping.append(mapped)

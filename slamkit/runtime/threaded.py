@@ -16,8 +16,9 @@ PipelineWorkers. Each decision has one owner:
 - Loop closing detects loops while local mapping goes on (the keyframes it uses are pinned so culling leaves them);
   only the correction of an accepted loop parks local mapping at a safe point (a Future), after its queue, so a
   correction (under the map's write lock, bumping the map epoch) never meets a half-done local-mapping step.
-- A map reset tracking asks for (``TrackingOutcome.reset_map``) is carried out here: both workers are parked and
-  emptied, then ``Tracker.reset`` runs.
+- A map reset or a new map tracking asks for (``TrackingOutcome.lost_decision`` RESET_MAP / NEW_MAP, ORB-SLAM3's
+  lost policy) is carried out here: both workers are parked and emptied, then ``Tracker.reset`` /
+  ``Tracker.start_new_map`` changes the Atlas's active map.
 
 Any thread's exception stops the run: tracking stops taking frames, the other workers stop, and ``run`` raises
 PipelineThreadError naming the thread with its traceback; ``self.log`` and ``self.recorder`` keep everything done so
@@ -41,9 +42,11 @@ from typing import Any
 from tqdm import tqdm
 
 from slamkit.interfaces import Camera, Dataset, MapStore
+from slamkit.map.atlas import Atlas, MapChange
 from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser
+from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import TrajectoryRecorder
@@ -79,7 +82,7 @@ class ThreadedRunner:
         self,
         tracker: Tracker,
         mapper: LocalMapper,
-        store: MapStore,
+        atlas: Atlas,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
         realtime: bool = False,
@@ -92,7 +95,7 @@ class ThreadedRunner:
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
-        self.store = store
+        self.atlas = atlas
         self.recorder = TrajectoryRecorder()
         self.progress = progress
         self.realtime = realtime
@@ -102,13 +105,18 @@ class ThreadedRunner:
         self.gil_switch_interval_s = gil_switch_interval_s
         self.log = RunLog(runner="threaded")
         self.events = events
-        self._run_events = RunEvents(None, "threaded", store)
+        self._run_events = RunEvents(None, "threaded", atlas)
         self._fault: ThreadFault | None = None
         self._fault_lock = threading.Lock()
         self._source: FrameSource | None = None
         self._mapping: PipelineWorker[KeyFrame] | None = None
         self._closing: PipelineWorker[KeyFrame] | None = None
         self.mapping_parks_for_loops = 0  # times loop closing parked local mapping (once per loop correction)
+
+    @property
+    def store(self) -> MapStore:
+        """The active map of the Atlas."""
+        return self.atlas.active
 
     # ---- faults ------------------------------------------------------------------------------------
 
@@ -185,13 +193,14 @@ class ThreadedRunner:
 
     @contextlib.contextmanager
     def _quiesced_for_reset(self) -> Iterator[None]:
-        """Tracking resets the map: park both workers and drop their queued keyframes first."""
+        """Tracking resets the active map or starts a new one: park both workers and drop their queued keyframes
+        first (no keyframe of the old map reaches the new one)."""
         with self._parked(self._closing, self._mapping):
             for worker in (self._mapping, self._closing):
                 if worker is not None:
                     dropped = worker.clear()
                     if dropped:
-                        log.info("map reset: %s dropped %d queued keyframes", worker.name, dropped)
+                        log.info("active map change: %s dropped %d queued keyframes", worker.name, dropped)
             yield
 
     # ---- tracking (the calling thread) --------------------------------------------------------------
@@ -227,16 +236,20 @@ class ThreadedRunner:
 
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
         assert self._mapping is not None
-        was_initialized = self.tracker.state != TrackingState.NOT_INITIALIZED
+        map_before = self.atlas.active_id
         out = self.tracker.step(data, camera, self._mapping_state())
         if out.keyframe == KeyFrameDecision.MAPPING_BUSY:
             out = self._keyframe_wanted_while_mapping_busy(out)
-        if out.reset_map:
+        if out.lost_decision == LostDecision.RESET_MAP:
             with self._quiesced_for_reset():
                 self.tracker.reset()
-        map_was_reset = was_initialized and self.tracker.state == TrackingState.NOT_INITIALIZED
-        log_tracking_outcome(self.log, self.recorder, out, map_was_reset)
-        self._run_events.map_events(out, map_was_reset)
+        elif out.lost_decision == LostDecision.NEW_MAP:
+            with self._quiesced_for_reset():
+                self.tracker.start_new_map()
+        map_change = self.atlas.change_since(map_before)  # reset, or a new map with the old one kept
+        map_was_reset = map_change == MapChange.RESET
+        log_tracking_outcome(self.log, self.recorder, out, map_change)
+        self._run_events.map_events(out)
         if out.new_keyframes and not self._mapping.idle():
             self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
         for kf in out.new_keyframes:
@@ -266,7 +279,7 @@ class ThreadedRunner:
         Raises PipelineThreadError when a pipeline thread failed; KeyboardInterrupt passes through after the
         threads stopped. ``slamkit_run_finished`` fires in every case, after the pipeline threads stopped.
         """
-        self._run_events = RunEvents(self.events, "threaded", self.store)
+        self._run_events = RunEvents(self.events, "threaded", self.atlas)
         self._run_events.started(dataset, run_dir, config, threaded=True)
         ended_by: BaseException | None = None
         try:

@@ -5,6 +5,7 @@ threshold is a ``pipeline.tracking.reloc_*`` value. The caller holds the map's r
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -21,12 +22,22 @@ log = logging.getLogger("slamkit.tracking")
 
 
 def relocalize(
-    frame: Frame, bow: BowDescription, store: MapStore, place: PlaceRecognizer, cfg: TrackingConfig, refiner: PoseRefiner
+    frame: Frame,
+    bow: BowDescription,
+    store: MapStore,
+    place: PlaceRecognizer,
+    cfg: TrackingConfig,
+    refiner: PoseRefiner,
+    best_neighbors: Callable[[int, int], list[int]],
 ) -> int | None:
     """Try the place recognizer's candidates in order; the first that gives ``min_local_map_inliers_after_reloc``
-    inliers wins. Returns its id (frame.T_c_w and frame.point_ids set), or None (frame.T_c_w None, no matches)."""
+    inliers wins. Returns its id (frame.T_c_w and frame.point_ids set), or None (frame.T_c_w None, no matches).
+
+    store: the active map; only its keyframes are tried. best_neighbors(kf_id, n): a candidate's covisibility
+    neighbours in its own map (the Atlas's ``best_neighbors``), which group the candidates; candidates of other
+    maps are skipped (ORB-SLAM3 DetectRelocalizationCandidates)."""
     matcher = cfg.matcher
-    for kf_id, _ in place.relocalization_candidates(bow, store.covisibility.best_neighbors):
+    for kf_id, _ in place.relocalization_candidates(bow, best_neighbors):
         if not store.has_keyframe(kf_id):
             continue
         kf = store.get_keyframe(kf_id)

@@ -14,9 +14,12 @@ One owner per decision. Tracking decides; the runner, which owns the threads, ca
   whose insertion (slamkit/pipeline/keyframe_insertion.py) is the only one;
 - "a keyframe is wanted but local mapping is busy" is the outcome's ``keyframe = MAPPING_BUSY``: the runner stops
   the running local BA (real time) or waits for local mapping and then calls :meth:`Tracker.make_keyframe`;
-- a map reset decided by tracking (lost in a map of at most ``reset_max_keyframes`` keyframes) is the outcome's
-  ``reset_map``: the runner parks local mapping and loop closing and calls :meth:`Tracker.reset`, so the tracker
-  never calls into the runner and no thread works on keyframes being removed.
+- what to do when lost is decided here (slamkit/pipeline/lost.py, ORB-SLAM3): a map of at most
+  ``reset_lost_map_max_keyframes`` keyframes is reset, a bigger one is kept in the Atlas and, after
+  ``time_recently_lost_s`` of failed relocalization, a new map starts. The outcome's ``lost_decision`` says
+  RESET_MAP or NEW_MAP: the runner parks local mapping and loop closing and calls :meth:`Tracker.reset` or
+  :meth:`Tracker.start_new_map`, so the tracker never calls into the runner and no thread works on a map while the
+  active map changes.
 
 Deterministic given the rng (the initializer's RANSAC).
 """
@@ -32,10 +35,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
 from slamkit.pipeline.initialization import MonocularInitialization, create_initial_map, new_keyframe
+from slamkit.pipeline.lost import LostDecision, LostPolicy, LostRecord, decide_when_lost
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
 from slamkit.pipeline.tracking.frame_pose import PoseRefiner
@@ -69,7 +74,7 @@ class Tracker:
         frontend: FrontEnd,
         initializer: Initializer,
         optimizer: Optimizer,
-        store: MapStore,
+        atlas: Atlas,
         rng: np.random.Generator,
         place: PlaceRecognizer | None = None,
         pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
@@ -82,9 +87,11 @@ class Tracker:
         self.frontend = frontend
         self.optimizer = optimizer
         self.optimize_pose = pose_optimizer or motion_only_ba
-        self.store = store
+        self.atlas = atlas  # the maps; tracking works on the active one (``store``)
+        self.lost_policy = LostPolicy(cfg.reset_lost_map_max_keyframes, cfg.time_recently_lost_s)
+        self._lost_since_s: float | None = None  # timestamp of the first frame of the current lost spell
         self.place = place  # bag of words: reference-keyframe matching and relocalization (ORB-SLAM V-B, V-C)
-        self.refiner = PoseRefiner(cfg, store, self.optimize_pose)
+        self.refiner = PoseRefiner(cfg, self.store, self.optimize_pose)
         self.relocalizations = 0
         self.state = TrackingState.NOT_INITIALIZED
         self.init = MonocularInitialization(cfg, initializer, rng)
@@ -96,6 +103,11 @@ class Tracker:
         self._bounds: dict[int, ImageBounds] = {}
         self._last_T_l_r: F64 | None = None
         self._frame_bow: BowDescription | None = None
+
+    @property
+    def store(self) -> MapStore:
+        """The active map of the Atlas."""
+        return self.atlas.active
 
     # ---- public ------------------------------------------------------------------------------
 
@@ -137,13 +149,23 @@ class Tracker:
         )
 
     def reset(self) -> None:
-        """Forget the map and start initialising again. Called by the runner when an outcome asks for it
-        (``reset_map``), with local mapping and loop closing parked."""
-        with self.store.write():
-            for kf_id in self.store.keyframe_ids():
-                self.store.remove_keyframe(kf_id)
-                if self.place is not None:
-                    self.place.remove(kf_id)
+        """Erase the active map's keyframes (from the map and the keyframe database) and start initialising again
+        (ORB-SLAM3 ResetActiveMap). Called by the runner when an outcome asks for it (``lost_decision ==
+        RESET_MAP``), with local mapping and loop closing parked."""
+        self.atlas.reset_active()
+        self._restart()
+
+    def start_new_map(self) -> None:
+        """Keep the active map in the Atlas and initialise a new active map (ORB-SLAM3 CreateMapInAtlas). Called by
+        the runner when an outcome asks for it (``lost_decision == NEW_MAP``), with local mapping and loop closing
+        parked."""
+        self.atlas.create_map()
+        self._restart()
+
+    def _restart(self) -> None:
+        """Tracking's state after the active map was reset or replaced: initialise again."""
+        self._lost_since_s = None
+        self.refiner = PoseRefiner(self.cfg, self.store, self.optimize_pose)  # reads the (new) active map's points
         self.state = TrackingState.NOT_INITIALIZED
         self.init.reset()
         self.last_frame = None
@@ -237,6 +259,7 @@ class Tracker:
         if not ok:
             return self._lost(frame, method)
         assert frame.T_c_w is not None
+        self._lost_since_s = None
         self.velocity = None if method == "relocalization" else velocity(frame, self.last_frame)
         self.state = TrackingState.OK
         frame.point_ids[frame.outlier] = -1
@@ -288,7 +311,11 @@ class Tracker:
         """V-C (needs the place recognizer); on success the keyframe it relocalized against becomes the reference."""
         if self.place is None:
             return False
-        kf_id = relocalize(frame, self._frame_bow_of(frame)(), self.store, self.place, self.cfg, self.refiner)
+        # candidates of every map, grouped in their own maps (Atlas.best_neighbors); only the active map's are tried
+        # (ORB-SLAM3 DetectRelocalizationCandidates(F, pMap): pKFi->GetMap() != pMap -> skipped)
+        kf_id = relocalize(
+            frame, self._frame_bow_of(frame)(), self.store, self.place, self.cfg, self.refiner, self.atlas.best_neighbors
+        )
         if kf_id is None:
             return False
         self.reference_kf_id = kf_id
@@ -312,12 +339,27 @@ class Tracker:
         self.state = TrackingState.LOST
         self.velocity = None
         msg = f"tracking lost at frame {frame.index} ({method})"
-        reset = self.store.n_keyframes() <= self.cfg.reset_max_keyframes
-        if reset:
-            msg += f"; the map has {self.store.n_keyframes()} keyframes: reset and initialise again"
+        if self._lost_since_s is None:
+            self._lost_since_s = frame.timestamp_s
+        n_kfs = self.store.n_keyframes()
+        decision = decide_when_lost(LostRecord(n_kfs, frame.timestamp_s - self._lost_since_s), self.lost_policy)
+        if decision == LostDecision.RESET_MAP:
+            msg += f"; the map has {n_kfs} keyframes: reset and initialise again"
+        elif decision == LostDecision.NEW_MAP:
+            limit_s = self.lost_policy.time_recently_lost_s
+            msg += f"; relocalization failed for {limit_s:g} s: the map ({n_kfs} keyframes) stays in the Atlas"
+            msg += ", a new map starts"
         log.info(msg)
         return TrackingOutcome(
-            frame.index, frame.timestamp_s, self.state, None, len(frame.features), 0, method, message=msg, reset_map=reset
+            frame.index,
+            frame.timestamp_s,
+            self.state,
+            None,
+            len(frame.features),
+            0,
+            method,
+            message=msg,
+            lost_decision=decision,
         )
 
     def _bounds_of(self, camera: Camera) -> ImageBounds:

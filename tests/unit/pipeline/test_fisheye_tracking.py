@@ -13,11 +13,13 @@ from slamkit.features import Features, Observations
 from slamkit.geometry import KannalaBrandtCamera
 from slamkit.geometry.so3 import so3_exp
 from slamkit.interfaces import Camera, FrontEnd
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.optim.synthetic import pose_errors
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
+from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState
 from slamkit.pipeline.tracking import Tracker, TrackingState
@@ -123,7 +125,7 @@ def tracker_on_known_map(
     optimizer = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
     initializer = registry.instantiate("initializer", {"_target_": registry.get("initializer", "twoview").spec.target})
     frontend: FrontEnd = RecordedFrontEnd(records)
-    tracker = Tracker(cfg or TrackingConfig(), frontend, initializer, optimizer, store, np.random.default_rng(0))
+    tracker = Tracker(cfg or TrackingConfig(), frontend, initializer, optimizer, Atlas.of(store), np.random.default_rng(0))
     # tracking as it stands right after the keyframe was made from frame 0
     last = Frame.create(0, 0.0, camera, kf_record, ImageBounds.of(camera))
     last.T_c_w = poses[0].copy()
@@ -219,7 +221,29 @@ def test_a_tracker_lost_in_a_small_map_asks_for_a_reset_and_resets_only_when_tol
     blank, _ = record(CAMERA, np.eye(4), np.zeros((0, 3)), np.zeros((0, 32), np.uint8), np.random.default_rng(9), 300)
     tracker.frontend.records[1] = blank  # type: ignore[attr-defined]
     out = tracker.step(FrameData(1, 1.0, np.zeros((1, 1), np.uint8)), CAMERA)
-    assert out.state == TrackingState.LOST and out.reset_map
+    assert out.state == TrackingState.LOST and out.lost_decision == LostDecision.RESET_MAP
     assert tracker.store.n_keyframes() == 1, "the tracker does not reset the map itself"
     tracker.reset()  # what the runner does, with local mapping and loop closing parked
     assert tracker.store.n_keyframes() == 0 and tracker.state == TrackingState.NOT_INITIALIZED
+
+
+def test_a_tracker_lost_for_too_long_in_a_kept_map_asks_for_a_new_map_and_starts_it_only_when_told() -> None:
+    # a map bigger than the reset threshold (0 here) is kept: relocalization for 0.5 s, then a new map (ORB-SLAM3)
+    cfg = TrackingConfig(reset_lost_map_max_keyframes=0, time_recently_lost_s=0.5)
+    tracker, _, _ = tracker_on_known_map(0, CAMERA, cfg)
+    # an Atlas that can start maps, holding the known map as map 0
+    tracker.atlas = Atlas(lambda ids: InMemoryMapStore(ids=ids), None, first=tracker.store)
+    blank, _ = record(CAMERA, np.eye(4), np.zeros((0, 3)), np.zeros((0, 32), np.uint8), np.random.default_rng(9), 300)
+    for i in (1, 2, 3):
+        tracker.frontend.records[i] = blank  # type: ignore[attr-defined]
+    first = tracker.step(FrameData(1, 1.0, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert first.state == TrackingState.LOST and first.lost_decision == LostDecision.RELOCALIZE
+    within = tracker.step(FrameData(2, 1.5, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert within.lost_decision == LostDecision.RELOCALIZE, "0.5 s lost is not more than 0.5 s"
+    out = tracker.step(FrameData(3, 1.6, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert out.lost_decision == LostDecision.NEW_MAP
+    assert tracker.atlas.map_ids() == [0] and tracker.store.n_keyframes() == 1, "the tracker changes no map itself"
+    tracker.start_new_map()  # what the runner does, with local mapping and loop closing parked
+    assert tracker.atlas.map_ids() == [0, 1] and tracker.atlas.active_id == 1
+    assert tracker.atlas.get(0).n_keyframes() == 1 and tracker.store.n_keyframes() == 0
+    assert tracker.state == TrackingState.NOT_INITIALIZED and tracker.refiner.store is tracker.store

@@ -13,6 +13,7 @@ from slamkit_scipy.kernels import cholesky_solve_upper
 from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import AbortToken, BowDescription, PlaceRecognizer
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import LocalMappingConfig
@@ -158,7 +159,7 @@ def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock(place_
     tracked[:N_MAPPED] = np.arange(N_MAPPED)  # matched by tracking
     kf2 = keyframe(store, 0.6, xyz, desc, tracked)
     optimizer = WatchingOptimizer(store)
-    mapper = LocalMapper(LocalMappingConfig(), store, optimizer, place)  # type: ignore[arg-type]
+    mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), optimizer, place)  # type: ignore[arg-type]
     out = mapper.step(kf2)
     assert optimizer.reader_got_in == [True]
     assert out.points_created >= 0.9 * (N_POINTS - N_MAPPED)
@@ -220,7 +221,7 @@ def test_keyframe_culling_leaves_the_keyframes_loop_closing_pinned(pinned: tuple
         store.update_connections(kf.id)
     pins = KeyFramePins()
     pins.pin(*pinned)
-    mapper = LocalMapper(LocalMappingConfig(), store, None, pins=pins)  # type: ignore[arg-type]
+    mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), None, pins=pins)  # type: ignore[arg-type]
     with store.write():
         culled = {c.kf_id for c in mapper._cull_keyframes(kfs[4])}
     assert culled == ({1, 3} if pinned else {1, 2})

@@ -15,6 +15,7 @@ from slamkit.geometry.camera import PinholeCamera
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.sim3 import Sim3
 from slamkit.geometry.so3 import so3_exp
+from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.optim.factory import build_optimizer
@@ -251,7 +252,7 @@ def loop_closer(world: World) -> LoopCloser:
         kf = world.store.get_keyframe(k)
         world.store.set_keyframe_bow(k, place.transform(kf.features.descriptors))
     optimizer = build_optimizer(cfg.optimizer, registry)
-    return LoopCloser(pipeline.loop_closing, world.store, optimizer, place, np.random.default_rng(0))
+    return LoopCloser(pipeline.loop_closing, Atlas.of(world.store), optimizer, place, np.random.default_rng(0))
 
 
 def test_the_loop_closer_records_a_pending_loop_and_closes_it_on_the_third_agreeing_keyframe(world: World) -> None:
