@@ -8,27 +8,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from reference_cameras import EUROC, TUMVI
 
 from slamkit.config import compose_config
 from slamkit.features import Observations
 from slamkit.frontend.mono import MonocularFrontEnd
-from slamkit.geometry import KannalaBrandtCamera, PinholeCamera
 from slamkit.interfaces import Camera, FrontEnd
 from slamkit.plugins import ComponentRegistry
 from slamkit.sensors import FrameData
-
-EUROC = PinholeCamera(
-    752, 480, 458.654, 457.296, 367.215, 248.375, [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
-)
-TUMVI = KannalaBrandtCamera(
-    512,
-    512,
-    190.97847715128717,
-    190.9733070521226,
-    254.93170605935475,
-    256.8974428996504,
-    [0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202, 0.00020293673591811182],
-)
 
 
 def textured(width: int, height: int, seed: int = 0) -> np.ndarray:

@@ -7,26 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numpy.typing import NDArray
+from reference_cameras import EUROC, IDEAL, TUMVI
 
-from slamkit.geometry import KannalaBrandtCamera, PinholeCamera
+from slamkit.geometry import KannalaBrandtCamera
 from slamkit.interfaces import Camera
 
 F64 = NDArray[np.float64]
 
-EUROC = PinholeCamera(
-    752, 480, 458.654, 457.296, 367.215, 248.375, [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
-)
-IDEAL = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
-# TUM-VI 512 fisheye, ORB-SLAM3's example KannalaBrandt8 calibration (about 190 degrees of field of view)
-TUMVI = KannalaBrandtCamera(
-    512,
-    512,
-    190.97847715128717,
-    190.9733070521226,
-    254.93170605935475,
-    256.8974428996504,
-    [0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202, 0.00020293673591811182],
-)
 # a strongly distorted fisheye, so that every term of the model shows in the Jacobian
 STRONG_KB = KannalaBrandtCamera(640, 480, 300.0, 310.0, 330.0, 235.0, [0.08, -0.02, 0.004, -0.0003])
 CAMERAS: list[Camera] = [IDEAL, EUROC, TUMVI, STRONG_KB]

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference_cameras import TUMVI
 
 from slamkit.features import Features, Observations
-from slamkit.geometry import KannalaBrandtCamera
 from slamkit.geometry.so3 import so3_exp
 from slamkit.interfaces import Camera, FrontEnd
 from slamkit.map.atlas import Atlas
@@ -27,15 +27,7 @@ from slamkit.plugins import ComponentRegistry
 from slamkit.sensors import FrameData
 
 # TUM-VI 512 fisheye, ORB-SLAM3's example KannalaBrandt8 calibration
-CAMERA = KannalaBrandtCamera(
-    512,
-    512,
-    190.97847715128717,
-    190.9733070521226,
-    254.93170605935475,
-    256.8974428996504,
-    [0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202, 0.00020293673591811182],
-)
+CAMERA = TUMVI
 N_POINTS = 700
 N_CLUTTER = 150
 N_FRAMES = 6
@@ -125,7 +117,9 @@ def tracker_on_known_map(
     optimizer = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
     initializer = registry.instantiate("initializer", {"_target_": registry.get("initializer", "twoview").spec.target})
     frontend: FrontEnd = RecordedFrontEnd(records)
-    tracker = Tracker(cfg or TrackingConfig(), frontend, initializer, optimizer, Atlas.of(store), np.random.default_rng(0))
+    tracker = Tracker(
+        cfg or TrackingConfig(), frontend, initializer, optimizer, Atlas.of(store), np.random.default_rng(0)
+    )
     # tracking as it stands right after the keyframe was made from frame 0
     last = Frame.create(0, 0.0, camera, kf_record, ImageBounds.of(camera))
     last.T_c_w = poses[0].copy()
