@@ -40,7 +40,9 @@ class RecordedFrontEnd:
         pass
 
 
-def view(T_c_w: np.ndarray, xyz: np.ndarray, desc: np.ndarray, noise_px: float, rng: np.random.Generator) -> Observations:
+def view(
+    T_c_w: np.ndarray, xyz: np.ndarray, desc: np.ndarray, noise_px: float, rng: np.random.Generator
+) -> Observations:
     """The record of the scene points a camera at T_c_w sees (level 0, angle 0), with pixel noise."""
     p_c = xyz @ T_c_w[:3, :3].T + T_c_w[:3, 3]
     uv = p_c[:, :2] / p_c[:, 2:] * 500.0 + np.array([319.5, 239.5])
@@ -66,7 +68,9 @@ def make_tracker(records: dict[int, Observations]) -> Tracker:
     optimizer = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
     initializer = registry.instantiate("initializer", {"_target_": registry.get("initializer", "twoview").spec.target})
     frontend: FrontEnd = RecordedFrontEnd(records)
-    return Tracker(TrackingConfig(), frontend, initializer, optimizer, Atlas.of(InMemoryMapStore()), np.random.default_rng(0))
+    return Tracker(
+        TrackingConfig(), frontend, initializer, optimizer, Atlas.of(InMemoryMapStore()), np.random.default_rng(0)
+    )
 
 
 def test_reference_rules_and_initial_map() -> None:
