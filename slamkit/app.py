@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import time
 import traceback
 from collections.abc import Callable
@@ -15,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, read_write
 
 from slamkit.errors import ConfigError
 from slamkit.eval.outputs import PLUGIN_NAME as OUTPUTS_PLUGIN
@@ -38,8 +39,16 @@ RUNNER_KINDS = ("sequential", "threaded")
 Runner = SequentialRunner | ThreadedRunner
 
 
+#: ``${oc.select:dataset.orb_extractor.FIELD,DEFAULT}``: a ``features.*`` value the dataset's camera settings decide
+_FROM_DATASET = re.compile(r"^\$\{oc\.select:dataset\.orb_extractor\.(\w+),[^}]*\}$")
+
+
 def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, Any]:
-    """Instantiate every configured component group through the registry (checked against its interface)."""
+    """Instantiate every configured component group through the registry (checked against its interface).
+
+    The dataset comes first: its depth is read only when the front end uses it (``resolve_dataset_depth``), and
+    its camera's ORB-SLAM extractor settings fill the ``features.*`` keys the command line did not set
+    (``camera_feature_settings``), written back into ``cfg`` so the run's config.yaml shows what was used."""
     built: dict[str, Any] = {}
     from slamkit.optim.factory import build_optimizer
 
@@ -48,9 +57,56 @@ def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, 
         node = cfg.get(kind)
         if node is None or "_target_" not in node:
             continue
+        if kind == "dataset":
+            resolve_dataset_depth(cfg)
+        if kind == "features" and "dataset" in built:
+            camera_feature_settings(node, built["dataset"])
         # the optimizer may run in a worker process (optimizer.worker=process): the factory decides
         built[kind] = build_optimizer(node, registry) if kind == "optimizer" else registry.instantiate(kind, node)
     return built
+
+
+def resolve_dataset_depth(cfg: DictConfig) -> None:
+    """``dataset.use_depth: null`` -> whether the configured front end uses depth maps (its class attribute
+    ``uses_depth``, False when absent): a monocular run reads every colour frame, with no depth association."""
+    node = cfg.get("dataset")
+    if node is None or "use_depth" not in node or node.get("use_depth") is not None:
+        return
+    frontend = cfg.get("frontend")
+    uses_depth = False
+    if frontend is not None and "_target_" in frontend:
+        from hydra.utils import get_class
+
+        uses_depth = bool(getattr(get_class(str(frontend._target_)), "uses_depth", False))
+    with read_write(node):
+        node.use_depth = uses_depth
+
+
+def camera_feature_settings(features: DictConfig, dataset: Dataset) -> dict[str, Any]:
+    """Give the dataset's ORB-SLAM extractor settings (``orb_settings``: its settings file's ``ORBextractor.*``, else
+    its config's ``dataset.orb_extractor``) to the ``features.*`` keys that still hold their default, the
+    interpolation ``${oc.select:dataset.orb_extractor.FIELD,DEFAULT}``; a key set on the command line (or by an
+    experiment) is not an interpolation any more and wins. Assigns in place; returns {key: value} it set."""
+    orb = dataset.orb_settings if hasattr(dataset, "orb_settings") else None  # optional (SequenceDataset has it)
+    assigned: dict[str, Any] = {}
+    for key in list(features.keys()):
+        if not OmegaConf.is_interpolation(features, str(key)):
+            continue
+        raw = OmegaConf.to_container(features, resolve=False)
+        assert isinstance(raw, dict)
+        match = _FROM_DATASET.match(str(raw[key]))
+        if match is None:
+            continue
+        if orb is not None and hasattr(orb, match.group(1)):
+            assigned[str(key)] = getattr(orb, match.group(1))
+        else:  # the default of the interpolation (the extractor's, ORB-SLAM's paper values)
+            assigned[str(key)] = features[key]
+    with read_write(features):
+        for key, value in assigned.items():
+            features[key] = value
+    if orb is not None and assigned:
+        log.info("features from the dataset's ORB-SLAM settings: %s", assigned)
+    return assigned
 
 
 def _output_dir() -> Path:

@@ -134,7 +134,10 @@ class FrontEnd(Protocol):
     Monocular (``frontend=mono``) extracts features of the (left) image; stereo and RGB-D front ends fill the
     record's ``u_right_px`` / ``depth_m`` / ``bf`` from the right image or the depth map. A front end owns its
     feature extractor(s): ``initializing`` asks for the frames of a monocular initialisation, on which ORB-SLAM
-    extracts twice the features.
+    extracts more features (ORB-SLAM2: 2x, ORB-SLAM3: 5x; ``pipeline.tracking.init_feature_factor``).
+
+    Optional class attribute ``uses_depth`` (default False): whether the front end reads ``FrameData.depth_m``; a
+    dataset whose ``use_depth`` is null reads depth maps only for such a front end (slamkit.app).
     """
 
     @property

@@ -64,9 +64,9 @@ class TwoViewInitializer:
         T_H: float = 5.991,
         T_F: float = 3.841,
         gamma: float = 5.991,
-        rh_threshold: float = 0.45,
+        rh_threshold: float = 0.50,
         h_points_per_set: int = 8,
-        refine_on_inliers: bool = True,
+        refine_on_inliers: bool = False,
         min_parallax_deg: float = 1.0,
         min_triangulated: int = 50,
         min_good_fraction: float = 0.9,
@@ -179,7 +179,7 @@ class TwoViewInitializer:
         }
         if total <= 0:
             return TwoViewResult(False, "no model fits: both RANSAC scores are 0", details=details)
-        # Paper sec. IV-3: the homography when R_H > 0.45 (planar or low-parallax scene), else F.
+        # The homography when R_H > rh_threshold (ORB-SLAM3: 0.50; paper sec. IV-3: 0.45), else F.
         if r_h > self.rh_threshold:
             return self._reconstruct_h(fit_h, uv1, uv2, Km, details)
         return self._reconstruct_f(fit_f, uv1, uv2, Km, details)

@@ -4,6 +4,7 @@ and their bearings from the camera model; no right coordinate, no depth."""
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -17,9 +18,12 @@ class MonocularFrontEnd:
     """Builds the observation record of a monocular frame.
 
     extractor: the configured feature extractor (config group ``features``). init_extractor: the one used on the
-    frames of a monocular initialisation (ORB-SLAM's Tracking constructor: twice the features; the app builds it
-    from ``pipeline.tracking.init_feature_factor``); None: the same extractor.
+    frames of a monocular initialisation (ORB-SLAM3's Tracking constructor: 5 x the features, ORB-SLAM2's 2 x; the
+    app builds it from ``pipeline.tracking.init_feature_factor``); None: the same extractor.
     """
+
+    #: the monocular front end reads no depth: the app has the dataset skip depth maps (every colour frame is used)
+    uses_depth: ClassVar[bool] = False
 
     def __init__(self, extractor: FeatureExtractor, init_extractor: FeatureExtractor | None = None) -> None:
         self.extractor = extractor

@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
 from slamkit.interfaces import Camera
+from slamkit.io.orbslam_settings import OrbExtractorSettings
 from slamkit.sensors import FrameData, Trajectory
 
 
@@ -46,6 +47,8 @@ class SequenceDataset(ABC):
     T_b_c: NDArray[np.float64] | None = None
     fps: float = 30.0
     ground_truth: Trajectory | None = None
+    #: ORB-SLAM's extractor settings for this camera (settings file or ``dataset.orb_extractor``), None: no opinion
+    orb_settings: OrbExtractorSettings | None = None
     _selected: NDArray[np.int64]
 
     @abstractmethod

@@ -19,8 +19,9 @@ becomes the rectified left camera (T_b_c, T_l_r and ground truth follow).
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -30,7 +31,7 @@ from slamkit.errors import CalibrationError, ConfigError
 from slamkit.geometry.camera import KannalaBrandtCamera, PinholeCamera
 from slamkit.interfaces import Camera
 from slamkit.io.base import SequenceDataset
-from slamkit.io.calibration import load_settings
+from slamkit.io.calibration import load_settings, orb_extractor_from_options
 from slamkit.io.cvyaml import CvYaml
 from slamkit.io.ground_truth import poses_at, transform_trajectory
 from slamkit.io.images import load_image
@@ -116,6 +117,7 @@ class EurocDataset(SequenceDataset):
     file used instead of (or in the absence of) state_groundtruth_estimate0/data.csv. groundtruth_frame:
     'body' (the file holds T_w_B, EuRoC's convention) or 'camera' (already cam0 T_w_c). imu: read imu0.
     gt_max_gap_s: interpolate ground truth only between samples at most this far apart (s).
+    orb_extractor: ORB-SLAM's extractor settings for EuRoC (``orb_settings``; the settings file's win).
     """
 
     def __init__(
@@ -125,6 +127,7 @@ class EurocDataset(SequenceDataset):
         max_frames: int | None = None,
         stereo: bool = False,
         settings: str | Path | None = None,
+        orb_extractor: Mapping[str, Any] | None = None,
         groundtruth: str | Path | None = None,
         groundtruth_frame: str = "body",
         imu: bool = True,
@@ -171,6 +174,7 @@ class EurocDataset(SequenceDataset):
 
         self._maps: tuple[tuple[NDArray[np.float32], NDArray[np.float32]], ...] | None = None
         loaded = load_settings(settings, (self.camera.width, self.camera.height))
+        self.orb_settings = orb_extractor_from_options(orb_extractor, loaded)
         if loaded is not None:
             self.camera = loaded.camera
             self._calib = str(loaded.path)

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
 from slamkit.io.base import SequenceDataset
-from slamkit.io.calibration import camera_from_options, load_settings
+from slamkit.io.calibration import camera_from_options, load_settings, orb_extractor_from_options
 from slamkit.io.images import image_size, load_image
 from slamkit.io.textfiles import IMAGE_SUFFIXES, list_images, require_dir, times_from_names
 from slamkit.sensors import FrameData
@@ -68,6 +68,7 @@ class FolderDataset(SequenceDataset):
 
         first_size = image_size(self._files[0])
         loaded = load_settings(settings, first_size)
+        self.orb_settings = orb_extractor_from_options(None, loaded)
         self.camera, self._calib = camera_from_options(camera, loaded, first_size)
         self._setup_selection(skip, max_frames)
 

@@ -13,8 +13,9 @@ camera takes it from the first image (and every image must match it).
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,7 +23,7 @@ from numpy.typing import NDArray
 from slamkit.errors import CalibrationError, DatasetError
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.io.base import SequenceDataset
-from slamkit.io.calibration import load_settings
+from slamkit.io.calibration import load_settings, orb_extractor_from_options
 from slamkit.io.images import image_size, load_image
 from slamkit.io.textfiles import (
     check_columns,
@@ -76,6 +77,7 @@ class KittiDataset(SequenceDataset):
     Constructor keywords are the keys of conf/dataset/kitti.yaml:
     root: folder holding sequences/ and poses/. sequence: two-digit sequence name. stereo: also read
     image_1 (baseline from P1). settings: ORB-SLAM settings whose camera (and bf) replace calib.txt's.
+    orb_extractor: ORB-SLAM's extractor settings for KITTI (``orb_settings``; the settings file's win).
     """
 
     def __init__(
@@ -86,6 +88,7 @@ class KittiDataset(SequenceDataset):
         max_frames: int | None = None,
         stereo: bool = False,
         settings: str | Path | None = None,
+        orb_extractor: Mapping[str, Any] | None = None,
     ) -> None:
         self.root = require_dir(Path(root), "KITTI odometry root (dataset.root)")
         seq = f"{int(sequence):02d}" if str(sequence).isdigit() else str(sequence)
@@ -119,6 +122,7 @@ class KittiDataset(SequenceDataset):
         self._calib = f"{calib_path} (size of {self._files[0].name})"
         self.fps = KITTI_FPS
         loaded = load_settings(settings, first_size)
+        self.orb_settings = orb_extractor_from_options(orb_extractor, loaded)
         if loaded is not None:
             self.camera = loaded.camera
             self._calib = str(loaded.path)

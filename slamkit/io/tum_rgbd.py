@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,7 +26,7 @@ from numpy.typing import NDArray
 from slamkit.errors import CalibrationError, ConfigError, DatasetError
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.io.base import SequenceDataset
-from slamkit.io.calibration import load_settings
+from slamkit.io.calibration import load_settings, orb_extractor_from_options
 from slamkit.io.ground_truth import poses_at
 from slamkit.io.images import load_depth, load_image
 from slamkit.io.textfiles import (
@@ -96,7 +97,9 @@ class TumRgbdDataset(SequenceDataset):
     Constructor keywords are the keys of conf/dataset/tum_rgbd.yaml:
     root: the sequence folder. intrinsics: 'fr1' | 'fr2' | 'fr3' | 'ros' | None (detected from the folder
     name). settings: an ORB-SLAM settings file whose camera (and DepthMapFactor) replace TUM's.
-    use_depth: read depth maps when the sequence has them. depth_scale: PNG units per metre (None: the
+    orb_extractor: ORB-SLAM's extractor settings for the TUM cameras (``orb_settings``; the settings file's win).
+    use_depth: read depth maps when the sequence has them (None: no; the app resolves the config's null from the
+    front end). depth_scale: PNG units per metre (None: the
     settings' DepthMapFactor, else 5000). max_dt_s: colour-depth association tolerance (s).
     groundtruth: a TUM trajectory file replacing root/groundtruth.txt. gt_max_gap_s: interpolate the
     ground truth only between samples at most this far apart (s).
@@ -109,7 +112,8 @@ class TumRgbdDataset(SequenceDataset):
         max_frames: int | None = None,
         intrinsics: str | None = None,
         settings: str | Path | None = None,
-        use_depth: bool = True,
+        orb_extractor: Mapping[str, Any] | None = None,
+        use_depth: bool | None = True,
         depth_scale: float | None = None,
         max_dt_s: float = 0.02,
         groundtruth: str | Path | None = None,
@@ -120,6 +124,7 @@ class TumRgbdDataset(SequenceDataset):
         rgb = _stamped_list(self.root, "rgb")
         if rgb is None:
             raise DatasetError(f"TUM RGB-D sequence {self.root}: neither rgb.txt nor an rgb/ folder exists")
+        use_depth = bool(use_depth)
         depth = _stamped_list(self.root, "depth") if use_depth else None
         if use_depth and depth is None:
             log.warning("%s has no depth.txt and no depth/ folder: frames carry no depth", self.root)
@@ -138,6 +143,7 @@ class TumRgbdDataset(SequenceDataset):
         self._rgb_files = [rgb.files[int(i)] for i in ia]
 
         loaded = load_settings(settings, TUM_SIZE)
+        self.orb_settings = orb_extractor_from_options(orb_extractor, loaded)
         if loaded is not None:
             self.camera = loaded.camera
             self._calib = str(loaded.path)

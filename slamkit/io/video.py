@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError, DatasetError
 from slamkit.io.base import SequenceDataset
-from slamkit.io.calibration import camera_from_options, load_settings
+from slamkit.io.calibration import camera_from_options, load_settings, orb_extractor_from_options
 from slamkit.io.images import check_size
 from slamkit.io.textfiles import require_file
 from slamkit.sensors import FrameData
@@ -75,6 +75,7 @@ class VideoDataset(SequenceDataset):
             raise ConfigError(f"video file {self.path} does not state its frame rate; set dataset.fps")
         size = (int(first.shape[1]), int(first.shape[0]))
         loaded = load_settings(settings, size)
+        self.orb_settings = orb_extractor_from_options(None, loaded)
         self.camera, self._calib = camera_from_options(camera, loaded, size)
         self._cap: cv2.VideoCapture | None = None
         self._next = 0  # raw index the open capture will return next

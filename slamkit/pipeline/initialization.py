@@ -5,6 +5,7 @@ global BA, and scale the map so the median scene depth is 1."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -95,8 +96,17 @@ class MonocularInitialization:
             return InitAttempt(0, None, f"only {len(frame.features)} features: reference reset"), None
         ref_idx, cur_idx = self.match(frame)
         if ref_idx.shape[0] < cfg.init_min_matches:
-            self._set_reference(frame)
-            return InitAttempt(int(ref_idx.shape[0]), None, "too few matches: reference reset"), None
+            # ORB-SLAM2/3 MonocularInitialization: mbReadyToInitializate = false (ORB-SLAM2: the initializer
+            # deleted): the reference is dropped and the *next* frame with enough features becomes the new one
+            self.reset()
+            return (
+                InitAttempt(
+                    int(ref_idx.shape[0]),
+                    None,
+                    f"too few matches: {ref_idx.shape[0]} < {cfg.init_min_matches}: reference reset",
+                ),
+                None,
+            )
         require_pinhole_image(frame.camera, "monocular initialisation (the Initializer takes undistorted pixels and K)")
         result = self.initializer.initialize(
             self.reference.features.uv_undist_px[ref_idx].astype(np.float64),
@@ -172,9 +182,13 @@ def create_initial_map(
             cfg.chi2.stereo,
         )
     ba = optimizer.bundle_adjust(snap.problem)
+    # ORB-SLAM GlobalBundleAdjustemnt (BundleAdjustment with bRobust): Huber kernel, no outlier pass and no
+    # observation removed afterwards; the map is judged on all its points below
+    ba = dataclasses.replace(ba, outlier=np.zeros_like(ba.outlier))
     with store.write():
         commit_bundle(store, snap, ba)
         depths = _depths_in(kf_ini, store)
+        # ORB-SLAM3 CreateInitialMapMonocular: reset when medianDepth < 0 or pKFcur->TrackedMapPoints(1) < 50
         n_tracked = kf_cur.n_tracked_points()
         if depths.size == 0 or np.median(depths) <= 0 or n_tracked < cfg.init_min_map_points:
             reason = (

@@ -45,8 +45,10 @@ def _build(name: str, overrides: list[str]) -> SequenceDataset:
 
 def test_hydra_builds_each_reader(shared_datasets: Path, tmp_path: Path) -> None:
     d = shared_datasets
-    tum = _build("tum_rgbd", [f"root={d}/tum_rgbd/rgbd_dataset_freiburg1_xyz_first10", "max_frames=3"])
+    tum = _build("tum_rgbd", [f"root={d}/tum_rgbd/rgbd_dataset_freiburg1_xyz_first10", "max_frames=3", "use_depth=true"])
     assert len(tum) == 3 and tum[0].depth_m is not None
+    # use_depth: null (the node's default, resolved by the app from the front end) builds without depth
+    assert _build("tum_rgbd", [f"root={d}/tum_rgbd/rgbd_dataset_freiburg1_xyz_first10"])[0].depth_m is None
     euroc = _build(
         "euroc",
         [
