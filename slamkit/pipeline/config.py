@@ -85,9 +85,8 @@ class TrackingConfig:
     local_map_wide_search_frames_after_reloc: int = 2
     min_local_map_inliers: int = 30
     min_local_map_inliers_after_reloc: int = 50
-    keyframe_min_frames_since_reloc: int = 20
-    keyframe_max_frames_idle: int = 20
-    keyframe_min_tracked_points: int = 50
+    keyframe_max_frames: int = 0
+    keyframe_min_tracked_points: int = 15
     keyframe_max_ref_ratio: float = 0.9
     keyframe_ref_min_observations: int = 3
     keyframe_ref_min_observations_small_map: int = 2

@@ -44,7 +44,12 @@ from slamkit.pipeline.lost import LostDecision, LostPolicy, LostRecord, decide_w
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
 from slamkit.pipeline.tracking.frame_pose import PoseRefiner
-from slamkit.pipeline.tracking.keyframe_decision import KeyFrameFacts, decide_keyframe, reference_min_observations
+from slamkit.pipeline.tracking.keyframe_decision import (
+    KeyFrameFacts,
+    decide_keyframe,
+    max_frames_of,
+    reference_min_observations,
+)
 from slamkit.pipeline.tracking.local_map import track_local_map
 from slamkit.pipeline.tracking.motion_model import (
     pose_relative_to_reference,
@@ -78,12 +83,15 @@ class Tracker:
         rng: np.random.Generator,
         place: PlaceRecognizer | None = None,
         pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
+        fps: float = 30.0,
     ) -> None:
         """frontend: turns each packet into the frame's observation record (it holds the feature extractors).
         pose_optimizer: motion-only BA of tracking; default the compiled one of
         slamkit.pipeline.pose_optimization (same algorithm as ``Optimizer.optimize_pose``, a few hundred times
-        cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend."""
+        cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend.
+        fps: the camera's frame rate (Hz), ORB-SLAM's mMaxFrames unless ``keyframe_max_frames`` sets it."""
         self.cfg = cfg
+        self.max_frames = max_frames_of(cfg, fps)  # ORB-SLAM mMaxFrames (frames)
         self.frontend = frontend
         self.optimizer = optimizer
         self.optimize_pose = pose_optimizer or motion_only_ba
@@ -250,7 +258,7 @@ class Tracker:
                 inliers, reference = track_local_map(frame, store, cfg, self.refiner, wide)
                 if reference is not None:
                     self.reference_kf_id = reference
-                recent_reloc = since_reloc < cfg.keyframe_min_frames_since_reloc
+                recent_reloc = since_reloc < self.max_frames  # code (TrackLocalMap): mnLastRelocFrameId + mMaxFrames
                 needed = cfg.min_local_map_inliers_after_reloc if recent_reloc else cfg.min_local_map_inliers
                 ok = inliers >= needed
             t2 = time.perf_counter()
@@ -304,7 +312,14 @@ class Tracker:
                 n_obs = store.point_rows(ref_ids, "n_observations") if ref_ids.size else np.zeros(0, np.int64)
                 n_ref = int(np.count_nonzero(n_obs >= reference_min_observations(n_kfs, self.cfg)))
         return KeyFrameFacts(
-            frame.index, self.last_kf_frame_index, self.last_reloc_frame_index, inliers, n_ref, n_kfs, mapping
+            frame.index,
+            self.last_kf_frame_index,
+            self.last_reloc_frame_index,
+            inliers,
+            n_ref,
+            n_kfs,
+            mapping,
+            self.max_frames,
         )
 
     def _relocalize(self, frame: Frame) -> bool:
