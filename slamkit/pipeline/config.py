@@ -94,6 +94,10 @@ class TrackingConfig:
     reloc_pnp_ransac_iterations: int = 300
     reloc_pnp_ransac_confidence: float = 0.99
     reloc_min_pnp_inliers: int = 10
+    reloc_pnp_min_set: int = 4
+    reloc_pnp_epsilon: float = 0.5
+    reloc_pnp_iterations_per_turn: int = 5
+    reloc_fine_search_min_inliers: int = 30
     reloc_search_radius_px: float = 10.0
     reloc_search_max_distance: int = 100
     reloc_search_radius_fine_px: float = 3.0
@@ -127,6 +131,7 @@ class LocalMappingConfig:
     local_ba: bool = True
     keyframe_culling: bool = True
     keyframe_culling_redundancy: float = 0.9
+    point_bad_max_observations: int = 2
     keyframe_culling_min_observers: int = 3
     min_baseline_depth_ratio: float = 0.01
     ba_iterations_first: int = 5

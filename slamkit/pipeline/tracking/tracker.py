@@ -103,6 +103,7 @@ class Tracker:
         self.relocalizations = 0
         self.state = TrackingState.NOT_INITIALIZED
         self.init = MonocularInitialization(cfg, initializer, rng)
+        self.rng = rng  # the initializer's RANSAC and the relocalization's PnP RANSAC
         self.last_frame: Frame | None = None
         self.velocity: F64 | None = None  # T_cur_last of the last two tracked frames
         self.reference_kf_id: int | None = None
@@ -329,7 +330,14 @@ class Tracker:
         # candidates of every map, grouped in their own maps (Atlas.best_neighbors); only the active map's are tried
         # (ORB-SLAM3 DetectRelocalizationCandidates(F, pMap): pKFi->GetMap() != pMap -> skipped)
         kf_id = relocalize(
-            frame, self._frame_bow_of(frame)(), self.store, self.place, self.cfg, self.refiner, self.atlas.best_neighbors
+            frame,
+            self._frame_bow_of(frame)(),
+            self.store,
+            self.place,
+            self.cfg,
+            self.refiner,
+            self.atlas.best_neighbors,
+            self.rng,
         )
         if kf_id is None:
             return False
