@@ -235,22 +235,36 @@ class Tracker:
         with store.read():
             method = "lost"
             ok = False
+            why: list[str] = []  # what failed, for the frame's message when tracking is lost
             self._frame_bow = None
             if self.state == TrackingState.LOST:
                 method = "relocalization"
                 ok = self._relocalize(frame)
+                if not ok:
+                    why.append("relocalization: no candidate keyframe gave a pose with enough inliers")
             elif self.state == TrackingState.OK and self.last_frame is not None:
                 last = self.last_frame
                 update_last_frame(store, last, self._last_T_l_r)
                 if self.velocity is not None:
                     ok = track_with_motion_model(frame, last, self.velocity, store, cfg, self.refiner)
                     method = "motion_model"
+                    if not ok:
+                        why.append(f"motion model: {np.count_nonzero(frame.point_ids >= 0)} matches/inliers left")
                 if not ok:
                     assert last.T_c_w is not None
                     ok = track_reference_keyframe(
-                        frame, self.reference_kf_id, last.T_c_w, store, cfg, self.refiner, self.place, self._frame_bow_of(frame)
+                        frame,
+                        self.reference_kf_id,
+                        last.T_c_w,
+                        store,
+                        cfg,
+                        self.refiner,
+                        self.place,
+                        self._frame_bow_of(frame),
                     )
                     method = "reference_keyframe"
+                    if not ok:
+                        why.append(f"reference keyframe: {np.count_nonzero(frame.point_ids >= 0)} matches/inliers left")
             t1 = time.perf_counter()
             inliers = 0
             if ok:
@@ -262,11 +276,13 @@ class Tracker:
                 recent_reloc = since_reloc < self.max_frames  # code (TrackLocalMap): mnLastRelocFrameId + mMaxFrames
                 needed = cfg.min_local_map_inliers_after_reloc if recent_reloc else cfg.min_local_map_inliers
                 ok = inliers >= needed
+                if not ok:
+                    why.append(f"local map: {inliers} inliers < {needed}")
             t2 = time.perf_counter()
         timings["initial_pose_ms"] = (t1 - t0) * 1e3
         timings["local_map_ms"] = (t2 - t1) * 1e3
         if not ok:
-            return self._lost(frame, method)
+            return self._lost(frame, method, "; ".join(why))
         assert frame.T_c_w is not None
         self._lost_since_s = None
         self.velocity = None if method == "relocalization" else velocity(frame, self.last_frame)
@@ -358,10 +374,11 @@ class Tracker:
 
         return bow
 
-    def _lost(self, frame: Frame, method: str) -> TrackingOutcome:
+    def _lost(self, frame: Frame, method: str, why: str = "") -> TrackingOutcome:
+        """The outcome of a frame tracking failed on; ``why``: what failed (said in the frame's message)."""
         self.state = TrackingState.LOST
         self.velocity = None
-        msg = f"tracking lost at frame {frame.index} ({method})"
+        msg = f"tracking lost at frame {frame.index} ({method}{': ' + why if why else ''})"
         if self._lost_since_s is None:
             self._lost_since_s = frame.timestamp_s
         n_kfs = self.store.n_keyframes()
