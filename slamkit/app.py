@@ -152,6 +152,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         rng,
         place,
         pose_optimizer=_pose_optimizer(pipeline.tracking.pose_optimization, components["optimizer"]),
+        fps=float(dataset.fps),
     )
     kind = str(cfg.runner.get("kind", "sequential"))
     if kind not in RUNNER_KINDS:

@@ -85,9 +85,8 @@ class TrackingConfig:
     local_map_wide_search_frames_after_reloc: int = 2
     min_local_map_inliers: int = 30
     min_local_map_inliers_after_reloc: int = 50
-    keyframe_min_frames_since_reloc: int = 20
-    keyframe_max_frames_idle: int = 20
-    keyframe_min_tracked_points: int = 50
+    keyframe_max_frames: int = 0
+    keyframe_min_tracked_points: int = 15
     keyframe_max_ref_ratio: float = 0.9
     keyframe_ref_min_observations: int = 3
     keyframe_ref_min_observations_small_map: int = 2
@@ -95,6 +94,10 @@ class TrackingConfig:
     reloc_pnp_ransac_iterations: int = 300
     reloc_pnp_ransac_confidence: float = 0.99
     reloc_min_pnp_inliers: int = 10
+    reloc_pnp_min_set: int = 4
+    reloc_pnp_epsilon: float = 0.5
+    reloc_pnp_iterations_per_turn: int = 5
+    reloc_fine_search_min_inliers: int = 30
     reloc_search_radius_px: float = 10.0
     reloc_search_max_distance: int = 100
     reloc_search_radius_fine_px: float = 3.0
@@ -128,6 +131,7 @@ class LocalMappingConfig:
     local_ba: bool = True
     keyframe_culling: bool = True
     keyframe_culling_redundancy: float = 0.9
+    point_bad_max_observations: int = 2
     keyframe_culling_min_observers: int = 3
     min_baseline_depth_ratio: float = 0.01
     ba_iterations_first: int = 5

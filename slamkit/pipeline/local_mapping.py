@@ -79,7 +79,7 @@ class LocalMapper:
         with self.store.write():
             out.points_culled = self._cull_recent_points(kf)
         lap("point_culling_ms")
-        out.points_created = self._create_new_points(kf)
+        out.points_created = self._create_new_points(kf, abort)
         lap("triangulation_ms")
         out.points_fused = self._search_in_neighbors(kf)
         lap("fusion_ms")
@@ -134,16 +134,20 @@ class LocalMapper:
 
     # ---- VI-C --------------------------------------------------------------------------------------
 
-    def _create_new_points(self, kf: KeyFrame) -> int:
+    def _create_new_points(self, kf: KeyFrame, abort: AbortToken | None = None) -> int:
         """Triangulate unmatched features of the new keyframe with its covisible neighbours (VI-C).
 
-        Each neighbour's matching and triangulation run under the read lock, its new points are added under the
+        Stops after the first neighbour once ``abort`` is set — a newer keyframe waits (ORB-SLAM2 CreateNewMapPoints:
+        ``if(i>0 && CheckNewKeyFrames()) return;``; the runners set the token when they hand local mapping a
+        keyframe while it works). Each neighbour's matching and triangulation run under the read lock, its new points are added under the
         write lock (done again there if a loop correction bumped the map's epoch in between)."""
         store = self.store
         with store.read():
             neighbors = store.covisibility.best_neighbors(kf.id, self.cfg.triangulation_neighbors)
         created = 0
-        for n_id in neighbors:
+        for i, n_id in enumerate(neighbors):
+            if i > 0 and abort is not None and abort.is_set():
+                break
             with store.read():
                 epoch = store.epoch
                 found = self._triangulate_with(kf, n_id)
@@ -356,7 +360,9 @@ class LocalMapper:
     def _cull_keyframes(self, kf: KeyFrame) -> list[CulledKeyFrame]:
         """Erase covisible keyframes whose points are 90% seen by at least three other keyframes at the same
         or a finer scale (VI-E). The map's origin keyframe is never culled, nor a keyframe loop closing has pinned
-        (ORB-SLAM SetNotErase)."""
+        (ORB-SLAM SetNotErase). A point the culled keyframe leaves with at most ``point_bad_max_observations``
+        observations is erased (ORB-SLAM2 KeyFrame::SetBadFlag -> MapPoint::EraseObservation: nObs <= 2 ->
+        SetBadFlag)."""
         cfg = self.cfg
         store = self.store
         origin = store.origin_keyframe_id()
@@ -375,7 +381,13 @@ class LocalMapper:
                 parent = store.spanning_tree.parent(k_id)
                 T_kp = k.T_c_w @ invert_T(store.get_keyframe(parent).T_c_w) if parent is not None else np.eye(4)
                 culled.append(CulledKeyFrame(k_id, parent, T_kp, k.T_c_w.copy()))
+                seen = k.point_ids[k.point_ids >= 0].copy()
                 store.remove_keyframe(k_id)
+                seen = seen[store.has_points(seen)]
+                if seen.size:
+                    n_obs = store.point_rows(seen, "n_observations")
+                    for pid in seen[n_obs <= cfg.point_bad_max_observations].tolist():
+                        store.remove_point(pid)
                 table.cull(k_id)
                 if self.place is not None:
                     self.place.remove(k_id)

@@ -148,13 +148,15 @@ def _search_windows(
     cell_px: float,
     n_cols: int,
     n_rows: int,
-) -> tuple[I64, NDArray[np.int32], NDArray[np.int32]]:  # pragma: no cover - numba
+) -> tuple[I64, NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:  # pragma: no cover
     nq = q_uv.shape[0]
     qd = q_desc.view(np.uint64)
     td = t_desc.view(np.uint64)
     best_idx = np.full(nq, -1, np.int64)
     best = np.full(nq, 1 << 30, np.int32)
     second = np.full(nq, 1 << 30, np.int32)
+    best_lv = np.full(nq, -1, np.int32)
+    second_lv = np.full(nq, -1, np.int32)
     for i in range(nq):
         u, v, r = q_uv[i, 0], q_uv[i, 1], q_radius[i]
         c0 = max(0, int(np.floor((u - r) / cell_px)))
@@ -178,27 +180,42 @@ def _search_windows(
                     d = row_distance(qd, i, td, j)
                     if d < best[i]:
                         second[i] = best[i]
+                        second_lv[i] = best_lv[i]
                         best[i] = d
+                        best_lv[i] = lv
                         best_idx[i] = j
                     elif d < second[i]:
                         second[i] = d
-    return best_idx, best, second
+                        second_lv[i] = lv
+    return best_idx, best, second, best_lv, second_lv
 
 
 @dataclass(frozen=True)
 class WindowMatches:
-    """For each query: the best feature inside its window (-1 if none) and the two smallest distances."""
+    """For each query: the best feature inside its window (-1 if none), the two smallest distances and the pyramid
+    levels of the features that gave them (-1 when there was none)."""
 
     best_index: I64
     best_distance: NDArray[np.int32]
     second_distance: NDArray[np.int32]
+    best_level: NDArray[np.int32]
+    second_level: NDArray[np.int32]
 
-    def accepted(self, max_distance: int, ratio: float | None) -> NDArray[np.bool_]:
+    def accepted(
+        self, max_distance: int, ratio: float | None, ratio_same_level_only: bool = False
+    ) -> NDArray[np.bool_]:
         """(Q,) bool: a match within ``max_distance`` bits and, when ``ratio`` is given, passing the
-        nearest/second-nearest ratio test (second = inf when the window held a single candidate)."""
+        nearest/second-nearest ratio test (second = inf when the window held a single candidate).
+
+        ratio_same_level_only: apply the ratio test only where the best and second-best features lie on the same
+        pyramid level (ORB-SLAM2/3 ORBmatcher::SearchByProjection(Frame, MapPoints): "Apply ratio to second match
+        (only if best and second are in the same scale level)")."""
         ok = (self.best_index >= 0) & (self.best_distance <= max_distance)
         if ratio is not None:
-            ok &= self.best_distance < ratio * self.second_distance.astype(np.float64)
+            passes = self.best_distance < ratio * self.second_distance.astype(np.float64)
+            if ratio_same_level_only:
+                passes |= self.best_level != self.second_level
+            ok &= passes
         return ok
 
 
@@ -221,7 +238,7 @@ def search_windows(
     radius = np.broadcast_to(np.asarray(radius_px, np.float64), (nq,)).copy()
     lo = np.broadcast_to(np.asarray(min_level, np.int32), (nq,)).copy()
     hi = np.broadcast_to(np.asarray(max_level, np.int32), (nq,)).copy()
-    idx, best, second = _search_windows(
+    idx, best, second, best_level, second_level = _search_windows(
         q,
         radius,
         lo,
@@ -237,7 +254,7 @@ def search_windows(
         grid.n_cols,
         grid.n_rows,
     )
-    return WindowMatches(idx, best, second)
+    return WindowMatches(idx, best, second, best_level, second_level)
 
 
 def resolve_one_to_one(query_idx: I64, train_idx: I64, distance: NDArray[np.integer]) -> NDArray[np.bool_]:

@@ -88,10 +88,12 @@ def match_projected(
     query_angle_deg: F64 | None,
     rotation_bins: int | None,
     cell_px: float = 10.0,
+    ratio_same_level_only: bool = False,
 ) -> ProjectionMatches:
     """Match projected points (uv_px (Q, 2), descriptors (Q, D)) to the frame's features not ``taken``.
 
-    Window radius and level range per query; Hamming threshold; optional ratio test; when the queries carry
+    Window radius and level range per query; Hamming threshold; optional ratio test (``ratio_same_level_only``:
+    only where best and second-best lie on the same pyramid level, ORB-SLAM's SearchByProjection of the local map); when the queries carry
     keypoint angles (matching frame to frame), ORB-SLAM's rotation-consistency check with ``rotation_bins``
     (pipeline.matcher.rotation_bins; None when the queries carry no angles); each feature once.
     """
@@ -102,7 +104,7 @@ def match_projected(
     m: WindowMatches = search_windows(
         grid, features.descriptors[free], uv_px, descriptors, radius_px, min_level, max_level
     )
-    ok = m.accepted(max_distance, ratio)
+    ok = m.accepted(max_distance, ratio, ratio_same_level_only)
     q = np.flatnonzero(ok)
     f = free[m.best_index[q]]
     d = m.best_distance[q]

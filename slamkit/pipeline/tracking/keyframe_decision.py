@@ -1,15 +1,19 @@
-"""ORB-SLAM sec. V-E: the new-keyframe decision (Tracking::NeedNewKeyFrame) as a pure function of a small record.
+"""ORB-SLAM sec. V-E: the new-keyframe decision as ORB-SLAM2's released code (Tracking::NeedNewKeyFrame, monocular; the
+same in ORB-SLAM3), a pure function of a small record.
 
 The tracker gathers the numbers (:class:`KeyFrameFacts`, read from the map under its read lock) and
-:func:`decide_keyframe` applies the paper's four conditions to them, so each condition can be tested on its own:
+:func:`decide_keyframe` applies the code's conditions to them, so each can be tested on its own. ``max_frames`` is
+the code's mMaxFrames, the camera's frame rate (``keyframe_max_frames``; 0 = the dataset's fps):
 
-1. more than ``keyframe_min_frames_since_reloc`` frames since the last relocalization (unless the map is small);
-2. local mapping is idle, or more than ``keyframe_max_frames_idle`` frames passed since the last keyframe;
-3. the frame tracks at least ``keyframe_min_tracked_points`` points;
-4. it tracks fewer than ``keyframe_max_ref_ratio`` of the reference keyframe's points.
+- no keyframe within ``max_frames`` frames of a relocalization, unless the map holds at most ``max_frames``
+  keyframes (the paper's condition 1, 20 frames);
+- c1a: at least ``max_frames`` frames since the last keyframe, or c1b: local mapping is idle (mMinFrames = 0);
+- c2: the frame tracks fewer than ``keyframe_max_ref_ratio`` (0.9 monocular) of the reference keyframe's points and
+  more than ``keyframe_min_tracked_points`` (15; the paper's condition 3 says 50);
+- (c1a or c1b) and c2: a keyframe if local mapping is idle; otherwise MAPPING_BUSY — ORB-SLAM's monocular tracking
+  then only interrupts local BA and makes no keyframe (the runner acts on it: docs/runtime.md).
 
-When only condition 2 fails the answer is MAPPING_BUSY: the runner acts on it (the paper: "a signal is sent to stop
-local BA"). While local mapping is parked for a loop correction no keyframe is made (MAPPING_STOPPED).
+While local mapping is parked for a loop correction no keyframe is made (MAPPING_STOPPED).
 """
 
 from __future__ import annotations
@@ -27,7 +31,8 @@ class KeyFrameFacts:
     frame_index / last_keyframe_frame_index / last_relocalization_frame_index: frame numbers (a large negative
     number when there was none). tracked_points: map points the frame tracks after V-D. reference_tracked_points:
     the reference keyframe's points seen by at least ``keyframe_ref_min_observations`` keyframes (None: no
-    reference keyframe in the map). keyframes_in_map: the map's size. mapping: local mapping's state.
+    reference keyframe in the map). keyframes_in_map: the map's size. mapping: local mapping's state. max_frames:
+    ORB-SLAM's mMaxFrames (frames), the camera's frame rate unless ``keyframe_max_frames`` sets it.
     """
 
     frame_index: int
@@ -37,23 +42,34 @@ class KeyFrameFacts:
     reference_tracked_points: int | None
     keyframes_in_map: int
     mapping: MappingState
+    max_frames: int = 30
 
 
 def decide_keyframe(facts: KeyFrameFacts, cfg: TrackingConfig) -> KeyFrameDecision:
-    """V-E's four conditions (see the module docstring) -> INSERT, NOT_NEEDED, MAPPING_BUSY or MAPPING_STOPPED."""
+    """ORB-SLAM2's NeedNewKeyFrame (see the module docstring) -> INSERT, NOT_NEEDED, MAPPING_BUSY or
+    MAPPING_STOPPED."""
     if not facts.mapping.accepting_keyframes:
         return KeyFrameDecision.MAPPING_STOPPED
-    recently_relocalized = facts.frame_index < facts.last_relocalization_frame_index + cfg.keyframe_min_frames_since_reloc
-    if recently_relocalized and facts.keyframes_in_map > cfg.keyframe_min_frames_since_reloc:
-        return KeyFrameDecision.NOT_NEEDED  # condition 1
-    if facts.tracked_points < cfg.keyframe_min_tracked_points:
-        return KeyFrameDecision.NOT_NEEDED  # condition 3
+    max_frames = facts.max_frames
+    recently_relocalized = facts.frame_index < facts.last_relocalization_frame_index + max_frames
+    if recently_relocalized and facts.keyframes_in_map > max_frames:
+        return KeyFrameDecision.NOT_NEEDED
+    c1a = facts.frame_index >= facts.last_keyframe_frame_index + max_frames
+    c1b = facts.mapping.idle
     ref = facts.reference_tracked_points
-    if ref is not None and facts.tracked_points >= cfg.keyframe_max_ref_ratio * ref:
-        return KeyFrameDecision.NOT_NEEDED  # condition 4
-    if facts.mapping.idle or facts.frame_index >= facts.last_keyframe_frame_index + cfg.keyframe_max_frames_idle:
-        return KeyFrameDecision.INSERT  # condition 2
-    return KeyFrameDecision.MAPPING_BUSY
+    few_of_reference = ref is None or facts.tracked_points < cfg.keyframe_max_ref_ratio * ref
+    c2 = few_of_reference and facts.tracked_points > cfg.keyframe_min_tracked_points
+    if not ((c1a or c1b) and c2):
+        return KeyFrameDecision.NOT_NEEDED
+    return KeyFrameDecision.INSERT if facts.mapping.idle else KeyFrameDecision.MAPPING_BUSY
+
+
+def max_frames_of(cfg: TrackingConfig, fps: float) -> int:
+    """ORB-SLAM's mMaxFrames: ``keyframe_max_frames`` when set (> 0), else the camera's frame rate ``fps`` (Hz)
+    rounded (ORB-SLAM2 Tracking: mMaxFrames = Camera.fps, 30 when the settings give none)."""
+    if cfg.keyframe_max_frames > 0:
+        return int(cfg.keyframe_max_frames)
+    return max(1, round(fps)) if fps > 0 else 30
 
 
 def reference_min_observations(keyframes_in_map: int, cfg: TrackingConfig) -> int:

@@ -19,31 +19,39 @@ I64 = NDArray[np.int64]
 
 
 def local_keyframes(frame: Frame, store: MapStore, cfg: TrackingConfig) -> tuple[list[int], int | None]:
-    """V-D: K1 (keyframes sharing points with the frame, most shared first), then K2 (each K1's
-    ``local_map_neighbors_per_keyframe`` best covisible neighbours, spanning-tree children and parent), at most
-    ``local_map_covisible_keyframes`` in all -> (local keyframe ids, K_ref: the K1 keyframe sharing the most points,
-    None when the frame matched no point)."""
+    """V-D as ORB-SLAM2's Tracking::UpdateLocalKeyFrames: K1 = every keyframe sharing points with the frame (most
+    shared first, uncapped); then, for each K1 keyframe while the set holds at most
+    ``local_map_covisible_keyframes`` keyframes, K2 adds three at most: the first of its
+    ``local_map_neighbors_per_keyframe`` best covisible neighbours not in the set yet, its first spanning-tree child
+    (lowest id) not in the set yet, and its parent if not in the set yet.
+
+    Returns (local keyframe ids, K_ref: the K1 keyframe sharing the most points, None when the frame matched no
+    point). ORB-SLAM2's code also leaves the K1 loop after the first parent it adds (a ``break`` inside the parent
+    branch, kept in ORB-SLAM3); slamkit goes on with the next K1 keyframe, as the comment of that loop says
+    (docs/pipeline.md)."""
     matched = [store.get_point(p) for p in frame.point_ids[frame.point_ids >= 0].tolist()]
     counts = Counter(chain.from_iterable(p.observations for p in matched))
-    if not counts:
+    k1 = sorted((k for k in counts if store.has_keyframe(k)), key=lambda k: (-counts[k], k))
+    if not k1:
         return [], None
-    k1 = sorted(counts, key=lambda k: (-counts[k], k))
-    limit = cfg.local_map_covisible_keyframes
-    local = list(k1[:limit])
+    local = list(k1)
     seen = set(local)
     tree = store.spanning_tree
-    for kf_id in list(local):
-        if len(local) >= limit:
-            break
-        extra = store.covisibility.best_neighbors(kf_id, cfg.local_map_neighbors_per_keyframe)
-        extra += tree.children(kf_id)
-        parent = tree.parent(kf_id)
-        if parent is not None:
-            extra.append(parent)
-        for other in extra:
-            if other not in seen and len(local) < limit and store.has_keyframe(other):
+
+    def add_first(options: list[int]) -> None:
+        for other in options:
+            if other not in seen and store.has_keyframe(other):
                 local.append(other)
                 seen.add(other)
+                return
+
+    for kf_id in k1:
+        if len(local) > cfg.local_map_covisible_keyframes:
+            break
+        add_first(store.covisibility.best_neighbors(kf_id, cfg.local_map_neighbors_per_keyframe))
+        add_first(tree.children(kf_id))
+        parent = tree.parent(kf_id)
+        add_first([] if parent is None else [parent])
     return local, k1[0]
 
 
@@ -116,5 +124,6 @@ def search_local_points(frame: Frame, candidates: I64, store: MapStore, cfg: Tra
         cfg.matcher.ratio_local_map,
         None,
         None,
+        ratio_same_level_only=True,  # ORB-SLAM2/3 SearchByProjection: ratio only when best and second share a level
     )
     frame.point_ids[m.feature] = candidates[s[v[m.query]]]

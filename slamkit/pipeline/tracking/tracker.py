@@ -44,7 +44,12 @@ from slamkit.pipeline.lost import LostDecision, LostPolicy, LostRecord, decide_w
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
 from slamkit.pipeline.tracking.frame_pose import PoseRefiner
-from slamkit.pipeline.tracking.keyframe_decision import KeyFrameFacts, decide_keyframe, reference_min_observations
+from slamkit.pipeline.tracking.keyframe_decision import (
+    KeyFrameFacts,
+    decide_keyframe,
+    max_frames_of,
+    reference_min_observations,
+)
 from slamkit.pipeline.tracking.local_map import track_local_map
 from slamkit.pipeline.tracking.motion_model import (
     pose_relative_to_reference,
@@ -78,12 +83,15 @@ class Tracker:
         rng: np.random.Generator,
         place: PlaceRecognizer | None = None,
         pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
+        fps: float = 30.0,
     ) -> None:
         """frontend: turns each packet into the frame's observation record (it holds the feature extractors).
         pose_optimizer: motion-only BA of tracking; default the compiled one of
         slamkit.pipeline.pose_optimization (same algorithm as ``Optimizer.optimize_pose``, a few hundred times
-        cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend."""
+        cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend.
+        fps: the camera's frame rate (Hz), ORB-SLAM's mMaxFrames unless ``keyframe_max_frames`` sets it."""
         self.cfg = cfg
+        self.max_frames = max_frames_of(cfg, fps)  # ORB-SLAM mMaxFrames (frames)
         self.frontend = frontend
         self.optimizer = optimizer
         self.optimize_pose = pose_optimizer or motion_only_ba
@@ -95,6 +103,7 @@ class Tracker:
         self.relocalizations = 0
         self.state = TrackingState.NOT_INITIALIZED
         self.init = MonocularInitialization(cfg, initializer, rng)
+        self.rng = rng  # the initializer's RANSAC and the relocalization's PnP RANSAC
         self.last_frame: Frame | None = None
         self.velocity: F64 | None = None  # T_cur_last of the last two tracked frames
         self.reference_kf_id: int | None = None
@@ -226,22 +235,36 @@ class Tracker:
         with store.read():
             method = "lost"
             ok = False
+            why: list[str] = []  # what failed, for the frame's message when tracking is lost
             self._frame_bow = None
             if self.state == TrackingState.LOST:
                 method = "relocalization"
                 ok = self._relocalize(frame)
+                if not ok:
+                    why.append("relocalization: no candidate keyframe gave a pose with enough inliers")
             elif self.state == TrackingState.OK and self.last_frame is not None:
                 last = self.last_frame
                 update_last_frame(store, last, self._last_T_l_r)
                 if self.velocity is not None:
                     ok = track_with_motion_model(frame, last, self.velocity, store, cfg, self.refiner)
                     method = "motion_model"
+                    if not ok:
+                        why.append(f"motion model: {np.count_nonzero(frame.point_ids >= 0)} matches/inliers left")
                 if not ok:
                     assert last.T_c_w is not None
                     ok = track_reference_keyframe(
-                        frame, self.reference_kf_id, last.T_c_w, store, cfg, self.refiner, self.place, self._frame_bow_of(frame)
+                        frame,
+                        self.reference_kf_id,
+                        last.T_c_w,
+                        store,
+                        cfg,
+                        self.refiner,
+                        self.place,
+                        self._frame_bow_of(frame),
                     )
                     method = "reference_keyframe"
+                    if not ok:
+                        why.append(f"reference keyframe: {np.count_nonzero(frame.point_ids >= 0)} matches/inliers left")
             t1 = time.perf_counter()
             inliers = 0
             if ok:
@@ -250,14 +273,16 @@ class Tracker:
                 inliers, reference = track_local_map(frame, store, cfg, self.refiner, wide)
                 if reference is not None:
                     self.reference_kf_id = reference
-                recent_reloc = since_reloc < cfg.keyframe_min_frames_since_reloc
+                recent_reloc = since_reloc < self.max_frames  # code (TrackLocalMap): mnLastRelocFrameId + mMaxFrames
                 needed = cfg.min_local_map_inliers_after_reloc if recent_reloc else cfg.min_local_map_inliers
                 ok = inliers >= needed
+                if not ok:
+                    why.append(f"local map: {inliers} inliers < {needed}")
             t2 = time.perf_counter()
         timings["initial_pose_ms"] = (t1 - t0) * 1e3
         timings["local_map_ms"] = (t2 - t1) * 1e3
         if not ok:
-            return self._lost(frame, method)
+            return self._lost(frame, method, "; ".join(why))
         assert frame.T_c_w is not None
         self._lost_since_s = None
         self.velocity = None if method == "relocalization" else velocity(frame, self.last_frame)
@@ -304,7 +329,14 @@ class Tracker:
                 n_obs = store.point_rows(ref_ids, "n_observations") if ref_ids.size else np.zeros(0, np.int64)
                 n_ref = int(np.count_nonzero(n_obs >= reference_min_observations(n_kfs, self.cfg)))
         return KeyFrameFacts(
-            frame.index, self.last_kf_frame_index, self.last_reloc_frame_index, inliers, n_ref, n_kfs, mapping
+            frame.index,
+            self.last_kf_frame_index,
+            self.last_reloc_frame_index,
+            inliers,
+            n_ref,
+            n_kfs,
+            mapping,
+            self.max_frames,
         )
 
     def _relocalize(self, frame: Frame) -> bool:
@@ -314,7 +346,14 @@ class Tracker:
         # candidates of every map, grouped in their own maps (Atlas.best_neighbors); only the active map's are tried
         # (ORB-SLAM3 DetectRelocalizationCandidates(F, pMap): pKFi->GetMap() != pMap -> skipped)
         kf_id = relocalize(
-            frame, self._frame_bow_of(frame)(), self.store, self.place, self.cfg, self.refiner, self.atlas.best_neighbors
+            frame,
+            self._frame_bow_of(frame)(),
+            self.store,
+            self.place,
+            self.cfg,
+            self.refiner,
+            self.atlas.best_neighbors,
+            self.rng,
         )
         if kf_id is None:
             return False
@@ -335,10 +374,11 @@ class Tracker:
 
         return bow
 
-    def _lost(self, frame: Frame, method: str) -> TrackingOutcome:
+    def _lost(self, frame: Frame, method: str, why: str = "") -> TrackingOutcome:
+        """The outcome of a frame tracking failed on; ``why``: what failed (said in the frame's message)."""
         self.state = TrackingState.LOST
         self.velocity = None
-        msg = f"tracking lost at frame {frame.index} ({method})"
+        msg = f"tracking lost at frame {frame.index} ({method}{': ' + why if why else ''})"
         if self._lost_since_s is None:
             self._lost_since_s = frame.timestamp_s
         n_kfs = self.store.n_keyframes()

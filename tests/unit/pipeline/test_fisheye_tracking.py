@@ -164,8 +164,11 @@ def test_other_scenes(seed: int) -> None:
 
 #: Frame 1 wants a keyframe: the keyframe's points, seen by it alone, count for V-E condition 4 (ORB-SLAM counts
 #: points with 2 observations while the map has at most two keyframes), and as frame 1 sees nearly all of them the
-#: ratio of condition 4 is raised above 1.
-WANTS_KEYFRAME = TrackingConfig(keyframe_ref_min_observations_small_map=1, keyframe_max_ref_ratio=1.5)
+#: ratio of condition 4 is raised above 1. mMaxFrames is 1 frame, so with local mapping busy c1a holds at frame 1 and the
+#: runner is told (ORB-SLAM2 NeedNewKeyFrame: busy before mMaxFrames frames -> no keyframe wanted).
+WANTS_KEYFRAME = TrackingConfig(
+    keyframe_ref_min_observations_small_map=1, keyframe_max_ref_ratio=1.5, keyframe_max_frames=1
+)
 
 
 @pytest.mark.parametrize(
@@ -241,3 +244,19 @@ def test_a_tracker_lost_for_too_long_in_a_kept_map_asks_for_a_new_map_and_starts
     assert tracker.atlas.map_ids() == [0, 1] and tracker.atlas.active_id == 1
     assert tracker.atlas.get(0).n_keyframes() == 1 and tracker.store.n_keyframes() == 0
     assert tracker.state == TrackingState.NOT_INITIALIZED and tracker.refiner.store is tracker.store
+
+
+def test_a_lost_frame_says_what_failed() -> None:
+    """frames.csv carries the outcome's message: a frame whose keypoints match nothing says the reference keyframe
+    found too few matches; a frame short of the local map's inliers says how many it had against the threshold."""
+    tracker, _, records = tracker_on_known_map(0, CAMERA)
+    rng = np.random.default_rng(5)
+    clutter, _ = record(CAMERA, np.eye(4), np.zeros((0, 3)), np.zeros((0, 32), np.uint8), rng, 300)
+    records[1] = clutter
+    out = tracker.step(FrameData(1, 1.0, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert out.state == TrackingState.LOST
+    assert "reference keyframe: " in out.message and "matches/inliers left" in out.message
+    tracker, _, _ = tracker_on_known_map(0, CAMERA, TrackingConfig(min_local_map_inliers=100000))
+    out = tracker.step(FrameData(1, 1.0, np.zeros((1, 1), np.uint8)), CAMERA)
+    assert out.state == TrackingState.LOST
+    assert "local map: " in out.message and "inliers < 100000" in out.message

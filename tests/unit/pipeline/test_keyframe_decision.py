@@ -1,5 +1,6 @@
-"""The new-keyframe decision (ORB-SLAM V-E) as a pure function: each of the paper's four conditions, and local
-mapping's state given as data (busy: the runner is told; parked for a loop correction: no keyframe)."""
+"""The new-keyframe decision (ORB-SLAM V-E) as ORB-SLAM2's released NeedNewKeyFrame, a pure function: each of the
+code's conditions (mMaxFrames = the camera's fps, c1a/c1b/c2), and local mapping's state given as data (busy: the
+runner is told; parked for a loop correction: no keyframe)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,12 @@ import pytest
 
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState
-from slamkit.pipeline.tracking.keyframe_decision import KeyFrameFacts, decide_keyframe, reference_min_observations
+from slamkit.pipeline.tracking.keyframe_decision import (
+    KeyFrameFacts,
+    decide_keyframe,
+    max_frames_of,
+    reference_min_observations,
+)
 
 CFG = TrackingConfig()
 IDLE = MappingState(idle=True, accepting_keyframes=True)
@@ -17,15 +23,16 @@ BUSY = MappingState(idle=False, accepting_keyframes=True)
 STOPPED = MappingState(idle=False, accepting_keyframes=False)
 
 #: A frame that passes every condition: far from the last relocalization, 5 frames after the last keyframe, tracking
-#: 100 points of a reference keyframe with 200, in a map of 30 keyframes, local mapping idle.
+#: 100 points of a reference keyframe with 200, in a map of 40 keyframes, local mapping idle, a 30 Hz camera.
 GOOD = KeyFrameFacts(
     frame_index=1000,
     last_keyframe_frame_index=995,
     last_relocalization_frame_index=-(10**9),
     tracked_points=100,
     reference_tracked_points=200,
-    keyframes_in_map=30,
+    keyframes_in_map=40,
     mapping=IDLE,
+    max_frames=30,
 )
 
 
@@ -37,28 +44,31 @@ def test_a_frame_passing_every_condition_becomes_a_keyframe() -> None:
     assert decide_keyframe(GOOD, CFG) == KeyFrameDecision.INSERT
 
 
-def test_condition_1_no_keyframe_within_20_frames_of_a_relocalization() -> None:
-    assert decide_keyframe(facts(last_relocalization_frame_index=990), CFG) == KeyFrameDecision.NOT_NEEDED
-    assert decide_keyframe(facts(last_relocalization_frame_index=980), CFG) == KeyFrameDecision.INSERT  # 20 frames
+def test_no_keyframe_within_max_frames_of_a_relocalization_unless_the_map_is_small() -> None:
+    assert decide_keyframe(facts(last_relocalization_frame_index=980), CFG) == KeyFrameDecision.NOT_NEEDED
+    assert decide_keyframe(facts(last_relocalization_frame_index=970), CFG) == KeyFrameDecision.INSERT  # 30 frames
     # ORB-SLAM: unless the map is small (at most mMaxFrames keyframes)
-    assert decide_keyframe(facts(last_relocalization_frame_index=990, keyframes_in_map=20), CFG) == (
+    assert decide_keyframe(facts(last_relocalization_frame_index=990, keyframes_in_map=30), CFG) == (
         KeyFrameDecision.INSERT
     )
+    # a 10 Hz camera (KITTI): 10 frames
+    assert decide_keyframe(facts(last_relocalization_frame_index=990, max_frames=10), CFG) == KeyFrameDecision.INSERT
 
 
-def test_condition_2_busy_local_mapping_is_told_to_the_runner_unless_20_frames_passed() -> None:
-    assert decide_keyframe(facts(mapping=BUSY), CFG) == KeyFrameDecision.MAPPING_BUSY
-    assert decide_keyframe(facts(mapping=BUSY, last_keyframe_frame_index=980), CFG) == KeyFrameDecision.INSERT
+def test_busy_local_mapping_is_told_to_the_runner_after_max_frames() -> None:
+    # c1b fails while mapping is busy, c1a holds after mMaxFrames; monocular ORB-SLAM then only interrupts local BA
+    assert decide_keyframe(facts(mapping=BUSY), CFG) == KeyFrameDecision.NOT_NEEDED
+    assert decide_keyframe(facts(mapping=BUSY, last_keyframe_frame_index=970), CFG) == KeyFrameDecision.MAPPING_BUSY
     # the other conditions come first: a keyframe nobody wants is not "busy"
     assert decide_keyframe(facts(mapping=BUSY, tracked_points=10), CFG) == KeyFrameDecision.NOT_NEEDED
 
 
-def test_condition_3_at_least_50_tracked_points() -> None:
-    assert decide_keyframe(facts(tracked_points=49, reference_tracked_points=100), CFG) == KeyFrameDecision.NOT_NEEDED
-    assert decide_keyframe(facts(tracked_points=50, reference_tracked_points=100), CFG) == KeyFrameDecision.INSERT
+def test_c2_more_than_15_tracked_points() -> None:
+    assert decide_keyframe(facts(tracked_points=15, reference_tracked_points=100), CFG) == KeyFrameDecision.NOT_NEEDED
+    assert decide_keyframe(facts(tracked_points=16, reference_tracked_points=100), CFG) == KeyFrameDecision.INSERT
 
 
-def test_condition_4_fewer_than_90_percent_of_the_reference_keyframes_points() -> None:
+def test_c2_fewer_than_90_percent_of_the_reference_keyframes_points() -> None:
     assert decide_keyframe(facts(tracked_points=180), CFG) == KeyFrameDecision.NOT_NEEDED
     assert decide_keyframe(facts(tracked_points=179), CFG) == KeyFrameDecision.INSERT
     assert decide_keyframe(facts(tracked_points=1000, reference_tracked_points=None), CFG) == KeyFrameDecision.INSERT
@@ -71,11 +81,16 @@ def test_no_keyframe_while_local_mapping_is_stopped_for_a_loop_correction() -> N
     )
 
 
+def test_max_frames_is_the_camera_frame_rate_unless_configured() -> None:
+    assert max_frames_of(CFG, 30.0) == 30
+    assert max_frames_of(CFG, 9.65) == 10  # KITTI
+    assert max_frames_of(CFG, 0.0) == 30  # no rate known: ORB-SLAM's default
+    assert max_frames_of(dataclasses.replace(CFG, keyframe_max_frames=20), 30.0) == 20
+
+
 @pytest.mark.parametrize(
     ("field", "value", "case", "expected"),
     [
-        ("keyframe_min_frames_since_reloc", 5, {"last_relocalization_frame_index": 990}, KeyFrameDecision.INSERT),
-        ("keyframe_max_frames_idle", 5, {"mapping": BUSY}, KeyFrameDecision.INSERT),
         ("keyframe_min_tracked_points", 101, {}, KeyFrameDecision.NOT_NEEDED),
         ("keyframe_max_ref_ratio", 0.5, {}, KeyFrameDecision.NOT_NEEDED),
     ],

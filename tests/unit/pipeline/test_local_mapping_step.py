@@ -250,3 +250,32 @@ def test_the_one_keyframe_inserter_turns_tracked_matches_into_observations_once(
     assert not np.allclose(store.get_point(0).normal_w, before), "normals refreshed with the new view"
     assert not insert_keyframe(store, kf1) and not insert_keyframe(store, kf0)
     assert store.n_keyframes() == 2 and store.get_point(0).observations == {kf0.id: 0, kf1.id: 0}
+
+
+@pytest.mark.parametrize("bad_max", [2, 0])
+def test_points_a_culled_keyframe_leaves_with_two_observations_are_erased(bad_max: int) -> None:
+    """ORB-SLAM2 KeyFrame::SetBadFlag -> MapPoint::EraseObservation: nObs <= 2 -> SetBadFlag. Five keyframes see
+    100 points; keyframes 1-3 also see 5 more. Culling at keyframe 4 erases 1 and 2 (95% / 100% redundant): the 5
+    points are left with fewer than three observers and go (``point_bad_max_observations`` 2); with 0 they stay."""
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kfs = [keyframe(store, 0.05 * i, xyz, desc) for i in range(5)]
+    for kf in kfs:
+        store.add_keyframe(kf)
+    pids = []
+    for j in range(105):
+        pid = store.new_point_id()
+        pids.append(pid)
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
+        for kf in kfs if j < 100 else kfs[1:4]:
+            store.add_observation(pid, kf.id, j)
+    refresh_points(store, store.point_ids())
+    for kf in kfs:
+        store.update_connections(kf.id)
+    cfg = LocalMappingConfig(point_bad_max_observations=bad_max)
+    mapper = LocalMapper(cfg, Atlas.of(store), None)  # type: ignore[arg-type]
+    with store.write():
+        culled = {c.kf_id for c in mapper._cull_keyframes(kfs[4])}
+    assert culled == {1, 2}
+    assert all(store.has_point(p) for p in pids[:100])
+    assert all(store.has_point(p) != (bad_max == 2) for p in pids[100:])
