@@ -197,16 +197,23 @@ def run_orbslam3(args: argparse.Namespace, seq: Sequence, i: int, out: Path) -> 
         proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=args.timeout, check=False)
     wall, la = time.perf_counter() - t0, load1()
     fig = RunFigures("ORB-SLAM3", f"run{i}", str(out), n, None, None, None, 0, None, 0, None, None, wall, lb, la)
-    stats_path = out / "stats.json"
-    if proc.returncode != 0 or not stats_path.is_file():
+    if proc.returncode != 0 or not (out / "stats.json").is_file():
         fig.error = f"exit {proc.returncode}, see {out / 'run.log'}"
         return fig
-    stats = json.loads(stats_path.read_text())
+    return read_orbslam3_figures(fig, seq, out)
+
+
+def read_orbslam3_figures(fig: RunFigures, seq: Sequence, out: Path) -> RunFigures:
+    """Fill ``fig`` (``fig.frames`` = frames fed) from the peers' runner's outputs in ``out``: stats.json,
+    traj_online.txt (one line per frame with a pose, online), traj.txt and kf_traj.txt (final, TUM)."""
+    stats = json.loads((out / "stats.json").read_text())
     fig.fps, fig.track_ms = stats.get("fps_loop"), stats.get("track_ms_median")
-    online = [float(line.split()[0]) for line in (out / "traj_online.txt").read_text().splitlines() if line.strip()]
+    online_path = out / "traj_online.txt"
+    lines = online_path.read_text().splitlines() if online_path.is_file() else []
+    online = sorted({frame_index(seq, float(line.split()[0])) for line in lines if line.strip()})
     if online:
-        fig.init_frame = frame_index(seq, online[0])
-        fig.tracked_pct = 100.0 * len(online) / max(n - fig.init_frame, 1)
+        fig.init_frame = online[0]
+        fig.tracked_pct = 100.0 * len(online) / max(fig.frames - fig.init_frame, 1)
     fig.ate_all_m, fig.ate_all_poses, e1 = ate(seq, out / "traj.txt")
     fig.ate_kf_m, fig.ate_kf_poses, e2 = ate(seq, out / "kf_traj.txt")
     fig.error = "; ".join(e for e in (e1, e2) if e)
@@ -231,6 +238,12 @@ def run_slamkit(args: argparse.Namespace, seq: Sequence, seed: int, out: Path) -
     if proc.returncode != 0 or not (out / "frames.csv").is_file():
         fig.error = f"exit {proc.returncode}, see {out / 'run.log'}"
         return fig
+    return read_slamkit_figures(fig, seq, out)
+
+
+def read_slamkit_figures(fig: RunFigures, seq: Sequence, out: Path) -> RunFigures:
+    """Fill ``fig`` from a slamkit run directory: frames.csv (one row per frame, state ``ok`` = a pose),
+    metrics.json (wall_s, tracking_ms_median), trajectory.tum and keyframes.tum."""
     with open(out / "frames.csv") as f:
         rows = list(csv.DictReader(f))
     fig.frames = len(rows)
