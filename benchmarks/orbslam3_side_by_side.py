@@ -333,7 +333,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("kind", choices=("tum", "kitti", "euroc"), help="dataset format")
     p.add_argument("path", type=Path, help="TUM/EuRoC sequence folder, or the KITTI root (sequences/, poses/)")
-    p.add_argument("overrides", nargs="*", help="extra slamkit overrides (after --), e.g. +experiment=kitti07")
     p.add_argument("--sequence", default="07", help="KITTI sequence (default 07)")
     p.add_argument("--gt", type=Path, default=None, help="ground truth (TUM file); needed for EuRoC (cam0 poses)")
     env_peers = os.environ.get("SLAMKIT_PEERS")
@@ -348,7 +347,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--only", choices=("both", "orbslam3", "slamkit"), default="both")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    args = p.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # Everything after "--" is for slamkit (argparse cannot take a positional list after the options).
+    overrides = argv[argv.index("--") + 1 :] if "--" in argv else []
+    args = p.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
+    args.overrides = overrides
     if args.peers is not None:
         args.peers = args.peers.resolve()
         args.venv = (args.venv or args.peers / "venv_pos").resolve()

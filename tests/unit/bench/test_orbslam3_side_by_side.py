@@ -119,3 +119,11 @@ def test_skips_with_a_reason_when_orbslam3_is_absent(
     assert sbs.main(["tum", str(sequence), "--peers", str(tmp_path / "no_peers"), "--out", str(tmp_path / "o")]) == 0
     assert "skipped, ORB-SLAM3 is not available" in capsys.readouterr().out
     assert not (tmp_path / "o").exists()
+
+
+def test_slamkit_overrides_after_a_double_dash(tmp_path: Path) -> None:
+    sbs = load_script()
+    args = sbs.parse_args(
+        ["kitti", str(tmp_path), "--runs", "2", "--out", str(tmp_path / "o"), "--", "+experiment=kitti07"]
+    )
+    assert args.overrides == ["+experiment=kitti07"] and args.seed_list == [0, 1] and args.sequence == "07"
