@@ -341,7 +341,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--vocab", type=Path, default=None, help="ORB vocabulary (default PEERS/vocab/ORBvoc_local.txt)")
     p.add_argument("--settings", type=Path, default=None, help="ORB-SLAM3 settings (default PEERS/configs/mono_*.yaml)")
     p.add_argument("--runs", type=int, default=3, help="runs of each system (default 3)")
-    p.add_argument("--seeds", default=None, help="slamkit seeds, comma-separated (default 0..runs-1)")
+    p.add_argument(
+        "--seeds",
+        default=None,
+        help="slamkit seeds, comma-separated (default 0..runs-1; fewer: slamkit in the first runs)",
+    )
+    p.add_argument("--resume", action="store_true", help="read the runs already complete in OUT instead of rerunning")
     p.add_argument("--runner", default="sequential", help="slamkit runner (default sequential: deterministic)")
     p.add_argument("--max-frames", type=int, default=0, help="stop both after this many frames (0: all)")
     p.add_argument("--only", choices=("both", "orbslam3", "slamkit"), default="both")
@@ -357,7 +362,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.venv = (args.venv or args.peers / "venv_pos").resolve()
         args.vocab = (args.vocab or args.peers / "vocab" / "ORBvoc_local.txt").resolve()
     seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else list(range(args.runs))
-    if len(seeds) != args.runs:
+    if len(seeds) > args.runs:
         p.error(f"--seeds gives {len(seeds)} seeds for --runs {args.runs}")
     args.seed_list = seeds
     return args
@@ -375,12 +380,29 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     env = {"cpu": cpu_model(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "argv": sys.argv}
     figs: list[RunFigures] = []
-    for i, seed in enumerate(args.seed_list, start=1):
+    nan = float("nan")
+    for i in range(1, args.runs + 1):
         if args.only != "slamkit":
-            figs.append(run_orbslam3(args, seq, i, out / f"orbslam3_run{i}"))
+            d = out / f"orbslam3_run{i}"
+            if args.resume and (d / "stats.json").is_file():
+                n = len(seq.timestamps_s) if not args.max_frames else min(args.max_frames, len(seq.timestamps_s))
+                fig = RunFigures(
+                    "ORB-SLAM3", f"run{i}", str(d), n, None, None, None, 0, None, 0, None, None, nan, nan, nan
+                )
+                figs.append(read_orbslam3_figures(fig, seq, d))
+            else:
+                figs.append(run_orbslam3(args, seq, i, d))
             print(row(figs[-1]), flush=True)
-        if args.only != "orbslam3":
-            figs.append(run_slamkit(args, seq, seed, out / f"slamkit_seed{seed}"))
+        if args.only != "orbslam3" and i <= len(args.seed_list):
+            seed = args.seed_list[i - 1]
+            d = out / f"slamkit_seed{seed}"
+            if args.resume and (d / "metrics.json").is_file():
+                fig = RunFigures(
+                    "slamkit", f"seed{seed}", str(d), 0, None, None, None, 0, None, 0, None, None, nan, nan, nan
+                )
+                figs.append(read_slamkit_figures(fig, seq, d))
+            else:
+                figs.append(run_slamkit(args, seq, seed, d))
             print(row(figs[-1]), flush=True)
     text = table(seq, figs, env)
     print(text)
