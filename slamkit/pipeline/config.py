@@ -160,6 +160,15 @@ class LoopClosingConfig:
     sim3_min_bow_matches: int = 20
     loop_search_radius_px: float = 10.0
     loop_fuse_radius_px: float = 4.0
+    n_best_candidates: int = 3
+    candidate_covisibles: int = 5
+    bow_ratio: float = 0.9
+    common_regions_ransac_min_inliers: int = 15
+    common_regions_search_radius_px: float = 8.0
+    common_regions_hamming_ratio: float = 1.5
+    common_regions_min_projected: int = 50
+    common_regions_refined_radius_px: float = 5.0
+    common_regions_min_refined: int = 80
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

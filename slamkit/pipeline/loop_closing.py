@@ -1,8 +1,14 @@
 """Loop closing (ORB-SLAM sec. VII): detect loop candidates with the place recognizer, check their
-consistency over three keyframes, compute and optimize the Sim3 between the keyframe and a candidate,
-require enough matches, verify the hypothesis geometrically in other keyframes (ORB-SLAM3 sec. VI, see
-``loop_verification``; possibly over the next keyframes), then correct the loop (Sim3 propagation, loop
-fusion, essential graph).
+consistency over three keyframes, then (ORB-SLAM3 sec. VI, LoopClosing::DetectCommonRegionsFromBoW, the default)
+for the best three candidates pool BoW matches from the candidate and its covisible keyframes, Sim3 RANSAC,
+guided matching, Sim3 optimisation and refined guided matching, keep the best, and verify it geometrically in
+other keyframes (see ``loop_verification``; possibly over the next keyframes) -- or (ORB-SLAM2's ComputeSim3,
+``geometric_verification: false``) compute and optimize the Sim3 on each candidate's BoW matches and require
+enough matches -- then correct the loop (Sim3 propagation, loop fusion, essential graph).
+
+The same detection is the Atlas' merge detection (ORB-SLAM3): a common region in the active map is a loop; a
+place-recognition candidate in another map is a merge candidate, recorded in ``LoopOutcome.merge_candidates``
+and not acted upon yet.
 
 Detection and correction are two steps, as in ORB-SLAM (DetectLoop/ComputeSim3, then CorrectLoop):
 ``LoopCloser.detect(kf)`` runs after local mapping has processed ``kf`` and *while local mapping goes on* (it reads
@@ -44,9 +50,12 @@ from slamkit.pipeline.loop_verification import (
     advance_pending,
     check_covisibles,
     check_keyframe,
+    common_region_keyframes,
     loop_rotation_deg,
     loop_window,
+    points_of,
     project_window,
+    verification_window,
 )
 from slamkit.pipeline.outcomes import LoopOutcome
 from slamkit.pipeline.projection import require_pinhole_image
@@ -80,6 +89,24 @@ class LoopDetection:
 
 
 @dataclass
+class _Hypothesis:
+    """A common region found from one BoW candidate (ORB-SLAM3 DetectCommonRegionsFromBoW): the matched keyframe,
+    S_cw the current keyframe's pose in the loop side's frame, the refined matches (current feature -> loop point
+    id), the verification window's point ids, and the candidate's record in LoopOutcome.tried."""
+
+    matched_kf_id: int
+    S_cw: Sim3
+    matches: dict[int, int]
+    window: list[int]
+    info: dict[str, object]
+
+
+def _pinhole(K: NDArray[np.float64], xyz_c: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 2) px: camera-frame points (N, 3), z > 0, through the pinhole K (3, 3)."""
+    return np.stack([K[0, 0] * xyz_c[:, 0] / xyz_c[:, 2] + K[0, 2], K[1, 1] * xyz_c[:, 1] / xyz_c[:, 2] + K[1, 2]], 1)
+
+
+@dataclass
 class _ConsistentGroup:
     members: set[int]
     count: int
@@ -110,7 +137,9 @@ class LoopCloser:
         self._pending: PendingLoop | None = None
         self.loops: list[LoopOutcome] = []
         self._thresholds = VerificationThresholds(
-            cfg.verify_search_radius_px, cfg.verify_min_matches, cfg.matcher.th_low
+            cfg.verify_search_radius_px,
+            cfg.verify_min_matches,
+            int(cfg.matcher.th_low * cfg.common_regions_hamming_ratio),
         )
 
     @property
@@ -184,7 +213,7 @@ class LoopCloser:
             return None
         t1 = time.perf_counter()
         try:
-            loop = self._compute_sim3(kf, out)
+            loop = self._common_regions(kf, out) if self.cfg.geometric_verification else self._compute_sim3(kf, out)
         finally:
             self.pins.unpin(*out.consistent)  # ORB-SLAM: SetErase on those not chosen
         out.timings_ms["sim3_ms"] = (time.perf_counter() - t1) * 1e3
@@ -245,7 +274,18 @@ class LoopCloser:
         min_score = min(scores) if scores else 0.0
         # the other maps' keyframes are left out like the connected ones: a loop is searched in the active map only
         # (ORB-SLAM3 DetectLoopCandidates: "it must be in the same map"; merging maps is a later step)
-        connected = {kf.id, *cov.neighbors(kf.id)} | self.atlas.keyframes_outside_active()
+        other_maps = self.atlas.keyframes_outside_active()
+        if other_maps:
+            # ORB-SLAM3 DetectNBestCandidates: a candidate in another map is a merge candidate (reported only)
+            active = set(self.store.keyframe_ids())
+            out.merge_candidates = [
+                k
+                for k, _ in self.place.loop_candidates(kf.bow, active | {kf.id}, min_score, self.atlas.best_neighbors)
+                if k in other_maps
+            ][: cfg.n_best_candidates]
+            if out.merge_candidates:
+                log.info("keyframe %d: merge candidates %s (not acted upon)", kf.id, out.merge_candidates)
+        connected = {kf.id, *cov.neighbors(kf.id)} | other_maps
         candidates = [
             k
             for k, _ in self.place.loop_candidates(kf.bow, connected, min_score, self._neighbors)
@@ -266,11 +306,9 @@ class LoopCloser:
             if count >= cfg.consistency_detections - 1 and cand not in consistent:
                 consistent.append(cand)
         self._groups = new_groups
-        if cfg.geometric_verification:
-            # ORB-SLAM3 sec. VI: every candidate goes on to the Sim3 and the geometric verification in covisible
-            # and next keyframes, which replaces ORB-SLAM2's temporal consistency (a revisit seen only in the
-            # last keyframes of a sequence can still close)
-            return candidates
+        # The temporal consistency holds with the geometric verification too (issue 14): a candidate goes on to
+        # the Sim3 only once three consecutive keyframes found it or its covisible group; ORB-SLAM3's checks in
+        # the covisible and next keyframes come on top (docs/pipeline.md).
         if not consistent:
             out.reason = f"{len(candidates)} candidate(s), none consistent over {cfg.consistency_detections} keyframes"
         return consistent
@@ -380,11 +418,7 @@ class LoopCloser:
                 if len(matches) < cfg.min_loop_matches:
                     info["rejected"] = f"{len(matches)} matches < {cfg.min_loop_matches}"
                     continue
-                if not cfg.geometric_verification:
-                    return self._accept(cand_id, S_cw, matches)
-                verdict = self._verify(kf, cand_id, S_cw, window, matches, info)
-                if verdict is not None or (self._pending is not None and self._pending.last_kf_id == kf.id):
-                    return verdict
+                return self._accept(cand_id, S_cw, matches)
         return None
 
     def _search_loop_points(
@@ -399,6 +433,206 @@ class LoopCloser:
         return project_window(
             self.store, kf, S_cw, rest, self.cfg.loop_search_radius_px, self.cfg.matcher.th_low, taken
         ).matches
+
+    # ---- ORB-SLAM3 sec. VI (LoopClosing::DetectCommonRegionsFromBoW): the common region ----------------
+
+    def _common_regions(self, kf: KeyFrame, out: LoopOutcome) -> AcceptedLoop | None:
+        """ORB-SLAM3's DetectCommonRegionsFromBoW over the best ``n_best_candidates`` consistent candidates: each
+        gives a hypothesis through :meth:`_common_region` (pooled BoW matches, Sim3 RANSAC, guided matching,
+        Sim3 optimisation, refined guided matching); the one with the most refined matches is then verified in
+        the current keyframe's covisible keyframes (:meth:`_verify`: accepted, pending or rejected)."""
+        best: _Hypothesis | None = None
+        for cand_id in out.consistent[: self.cfg.n_best_candidates]:
+            info: dict[str, object] = {"candidate": cand_id}
+            out.tried.append(info)
+            hyp = self._common_region(kf, cand_id, info)
+            if hyp is not None and (best is None or len(hyp.matches) > len(best.matches)):
+                best = hyp
+        if best is None:
+            return None
+        for info in out.tried:
+            if info is not best.info and "rejected" not in info:
+                info["rejected"] = "another candidate has more refined matches (ORB-SLAM3: best of the candidates)"
+        with self.store.read():
+            if not self.store.has_keyframe(best.matched_kf_id) or not self.store.has_keyframe(kf.id):
+                best.info["rejected"] = "culled before the verification"
+                return None
+            return self._verify(kf, best.matched_kf_id, best.S_cw, best.window, best.matches, best.info)
+
+    def _common_region(self, kf: KeyFrame, cand_id: int, info: dict[str, object]) -> _Hypothesis | None:
+        """One BoW candidate of ORB-SLAM3's DetectCommonRegionsFromBoW; None with ``info["rejected"]`` saying why.
+
+        1. The candidate and its ``candidate_covisibles`` best covisible keyframes: abort when one of them is
+           connected to the current keyframe (bAbortByNearKF); else match each by BoW (ratio ``bow_ratio``) and
+           pool the matches (a point once), at least ``sim3_min_bow_matches``.
+        2. Sim3 RANSAC (Horn) on the pooled matches, in the frame of the keyframe with the most BoW matches (the
+           "matched keyframe"; a point another keyframe matched is put in its camera and projected there, as
+           ORB-SLAM3's Sim3Solver does), at least ``common_regions_ransac_min_inliers`` inliers.
+        3. Guided matching: the points of the matched keyframe and its best covisibles projected with the Sim3
+           (``common_regions_search_radius_px``, Hamming <= th_low x ``common_regions_hamming_ratio``), at least
+           ``common_regions_min_projected``.
+        4. Sim3 optimisation on those matches (at least ``min_inliers_after_sim3_opt`` inliers), then the guided
+           matching again with the optimised Sim3 (``common_regions_refined_radius_px``, Hamming <= th_low), at
+           least ``common_regions_min_refined``: the hypothesis and its matches."""
+        cfg = self.cfg
+        store = self.store
+        assert kf.bow is not None
+        with store.read():
+            if not store.has_keyframe(cand_id) or not store.has_keyframe(kf.id):
+                info["rejected"] = "culled"
+                return None
+            group = common_region_keyframes(store, cand_id, cfg.candidate_covisibles)
+            current_side = {kf.id, *store.covisibility.neighbors(kf.id)}
+            near = [k for k in group if k in current_side]
+            if near:
+                info["rejected"] = f"keyframe {near[0]} of the candidate's group is connected to the current keyframe"
+                return None
+            own_valid = store.has_points(kf.point_ids)
+            pooled: dict[int, tuple[int, int, int]] = {}  # current feature -> (point id, keyframe, its feature)
+            used: set[int] = set()
+            counts: list[int] = []
+            for j in group:
+                kf_j = store.get_keyframe(j)
+                if kf_j.bow is None:
+                    counts.append(0)
+                    continue
+                pairs = self.place.match(
+                    kf.features,
+                    kf.bow,
+                    kf_j.features,
+                    kf_j.bow,
+                    cfg.bow_ratio,
+                    own_valid,
+                    store.has_points(kf_j.point_ids),
+                    max_distance=cfg.matcher.th_low,
+                    rotation_bins=cfg.matcher.rotation_bins,
+                )
+                counts.append(int(pairs.shape[0]))
+                for f, g in pairs:
+                    pid = int(kf_j.point_ids[int(g)])
+                    if int(f) in pooled or pid in used:
+                        continue
+                    pooled[int(f)] = (pid, j, int(g))
+                    used.add(pid)
+            info["bow_matches"] = len(pooled)
+            if len(pooled) < cfg.sim3_min_bow_matches:
+                info["rejected"] = f"{len(pooled)} pooled BoW matches < {cfg.sim3_min_bow_matches}"
+                return None
+            matched_id = group[int(np.argmax(counts))]
+            matched = store.get_keyframe(matched_id)
+            require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
+            require_pinhole_image(matched.camera, "loop closing (Sim3 RANSAC and optimization)")
+            i1 = np.array(sorted(pooled), dtype=np.int64)
+            xyz1 = self._points_c(kf, i1)
+            T_m_w = matched.T_c_w.copy()
+            xyz2 = np.stack([store.get_point(pooled[int(f)][0]).xyz_w for f in i1]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
+            level2 = np.array(
+                [store.get_keyframe(pooled[int(f)][1]).features.level[pooled[int(f)][2]] for f in i1], dtype=np.int64
+            )
+        info["matched_kf"] = matched_id
+        front = xyz2[:, 2] > 1e-9
+        i1, xyz1, xyz2, level2 = i1[front], xyz1[front], xyz2[front], level2[front]
+        K1, K2 = kf.camera.K, matched.camera.K
+        uv1 = kf.features.uv_undist_px[i1].astype(np.float64)
+        uv2 = _pinhole(K2, xyz2)
+        sigma2_2 = np.power(matched.features.scale_factor, 2.0 * level2.astype(np.float64))
+        ransac = ransac_sim3(
+            xyz1,
+            xyz2,
+            uv1,
+            uv2,
+            K1,
+            K2,
+            kf.features.level_sigma2()[i1],
+            sigma2_2,
+            self.rng,
+            probability=cfg.sim3_ransac_probability,
+            min_inliers=cfg.common_regions_ransac_min_inliers,
+            max_iterations=cfg.sim3_ransac_max_iterations,
+            chi2=cfg.chi2.sim3_ransac,
+        )
+        info["ransac_inliers"] = int(ransac.inliers.sum())
+        if ransac.S_12 is None:
+            info["rejected"] = "Sim3 RANSAC found no hypothesis"
+            return None
+        loose = int(cfg.matcher.th_low * cfg.common_regions_hamming_ratio)
+        with store.read():
+            if not store.has_keyframe(matched_id) or not store.has_keyframe(kf.id):
+                info["rejected"] = "culled during the Sim3 RANSAC"
+                return None
+            window = points_of(store, common_region_keyframes(store, matched_id, cfg.candidate_covisibles))
+            S_cw = ransac.S_12 @ sim3_of_pose(T_m_w)
+            guided = project_window(store, kf, S_cw, window, cfg.common_regions_search_radius_px, loose)
+            info["projected_matches"] = len(guided.matches)
+            if len(guided.matches) < cfg.common_regions_min_projected:
+                info["rejected"] = f"{len(guided.matches)} projected matches < {cfg.common_regions_min_projected}"
+                return None
+            problem = self._sim3_problem(kf, matched, matched_id, ransac.S_12, guided.matches)
+        if problem is None:
+            info["rejected"] = "no projected match has a point in the current keyframe"
+            return None
+        opt = self.optimizer.optimize_sim3(problem)
+        info["optimized_inliers"] = int(opt.inliers.sum())
+        if opt.inliers.sum() < cfg.min_inliers_after_sim3_opt:
+            info["rejected"] = f"{int(opt.inliers.sum())} inliers after Sim3 optimization"
+            return None
+        S_cm = Sim3.from_matrix(opt.S_12)
+        with store.read():
+            if not store.has_keyframe(matched_id) or not store.has_keyframe(kf.id):
+                info["rejected"] = "culled during the Sim3 optimization"
+                return None
+            S_cw = S_cm @ sim3_of_pose(T_m_w)
+            refined = project_window(
+                store, kf, S_cw, window, cfg.common_regions_refined_radius_px, cfg.matcher.th_low
+            ).matches
+            info["loop_matches"] = len(refined)
+            info["scale"] = S_cm.s
+            if len(refined) < cfg.common_regions_min_refined:
+                info["rejected"] = f"{len(refined)} refined matches < {cfg.common_regions_min_refined}"
+                return None
+            verify_window = verification_window(store, matched_id, cfg.candidate_covisibles, kf.id)
+        return _Hypothesis(matched_id, S_cw, refined, verify_window, info)
+
+    def _sim3_problem(
+        self, kf: KeyFrame, matched: KeyFrame, matched_id: int, S_cm: Sim3, matches: dict[int, int]
+    ) -> Sim3Problem | None:
+        """ORB-SLAM3 OptimizeSim3(..., bAllPoints = true) on guided matches (current feature -> window point): a
+        match counts when the current feature has a live point; its observation in the matched keyframe is the
+        keypoint there if the matched keyframe sees the point, else the point's projection (at the current
+        feature's level). Called under the read lock."""
+        store = self.store
+        rows = [
+            (f, int(kf.point_ids[f]), pid)
+            for f, pid in sorted(matches.items())
+            if kf.point_ids[f] >= 0 and store.has_point(int(kf.point_ids[f]))
+        ]
+        if not rows:
+            return None
+        feats = np.array([r[0] for r in rows], dtype=np.int64)
+        T_c_w, T_m_w = kf.T_c_w, matched.T_c_w
+        xyz1 = np.stack([store.get_point(r[1]).xyz_w for r in rows]) @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+        xyz2 = np.stack([store.get_point(r[2]).xyz_w for r in rows]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
+        uv2 = _pinhole(matched.camera.K, xyz2)
+        level1 = kf.features.level[feats].astype(np.int64)
+        level2 = level1.copy()
+        for n, (_, _, pid) in enumerate(rows):
+            g = store.get_point(pid).observations.get(matched_id)
+            if g is not None:
+                uv2[n] = matched.features.uv_undist_px[g]
+                level2[n] = int(matched.features.level[g])
+        return Sim3Problem(
+            S_12_init=S_cm.matrix(),
+            xyz1_c1=xyz1,
+            xyz2_c2=xyz2,
+            uv1_px=kf.features.uv_undist_px[feats].astype(np.float64),
+            uv2_px=uv2,
+            level1=level1,
+            level2=level2,
+            intrinsics1=intrinsics_of(kf.camera.K),
+            intrinsics2=intrinsics_of(matched.camera.K),
+            scale_factor=kf.features.scale_factor,
+            chi2=self.cfg.chi2.sim3,
+        )
 
     # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------
 
