@@ -169,6 +169,8 @@ class LoopClosingConfig:
     common_regions_min_projected: int = 50
     common_regions_refined_radius_px: float = 5.0
     common_regions_min_refined: int = 80
+    confirm_min_optimized: int = 50
+    confirm_min_matches: int = 100
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

@@ -47,6 +47,7 @@ from slamkit.pipeline.loop_verification import (
     KeyframeCheck,
     PendingLoop,
     VerificationThresholds,
+    WindowProjection,
     advance_pending,
     check_covisibles,
     check_keyframe,
@@ -691,7 +692,13 @@ class LoopCloser:
             return None
         cfg = self.cfg
         step = advance_pending(
-            self.store, pending, kf, self._thresholds, cfg.verify_coincidences, cfg.verify_max_misses
+            self.store,
+            pending,
+            kf,
+            self._thresholds,
+            cfg.verify_coincidences,
+            cfg.verify_max_misses,
+            self._refine_pending if cfg.geometric_verification else None,
         )
         out.pending = {
             "loop_kf": pending.loop_kf_id,
@@ -705,6 +712,25 @@ class LoopCloser:
         if step.state == "accepted":
             return self._accept(pending.loop_kf_id, step.S_k_w, step.matches)
         return None
+
+    def _refine_pending(self, kf: KeyFrame, S_k_w: Sim3, proj: WindowProjection) -> str:
+        """ORB-SLAM3 DetectAndReffineSim3FromLastKF after the projection found enough matches: the Sim3 between
+        ``kf`` and the pending loop's keyframe optimised on those matches must keep more than
+        ``confirm_min_optimized`` inliers, and the projection at least ``confirm_min_matches`` matches (ORB-SLAM3
+        re-projects with the same estimate, so this is the projection's count). Why it fails, "" if it agrees.
+        Called under the read lock."""
+        cfg = self.cfg
+        pending = self._pending
+        assert pending is not None
+        if len(proj.matches) < cfg.confirm_min_matches:
+            return f"{len(proj.matches)} matches < {cfg.confirm_min_matches}"
+        matched = self.store.get_keyframe(pending.loop_kf_id)
+        S_km = S_k_w @ sim3_of_pose(matched.T_c_w).inverse()
+        problem = self._sim3_problem(kf, matched, pending.loop_kf_id, S_km, proj.matches)
+        inliers = 0 if problem is None else int(self.optimizer.optimize_sim3(problem).inliers.sum())
+        if inliers <= cfg.confirm_min_optimized:
+            return f"{inliers} inliers after Sim3 optimization <= {cfg.confirm_min_optimized}"
+        return ""
 
     # ---- VII-C/D: correction ----------------------------------------------------------------------------
 

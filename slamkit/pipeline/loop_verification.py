@@ -27,6 +27,7 @@ projection test; the accepting keyframe's matches are the ones the loop fusion u
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -306,12 +307,19 @@ def advance_pending(
     th: VerificationThresholds,
     coincidences_needed: int,
     max_misses: int,
+    refine: Callable[[KeyFrame, Sim3, WindowProjection], str] | None = None,
 ) -> PendingStep:
     """ORB-SLAM3's confirmation of a pending loop by the next keyframe (NewDetectCommonRegions with
     mnLoopNumCoincidences > 0): carry the hypothesis to ``kf`` with the tracked motion and check it there.
+    refine: ORB-SLAM3 DetectAndReffineSim3FromLastKF's further checks on a keyframe that passed the projection
+    (the Sim3 re-optimised, more matches), returning why it fails ("" = it agrees); None: the projection only.
     Updates ``pending`` in place (coincidences, misses, last agreeing keyframe)."""
     S_k_w = pending.predict(store, kf)
     check, proj = check_keyframe(store, kf, S_k_w, pending.window, th)
+    if check.agrees and refine is not None:
+        why = refine(kf, S_k_w, proj)
+        if why:
+            check.agrees, check.why = False, why
     if check.agrees:
         pending.coincidences += 1
         pending.misses = 0
