@@ -149,6 +149,7 @@ class LoopClosingConfig:
     min_inliers_after_sim3_opt: int = 20
     min_loop_matches: int = 40
     global_ba: bool = False
+    global_ba_iterations: int = 10
     geometric_verification: bool = True
     verify_covisible_keyframes: int = 5
     verify_coincidences: int = 3

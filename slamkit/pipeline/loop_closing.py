@@ -20,8 +20,12 @@ does (ORB-SLAM CorrectLoop: RequestStop). ``step(kf)`` is the two in a row. Ever
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,9 +36,10 @@ from slamkit.geometry.sim3_ransac import ransac_sim3
 from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
-from slamkit.pipeline.bundle import intrinsics_of, run_bundle, snapshot_bundle
+from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
+from slamkit.pipeline.global_ba import GlobalBAOutcome, commit_global_ba, optimize_global_ba, snapshot_global_ba
 from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.loop_correction import (
     apply_essential_graph,
@@ -137,6 +142,13 @@ class LoopCloser:
         self._groups: list[_ConsistentGroup] = []
         self._pending: PendingLoop | None = None
         self.loops: list[LoopOutcome] = []
+        self.global_bas: list[GlobalBAOutcome] = []
+        self.global_ba_error: BaseException | None = None
+        #: set by a threaded runner: a context manager parking local mapping (then the global BA runs in its own
+        #: thread and parks local mapping only to write its result); None: the global BA runs in line
+        self.park_mapping: Callable[[], AbstractContextManager[None]] | None = None
+        self._gba_thread: threading.Thread | None = None
+        self._gba_abort: threading.Event | None = None
         self._thresholds = VerificationThresholds(
             cfg.verify_search_radius_px,
             cfg.verify_min_matches,
@@ -237,6 +249,7 @@ class LoopCloser:
             raise ValueError(f"keyframe {detection.outcome.kf_id}: detection accepted no loop to correct")
         kf, out = detection.kf, detection.outcome
         try:
+            self.abort_global_ba()
             t2 = time.perf_counter()
             self._correct(kf, loop.loop_kf_id, loop.S_cw, loop.matches, out)
             out.timings_ms["correction_ms"] = (time.perf_counter() - t2) * 1e3
@@ -797,19 +810,75 @@ class LoopCloser:
             store.bump_epoch()
         if self.cfg.global_ba:
             t_ba = time.perf_counter()
-            self._global_bundle_adjustment()
-            out.timings_ms["global_ba_ms"] = (time.perf_counter() - t_ba) * 1e3
+            self.start_global_ba(kf.id)
+            out.timings_ms["global_ba_start_ms"] = (time.perf_counter() - t_ba) * 1e3
 
-    def _global_bundle_adjustment(self) -> None:
-        """ORB-SLAM2's global BA after a loop (run here in line): every keyframe and point, the map's origin
-        keyframe fixed, outlier observations removed."""
+    # ---- global BA after a loop (ORB-SLAM2 RunGlobalBundleAdjustment) ----------------------------------------
+
+    def start_global_ba(self, loop_kf_id: int) -> None:
+        """Global BA of the whole map after the loop at ``loop_kf_id`` (slamkit/pipeline/global_ba.py): in line
+        when no ``park_mapping`` is set (the sequential runner: deterministic), else in its own thread, which
+        parks local mapping only to write its result (ORB-SLAM2: a thread; local mapping stopped for the update).
+        A running global BA is aborted first (ORB-SLAM2 CorrectLoop: mbStopGBA)."""
+        self.abort_global_ba()
         store = self.store
+        chi2 = self.cfg.chi2
         with store.read():
-            kf_ids = store.keyframe_ids()
-            if len(kf_ids) < 2:
-                return
-            chi2 = self.cfg.chi2
-            snap = snapshot_bundle(
-                store, kf_ids[1:], kf_ids[:1], store.point_ids(), chi2_mono=chi2.mono, chi2_stereo=chi2.stereo
-            )
-        run_bundle(store, self.optimizer, snap)
+            snap = snapshot_global_ba(store, self.cfg.global_ba_iterations, chi2.mono, chi2.stereo)
+        if snap is None:
+            return
+        token = threading.Event()
+        self._gba_abort = token
+        if self.park_mapping is None:
+            self._run_global_ba(store, snap, token, loop_kf_id)
+            return
+        self._gba_thread = threading.Thread(
+            target=self._run_global_ba, args=(store, snap, token, loop_kf_id), name="global-ba", daemon=True
+        )
+        self._gba_thread.start()
+
+    def _run_global_ba(self, store: MapStore, snap: BundleSnapshot, token: threading.Event, loop_kf_id: int) -> None:
+        out = GlobalBAOutcome(loop_kf_id, int(snap.kf_ids.size), int(snap.point_ids.size))
+        t0 = time.perf_counter()
+        try:
+            result = optimize_global_ba(self.optimizer, snap, token)
+            out.ms = (time.perf_counter() - t0) * 1e3
+            out.aborted = result.aborted or token.is_set()
+            if not out.aborted:
+                with self.park_mapping() if self.park_mapping is not None else contextlib.nullcontext():
+                    if token.is_set():
+                        out.aborted = True
+                    else:
+                        with store.write():
+                            out.propagated_keyframes, out.propagated_points = commit_global_ba(store, snap, result)
+        except Exception as exc:  # a failed global BA leaves the map as the loop correction left it
+            self.global_ba_error = exc
+            log.exception("global BA after the loop at keyframe %d failed", loop_kf_id)
+            raise
+        finally:
+            self.global_bas.append(out)
+        log.info(
+            "global BA after the loop at keyframe %d: %d keyframes, %d points, %.0f ms%s; propagated to %d keyframes"
+            " and %d points added meanwhile",
+            loop_kf_id,
+            out.keyframes,
+            out.points,
+            out.ms,
+            " (aborted)" if out.aborted else "",
+            out.propagated_keyframes,
+            out.propagated_points,
+        )
+
+    def abort_global_ba(self) -> None:
+        """Stop a running global BA (a new loop, a map reset; ORB-SLAM2 mbStopGBA) and wait for its thread; an
+        aborted global BA writes nothing."""
+        if self._gba_abort is not None:
+            self._gba_abort.set()
+        self.join_global_ba()
+
+    def join_global_ba(self) -> None:
+        """Wait for a running global BA to finish (the end of a run: ORB-SLAM2 Shutdown waits for it)."""
+        thread = self._gba_thread
+        if thread is not None:
+            thread.join()
+            self._gba_thread = None
