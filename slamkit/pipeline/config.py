@@ -153,6 +153,7 @@ class LoopClosingConfig:
     min_inliers_after_sim3_opt: int = 20
     min_loop_matches: int = 40
     global_ba: bool = False
+    global_ba_iterations: int = 10
     geometric_verification: bool = True
     verify_covisible_keyframes: int = 5
     verify_coincidences: int = 3
@@ -164,6 +165,17 @@ class LoopClosingConfig:
     sim3_min_bow_matches: int = 20
     loop_search_radius_px: float = 10.0
     loop_fuse_radius_px: float = 4.0
+    n_best_candidates: int = 3
+    candidate_covisibles: int = 5
+    bow_ratio: float = 0.9
+    common_regions_ransac_min_inliers: int = 15
+    common_regions_search_radius_px: float = 8.0
+    common_regions_hamming_ratio: float = 1.5
+    common_regions_min_projected: int = 50
+    common_regions_refined_radius_px: float = 5.0
+    common_regions_min_refined: int = 80
+    confirm_min_optimized: int = 50
+    confirm_min_matches: int = 100
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

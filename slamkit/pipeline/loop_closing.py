@@ -1,8 +1,14 @@
 """Loop closing (ORB-SLAM sec. VII): detect loop candidates with the place recognizer, check their
-consistency over three keyframes, compute and optimize the Sim3 between the keyframe and a candidate,
-require enough matches, verify the hypothesis geometrically in other keyframes (ORB-SLAM3 sec. VI, see
-``loop_verification``; possibly over the next keyframes), then correct the loop (Sim3 propagation, loop
-fusion, essential graph).
+consistency over three keyframes, then (ORB-SLAM3 sec. VI, LoopClosing::DetectCommonRegionsFromBoW, the default)
+for the best three candidates pool BoW matches from the candidate and its covisible keyframes, Sim3 RANSAC,
+guided matching, Sim3 optimisation and refined guided matching, keep the best, and verify it geometrically in
+other keyframes (see ``loop_verification``; possibly over the next keyframes) -- or (ORB-SLAM2's ComputeSim3,
+``geometric_verification: false``) compute and optimize the Sim3 on each candidate's BoW matches and require
+enough matches -- then correct the loop (Sim3 propagation, loop fusion, essential graph).
+
+The same detection is the Atlas' merge detection (ORB-SLAM3): a common region in the active map is a loop; a
+place-recognition candidate in another map is a merge candidate, recorded in ``LoopOutcome.merge_candidates``
+and not acted upon yet.
 
 Detection and correction are two steps, as in ORB-SLAM (DetectLoop/ComputeSim3, then CorrectLoop):
 ``LoopCloser.detect(kf)`` runs after local mapping has processed ``kf`` and *while local mapping goes on* (it reads
@@ -14,8 +20,12 @@ does (ORB-SLAM CorrectLoop: RequestStop). ``step(kf)`` is the two in a row. Ever
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,9 +36,10 @@ from slamkit.geometry.sim3_ransac import ransac_sim3
 from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
-from slamkit.pipeline.bundle import intrinsics_of, run_bundle, snapshot_bundle
+from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
+from slamkit.pipeline.global_ba import GlobalBAOutcome, commit_global_ba, optimize_global_ba, snapshot_global_ba
 from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.loop_correction import (
     apply_essential_graph,
@@ -41,12 +52,16 @@ from slamkit.pipeline.loop_verification import (
     KeyframeCheck,
     PendingLoop,
     VerificationThresholds,
+    WindowProjection,
     advance_pending,
     check_covisibles,
     check_keyframe,
+    common_region_keyframes,
     loop_rotation_deg,
     loop_window,
+    points_of,
     project_window,
+    verification_window,
 )
 from slamkit.pipeline.outcomes import LoopOutcome
 from slamkit.pipeline.projection import require_pinhole_image
@@ -80,6 +95,24 @@ class LoopDetection:
 
 
 @dataclass
+class _Hypothesis:
+    """A common region found from one BoW candidate (ORB-SLAM3 DetectCommonRegionsFromBoW): the matched keyframe,
+    S_cw the current keyframe's pose in the loop side's frame, the refined matches (current feature -> loop point
+    id), the verification window's point ids, and the candidate's record in LoopOutcome.tried."""
+
+    matched_kf_id: int
+    S_cw: Sim3
+    matches: dict[int, int]
+    window: list[int]
+    info: dict[str, object]
+
+
+def _pinhole(K: NDArray[np.float64], xyz_c: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 2) px: camera-frame points (N, 3), z > 0, through the pinhole K (3, 3)."""
+    return np.stack([K[0, 0] * xyz_c[:, 0] / xyz_c[:, 2] + K[0, 2], K[1, 1] * xyz_c[:, 1] / xyz_c[:, 2] + K[1, 2]], 1)
+
+
+@dataclass
 class _ConsistentGroup:
     members: set[int]
     count: int
@@ -109,8 +142,17 @@ class LoopCloser:
         self._groups: list[_ConsistentGroup] = []
         self._pending: PendingLoop | None = None
         self.loops: list[LoopOutcome] = []
+        self.global_bas: list[GlobalBAOutcome] = []
+        self.global_ba_error: BaseException | None = None
+        #: set by a threaded runner: a context manager parking local mapping (then the global BA runs in its own
+        #: thread and parks local mapping only to write its result); None: the global BA runs in line
+        self.park_mapping: Callable[[], AbstractContextManager[None]] | None = None
+        self._gba_thread: threading.Thread | None = None
+        self._gba_abort: threading.Event | None = None
         self._thresholds = VerificationThresholds(
-            cfg.verify_search_radius_px, cfg.verify_min_matches, cfg.matcher.th_low
+            cfg.verify_search_radius_px,
+            cfg.verify_min_matches,
+            int(cfg.matcher.th_low * cfg.common_regions_hamming_ratio),
         )
 
     @property
@@ -184,7 +226,7 @@ class LoopCloser:
             return None
         t1 = time.perf_counter()
         try:
-            loop = self._compute_sim3(kf, out)
+            loop = self._common_regions(kf, out) if self.cfg.geometric_verification else self._compute_sim3(kf, out)
         finally:
             self.pins.unpin(*out.consistent)  # ORB-SLAM: SetErase on those not chosen
         out.timings_ms["sim3_ms"] = (time.perf_counter() - t1) * 1e3
@@ -207,6 +249,7 @@ class LoopCloser:
             raise ValueError(f"keyframe {detection.outcome.kf_id}: detection accepted no loop to correct")
         kf, out = detection.kf, detection.outcome
         try:
+            self.abort_global_ba()
             t2 = time.perf_counter()
             self._correct(kf, loop.loop_kf_id, loop.S_cw, loop.matches, out)
             out.timings_ms["correction_ms"] = (time.perf_counter() - t2) * 1e3
@@ -245,7 +288,18 @@ class LoopCloser:
         min_score = min(scores) if scores else 0.0
         # the other maps' keyframes are left out like the connected ones: a loop is searched in the active map only
         # (ORB-SLAM3 DetectLoopCandidates: "it must be in the same map"; merging maps is a later step)
-        connected = {kf.id, *cov.neighbors(kf.id)} | self.atlas.keyframes_outside_active()
+        other_maps = self.atlas.keyframes_outside_active()
+        if other_maps:
+            # ORB-SLAM3 DetectNBestCandidates: a candidate in another map is a merge candidate (reported only)
+            active = set(self.store.keyframe_ids())
+            out.merge_candidates = [
+                k
+                for k, _ in self.place.loop_candidates(kf.bow, active | {kf.id}, min_score, self.atlas.best_neighbors)
+                if k in other_maps
+            ][: cfg.n_best_candidates]
+            if out.merge_candidates:
+                log.info("keyframe %d: merge candidates %s (not acted upon)", kf.id, out.merge_candidates)
+        connected = {kf.id, *cov.neighbors(kf.id)} | other_maps
         candidates = [
             k
             for k, _ in self.place.loop_candidates(kf.bow, connected, min_score, self._neighbors)
@@ -266,11 +320,9 @@ class LoopCloser:
             if count >= cfg.consistency_detections - 1 and cand not in consistent:
                 consistent.append(cand)
         self._groups = new_groups
-        if cfg.geometric_verification:
-            # ORB-SLAM3 sec. VI: every candidate goes on to the Sim3 and the geometric verification in covisible
-            # and next keyframes, which replaces ORB-SLAM2's temporal consistency (a revisit seen only in the
-            # last keyframes of a sequence can still close)
-            return candidates
+        # The temporal consistency holds with the geometric verification too (issue 14): a candidate goes on to
+        # the Sim3 only once three consecutive keyframes found it or its covisible group; ORB-SLAM3's checks in
+        # the covisible and next keyframes come on top (docs/pipeline.md).
         if not consistent:
             out.reason = f"{len(candidates)} candidate(s), none consistent over {cfg.consistency_detections} keyframes"
         return consistent
@@ -380,11 +432,7 @@ class LoopCloser:
                 if len(matches) < cfg.min_loop_matches:
                     info["rejected"] = f"{len(matches)} matches < {cfg.min_loop_matches}"
                     continue
-                if not cfg.geometric_verification:
-                    return self._accept(cand_id, S_cw, matches)
-                verdict = self._verify(kf, cand_id, S_cw, window, matches, info)
-                if verdict is not None or (self._pending is not None and self._pending.last_kf_id == kf.id):
-                    return verdict
+                return self._accept(cand_id, S_cw, matches)
         return None
 
     def _search_loop_points(
@@ -399,6 +447,206 @@ class LoopCloser:
         return project_window(
             self.store, kf, S_cw, rest, self.cfg.loop_search_radius_px, self.cfg.matcher.th_low, taken
         ).matches
+
+    # ---- ORB-SLAM3 sec. VI (LoopClosing::DetectCommonRegionsFromBoW): the common region ----------------
+
+    def _common_regions(self, kf: KeyFrame, out: LoopOutcome) -> AcceptedLoop | None:
+        """ORB-SLAM3's DetectCommonRegionsFromBoW over the best ``n_best_candidates`` consistent candidates: each
+        gives a hypothesis through :meth:`_common_region` (pooled BoW matches, Sim3 RANSAC, guided matching,
+        Sim3 optimisation, refined guided matching); the one with the most refined matches is then verified in
+        the current keyframe's covisible keyframes (:meth:`_verify`: accepted, pending or rejected)."""
+        best: _Hypothesis | None = None
+        for cand_id in out.consistent[: self.cfg.n_best_candidates]:
+            info: dict[str, object] = {"candidate": cand_id}
+            out.tried.append(info)
+            hyp = self._common_region(kf, cand_id, info)
+            if hyp is not None and (best is None or len(hyp.matches) > len(best.matches)):
+                best = hyp
+        if best is None:
+            return None
+        for info in out.tried:
+            if info is not best.info and "rejected" not in info:
+                info["rejected"] = "another candidate has more refined matches (ORB-SLAM3: best of the candidates)"
+        with self.store.read():
+            if not self.store.has_keyframe(best.matched_kf_id) or not self.store.has_keyframe(kf.id):
+                best.info["rejected"] = "culled before the verification"
+                return None
+            return self._verify(kf, best.matched_kf_id, best.S_cw, best.window, best.matches, best.info)
+
+    def _common_region(self, kf: KeyFrame, cand_id: int, info: dict[str, object]) -> _Hypothesis | None:
+        """One BoW candidate of ORB-SLAM3's DetectCommonRegionsFromBoW; None with ``info["rejected"]`` saying why.
+
+        1. The candidate and its ``candidate_covisibles`` best covisible keyframes: abort when one of them is
+           connected to the current keyframe (bAbortByNearKF); else match each by BoW (ratio ``bow_ratio``) and
+           pool the matches (a point once), at least ``sim3_min_bow_matches``.
+        2. Sim3 RANSAC (Horn) on the pooled matches, in the frame of the keyframe with the most BoW matches (the
+           "matched keyframe"; a point another keyframe matched is put in its camera and projected there, as
+           ORB-SLAM3's Sim3Solver does), at least ``common_regions_ransac_min_inliers`` inliers.
+        3. Guided matching: the points of the matched keyframe and its best covisibles projected with the Sim3
+           (``common_regions_search_radius_px``, Hamming <= th_low x ``common_regions_hamming_ratio``), at least
+           ``common_regions_min_projected``.
+        4. Sim3 optimisation on those matches (at least ``min_inliers_after_sim3_opt`` inliers), then the guided
+           matching again with the optimised Sim3 (``common_regions_refined_radius_px``, Hamming <= th_low), at
+           least ``common_regions_min_refined``: the hypothesis and its matches."""
+        cfg = self.cfg
+        store = self.store
+        assert kf.bow is not None
+        with store.read():
+            if not store.has_keyframe(cand_id) or not store.has_keyframe(kf.id):
+                info["rejected"] = "culled"
+                return None
+            group = common_region_keyframes(store, cand_id, cfg.candidate_covisibles)
+            current_side = {kf.id, *store.covisibility.neighbors(kf.id)}
+            near = [k for k in group if k in current_side]
+            if near:
+                info["rejected"] = f"keyframe {near[0]} of the candidate's group is connected to the current keyframe"
+                return None
+            own_valid = store.has_points(kf.point_ids)
+            pooled: dict[int, tuple[int, int, int]] = {}  # current feature -> (point id, keyframe, its feature)
+            used: set[int] = set()
+            counts: list[int] = []
+            for j in group:
+                kf_j = store.get_keyframe(j)
+                if kf_j.bow is None:
+                    counts.append(0)
+                    continue
+                pairs = self.place.match(
+                    kf.features,
+                    kf.bow,
+                    kf_j.features,
+                    kf_j.bow,
+                    cfg.bow_ratio,
+                    own_valid,
+                    store.has_points(kf_j.point_ids),
+                    max_distance=cfg.matcher.th_low,
+                    rotation_bins=cfg.matcher.rotation_bins,
+                )
+                counts.append(int(pairs.shape[0]))
+                for f, g in pairs:
+                    pid = int(kf_j.point_ids[int(g)])
+                    if int(f) in pooled or pid in used:
+                        continue
+                    pooled[int(f)] = (pid, j, int(g))
+                    used.add(pid)
+            info["bow_matches"] = len(pooled)
+            if len(pooled) < cfg.sim3_min_bow_matches:
+                info["rejected"] = f"{len(pooled)} pooled BoW matches < {cfg.sim3_min_bow_matches}"
+                return None
+            matched_id = group[int(np.argmax(counts))]
+            matched = store.get_keyframe(matched_id)
+            require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
+            require_pinhole_image(matched.camera, "loop closing (Sim3 RANSAC and optimization)")
+            i1 = np.array(sorted(pooled), dtype=np.int64)
+            xyz1 = self._points_c(kf, i1)
+            T_m_w = matched.T_c_w.copy()
+            xyz2 = np.stack([store.get_point(pooled[int(f)][0]).xyz_w for f in i1]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
+            level2 = np.array(
+                [store.get_keyframe(pooled[int(f)][1]).features.level[pooled[int(f)][2]] for f in i1], dtype=np.int64
+            )
+        info["matched_kf"] = matched_id
+        front = xyz2[:, 2] > 1e-9
+        i1, xyz1, xyz2, level2 = i1[front], xyz1[front], xyz2[front], level2[front]
+        K1, K2 = kf.camera.K, matched.camera.K
+        uv1 = kf.features.uv_undist_px[i1].astype(np.float64)
+        uv2 = _pinhole(K2, xyz2)
+        sigma2_2 = np.power(matched.features.scale_factor, 2.0 * level2.astype(np.float64))
+        ransac = ransac_sim3(
+            xyz1,
+            xyz2,
+            uv1,
+            uv2,
+            K1,
+            K2,
+            kf.features.level_sigma2()[i1],
+            sigma2_2,
+            self.rng,
+            probability=cfg.sim3_ransac_probability,
+            min_inliers=cfg.common_regions_ransac_min_inliers,
+            max_iterations=cfg.sim3_ransac_max_iterations,
+            chi2=cfg.chi2.sim3_ransac,
+        )
+        info["ransac_inliers"] = int(ransac.inliers.sum())
+        if ransac.S_12 is None:
+            info["rejected"] = "Sim3 RANSAC found no hypothesis"
+            return None
+        loose = int(cfg.matcher.th_low * cfg.common_regions_hamming_ratio)
+        with store.read():
+            if not store.has_keyframe(matched_id) or not store.has_keyframe(kf.id):
+                info["rejected"] = "culled during the Sim3 RANSAC"
+                return None
+            window = points_of(store, common_region_keyframes(store, matched_id, cfg.candidate_covisibles))
+            S_cw = ransac.S_12 @ sim3_of_pose(T_m_w)
+            guided = project_window(store, kf, S_cw, window, cfg.common_regions_search_radius_px, loose)
+            info["projected_matches"] = len(guided.matches)
+            if len(guided.matches) < cfg.common_regions_min_projected:
+                info["rejected"] = f"{len(guided.matches)} projected matches < {cfg.common_regions_min_projected}"
+                return None
+            problem = self._sim3_problem(kf, matched, matched_id, ransac.S_12, guided.matches)
+        if problem is None:
+            info["rejected"] = "no projected match has a point in the current keyframe"
+            return None
+        opt = self.optimizer.optimize_sim3(problem)
+        info["optimized_inliers"] = int(opt.inliers.sum())
+        if opt.inliers.sum() < cfg.min_inliers_after_sim3_opt:
+            info["rejected"] = f"{int(opt.inliers.sum())} inliers after Sim3 optimization"
+            return None
+        S_cm = Sim3.from_matrix(opt.S_12)
+        with store.read():
+            if not store.has_keyframe(matched_id) or not store.has_keyframe(kf.id):
+                info["rejected"] = "culled during the Sim3 optimization"
+                return None
+            S_cw = S_cm @ sim3_of_pose(T_m_w)
+            refined = project_window(
+                store, kf, S_cw, window, cfg.common_regions_refined_radius_px, cfg.matcher.th_low
+            ).matches
+            info["loop_matches"] = len(refined)
+            info["scale"] = S_cm.s
+            if len(refined) < cfg.common_regions_min_refined:
+                info["rejected"] = f"{len(refined)} refined matches < {cfg.common_regions_min_refined}"
+                return None
+            verify_window = verification_window(store, matched_id, cfg.candidate_covisibles, kf.id)
+        return _Hypothesis(matched_id, S_cw, refined, verify_window, info)
+
+    def _sim3_problem(
+        self, kf: KeyFrame, matched: KeyFrame, matched_id: int, S_cm: Sim3, matches: dict[int, int]
+    ) -> Sim3Problem | None:
+        """ORB-SLAM3 OptimizeSim3(..., bAllPoints = true) on guided matches (current feature -> window point): a
+        match counts when the current feature has a live point; its observation in the matched keyframe is the
+        keypoint there if the matched keyframe sees the point, else the point's projection (at the current
+        feature's level). Called under the read lock."""
+        store = self.store
+        rows = [
+            (f, int(kf.point_ids[f]), pid)
+            for f, pid in sorted(matches.items())
+            if kf.point_ids[f] >= 0 and store.has_point(int(kf.point_ids[f]))
+        ]
+        if not rows:
+            return None
+        feats = np.array([r[0] for r in rows], dtype=np.int64)
+        T_c_w, T_m_w = kf.T_c_w, matched.T_c_w
+        xyz1 = np.stack([store.get_point(r[1]).xyz_w for r in rows]) @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+        xyz2 = np.stack([store.get_point(r[2]).xyz_w for r in rows]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
+        uv2 = _pinhole(matched.camera.K, xyz2)
+        level1 = kf.features.level[feats].astype(np.int64)
+        level2 = level1.copy()
+        for n, (_, _, pid) in enumerate(rows):
+            g = store.get_point(pid).observations.get(matched_id)
+            if g is not None:
+                uv2[n] = matched.features.uv_undist_px[g]
+                level2[n] = int(matched.features.level[g])
+        return Sim3Problem(
+            S_12_init=S_cm.matrix(),
+            xyz1_c1=xyz1,
+            xyz2_c2=xyz2,
+            uv1_px=kf.features.uv_undist_px[feats].astype(np.float64),
+            uv2_px=uv2,
+            level1=level1,
+            level2=level2,
+            intrinsics1=intrinsics_of(kf.camera.K),
+            intrinsics2=intrinsics_of(matched.camera.K),
+            scale_factor=kf.features.scale_factor,
+            chi2=self.cfg.chi2.sim3,
+        )
 
     # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------
 
@@ -457,7 +705,13 @@ class LoopCloser:
             return None
         cfg = self.cfg
         step = advance_pending(
-            self.store, pending, kf, self._thresholds, cfg.verify_coincidences, cfg.verify_max_misses
+            self.store,
+            pending,
+            kf,
+            self._thresholds,
+            cfg.verify_coincidences,
+            cfg.verify_max_misses,
+            self._refine_pending if cfg.geometric_verification else None,
         )
         out.pending = {
             "loop_kf": pending.loop_kf_id,
@@ -471,6 +725,25 @@ class LoopCloser:
         if step.state == "accepted":
             return self._accept(pending.loop_kf_id, step.S_k_w, step.matches)
         return None
+
+    def _refine_pending(self, kf: KeyFrame, S_k_w: Sim3, proj: WindowProjection) -> str:
+        """ORB-SLAM3 DetectAndReffineSim3FromLastKF after the projection found enough matches: the Sim3 between
+        ``kf`` and the pending loop's keyframe optimised on those matches must keep more than
+        ``confirm_min_optimized`` inliers, and the projection at least ``confirm_min_matches`` matches (ORB-SLAM3
+        re-projects with the same estimate, so this is the projection's count). Why it fails, "" if it agrees.
+        Called under the read lock."""
+        cfg = self.cfg
+        pending = self._pending
+        assert pending is not None
+        if len(proj.matches) < cfg.confirm_min_matches:
+            return f"{len(proj.matches)} matches < {cfg.confirm_min_matches}"
+        matched = self.store.get_keyframe(pending.loop_kf_id)
+        S_km = S_k_w @ sim3_of_pose(matched.T_c_w).inverse()
+        problem = self._sim3_problem(kf, matched, pending.loop_kf_id, S_km, proj.matches)
+        inliers = 0 if problem is None else int(self.optimizer.optimize_sim3(problem).inliers.sum())
+        if inliers <= cfg.confirm_min_optimized:
+            return f"{inliers} inliers after Sim3 optimization <= {cfg.confirm_min_optimized}"
+        return ""
 
     # ---- VII-C/D: correction ----------------------------------------------------------------------------
 
@@ -537,19 +810,75 @@ class LoopCloser:
             store.bump_epoch()
         if self.cfg.global_ba:
             t_ba = time.perf_counter()
-            self._global_bundle_adjustment()
-            out.timings_ms["global_ba_ms"] = (time.perf_counter() - t_ba) * 1e3
+            self.start_global_ba(kf.id)
+            out.timings_ms["global_ba_start_ms"] = (time.perf_counter() - t_ba) * 1e3
 
-    def _global_bundle_adjustment(self) -> None:
-        """ORB-SLAM2's global BA after a loop (run here in line): every keyframe and point, the map's origin
-        keyframe fixed, outlier observations removed."""
+    # ---- global BA after a loop (ORB-SLAM2 RunGlobalBundleAdjustment) ----------------------------------------
+
+    def start_global_ba(self, loop_kf_id: int) -> None:
+        """Global BA of the whole map after the loop at ``loop_kf_id`` (slamkit/pipeline/global_ba.py): in line
+        when no ``park_mapping`` is set (the sequential runner: deterministic), else in its own thread, which
+        parks local mapping only to write its result (ORB-SLAM2: a thread; local mapping stopped for the update).
+        A running global BA is aborted first (ORB-SLAM2 CorrectLoop: mbStopGBA)."""
+        self.abort_global_ba()
         store = self.store
+        chi2 = self.cfg.chi2
         with store.read():
-            kf_ids = store.keyframe_ids()
-            if len(kf_ids) < 2:
-                return
-            chi2 = self.cfg.chi2
-            snap = snapshot_bundle(
-                store, kf_ids[1:], kf_ids[:1], store.point_ids(), chi2_mono=chi2.mono, chi2_stereo=chi2.stereo
-            )
-        run_bundle(store, self.optimizer, snap)
+            snap = snapshot_global_ba(store, self.cfg.global_ba_iterations, chi2.mono, chi2.stereo)
+        if snap is None:
+            return
+        token = threading.Event()
+        self._gba_abort = token
+        if self.park_mapping is None:
+            self._run_global_ba(store, snap, token, loop_kf_id)
+            return
+        self._gba_thread = threading.Thread(
+            target=self._run_global_ba, args=(store, snap, token, loop_kf_id), name="global-ba", daemon=True
+        )
+        self._gba_thread.start()
+
+    def _run_global_ba(self, store: MapStore, snap: BundleSnapshot, token: threading.Event, loop_kf_id: int) -> None:
+        out = GlobalBAOutcome(loop_kf_id, int(snap.kf_ids.size), int(snap.point_ids.size))
+        t0 = time.perf_counter()
+        try:
+            result = optimize_global_ba(self.optimizer, snap, token)
+            out.ms = (time.perf_counter() - t0) * 1e3
+            out.aborted = result.aborted or token.is_set()
+            if not out.aborted:
+                with self.park_mapping() if self.park_mapping is not None else contextlib.nullcontext():
+                    if token.is_set():
+                        out.aborted = True
+                    else:
+                        with store.write():
+                            out.propagated_keyframes, out.propagated_points = commit_global_ba(store, snap, result)
+        except Exception as exc:  # a failed global BA leaves the map as the loop correction left it
+            self.global_ba_error = exc
+            log.exception("global BA after the loop at keyframe %d failed", loop_kf_id)
+            raise
+        finally:
+            self.global_bas.append(out)
+        log.info(
+            "global BA after the loop at keyframe %d: %d keyframes, %d points, %.0f ms%s; propagated to %d keyframes"
+            " and %d points added meanwhile",
+            loop_kf_id,
+            out.keyframes,
+            out.points,
+            out.ms,
+            " (aborted)" if out.aborted else "",
+            out.propagated_keyframes,
+            out.propagated_points,
+        )
+
+    def abort_global_ba(self) -> None:
+        """Stop a running global BA (a new loop, a map reset; ORB-SLAM2 mbStopGBA) and wait for its thread; an
+        aborted global BA writes nothing."""
+        if self._gba_abort is not None:
+            self._gba_abort.set()
+        self.join_global_ba()
+
+    def join_global_ba(self) -> None:
+        """Wait for a running global BA to finish (the end of a run: ORB-SLAM2 Shutdown waits for it)."""
+        thread = self._gba_thread
+        if thread is not None:
+            thread.join()
+            self._gba_thread = None

@@ -27,6 +27,7 @@ projection test; the accepting keyframe's matches are the ones the loop fusion u
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -152,6 +153,48 @@ def loop_window(store: MapStore, loop_kf_id: int) -> list[int]:
     )
 
 
+def common_region_keyframes(store: MapStore, kf_id: int, n_covisibles: int) -> list[int]:
+    """A keyframe and its ``n_covisibles`` best covisible keyframes (ORB-SLAM3 DetectCommonRegionsFromBoW:
+    the candidate's group whose BoW matches are pooled, and the group whose points are projected)."""
+    return [kf_id, *store.covisibility.best_neighbors(kf_id, n_covisibles)] if kf_id in store.covisibility else [kf_id]
+
+
+def points_of(store: MapStore, kf_ids: list[int]) -> list[int]:
+    """Ids of the live points the keyframes ``kf_ids`` see, each once, in keyframe then feature order."""
+    seen: set[int] = set()
+    out: list[int] = []
+    for k in kf_ids:
+        if not store.has_keyframe(k):
+            continue
+        for p in store.get_keyframe(k).point_ids:
+            q = int(p)
+            if q >= 0 and q not in seen and store.has_point(q):
+                seen.add(q)
+                out.append(q)
+    return out
+
+
+def verification_window(store: MapStore, matched_kf_id: int, n_covisibles: int, current_kf_id: int) -> list[int]:
+    """ORB-SLAM3 FindMatchesByProjection's window: the matched keyframe, its ``n_covisibles`` best covisibles and,
+    for each of those, up to ``n_covisibles`` of their best covisibles not connected to the current keyframe
+    (the current keyframe's side must not confirm a hypothesis against itself). Point ids, sorted."""
+    cov = store.covisibility
+    first = common_region_keyframes(store, matched_kf_id, n_covisibles)
+    current_side = {current_kf_id, *cov.neighbors(current_kf_id)} if current_kf_id in cov else {current_kf_id}
+    group = [k for k in first if k not in current_side]
+    chosen = set(group)
+    for k in first[1:]:
+        added = 0
+        for j in cov.best_neighbors(k, n_covisibles) if k in cov else []:
+            if added >= n_covisibles:
+                break
+            if j not in chosen and j not in current_side:
+                chosen.add(j)
+                group.append(j)
+                added += 1
+    return sorted(points_of(store, group))
+
+
 def project_window(
     store: MapStore,
     kf: KeyFrame,
@@ -264,12 +307,19 @@ def advance_pending(
     th: VerificationThresholds,
     coincidences_needed: int,
     max_misses: int,
+    refine: Callable[[KeyFrame, Sim3, WindowProjection], str] | None = None,
 ) -> PendingStep:
     """ORB-SLAM3's confirmation of a pending loop by the next keyframe (NewDetectCommonRegions with
     mnLoopNumCoincidences > 0): carry the hypothesis to ``kf`` with the tracked motion and check it there.
+    refine: ORB-SLAM3 DetectAndReffineSim3FromLastKF's further checks on a keyframe that passed the projection
+    (the Sim3 re-optimised, more matches), returning why it fails ("" = it agrees); None: the projection only.
     Updates ``pending`` in place (coincidences, misses, last agreeing keyframe)."""
     S_k_w = pending.predict(store, kf)
     check, proj = check_keyframe(store, kf, S_k_w, pending.window, th)
+    if check.agrees and refine is not None:
+        why = refine(kf, S_k_w, proj)
+        if why:
+            check.agrees, check.why = False, why
     if check.agrees:
         pending.coincidences += 1
         pending.misses = 0

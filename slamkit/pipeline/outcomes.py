@@ -127,13 +127,16 @@ class LoopOutcome:
     keyframe's check, ``agreeing`` the covisible keyframes that agreed; ``rejected`` says why). pending: the check
     of a pending loop hypothesis in this keyframe (ORB-SLAM3's confirmation by the next keyframes), with its state:
     "agreed", "accepted", "missed" or "dropped". loop_kf_id: the loop keyframe of an accepted loop (its correction
-    follows: ``LoopCloser.correct``).
+    follows: ``LoopCloser.correct``). merge_candidates: place-recognition candidates in other maps of the Atlas
+    (ORB-SLAM3 DetectNBestCandidates' merge candidates: the same machinery, a match in another map is a merge
+    candidate), reported but not acted upon yet (map merging is a later step).
     """
 
     kf_id: int
     candidates: list[int] = field(default_factory=list)
     consistent: list[int] = field(default_factory=list)
     tried: list[dict[str, object]] = field(default_factory=list)
+    merge_candidates: list[int] = field(default_factory=list)
     pending: dict[str, object] | None = None
     loop_kf_id: int | None = None
     matches: int = 0

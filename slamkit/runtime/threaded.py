@@ -164,6 +164,9 @@ class ThreadedRunner:
         detection = self.loop_closer.detect(kf)  # culled meanwhile: the outcome says so
         outcome = detection.outcome
         if detection.loop is not None:
+            # a global BA still running from the last loop stops first (ORB-SLAM2 CorrectLoop: mbStopGBA); it may
+            # be waiting to park local mapping itself, so not while local mapping is parked here
+            self.loop_closer.abort_global_ba()
             try:
                 with self._parked(self._mapping, finish_queue=True):
                     self.mapping_parks_for_loops += 1
@@ -195,6 +198,8 @@ class ThreadedRunner:
     def _quiesced_for_reset(self) -> Iterator[None]:
         """Tracking resets the active map or starts a new one: park both workers and drop their queued keyframes
         first (no keyframe of the old map reaches the new one)."""
+        if self.loop_closer is not None:
+            self.loop_closer.abort_global_ba()
         with self._parked(self._closing, self._mapping):
             for worker in (self._mapping, self._closing):
                 if worker is not None:
@@ -303,6 +308,8 @@ class ThreadedRunner:
         self._mapping = PipelineWorker("local-mapping", self._map_keyframe, self._on_fault, nice)
         if self.loop_closer is not None:
             self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault, nice)
+            # the global BA after a loop runs in its own thread, parking local mapping to write its result
+            self.loop_closer.park_mapping = lambda: self._parked(self._mapping, finish_queue=True)
         self._lower_optimizer_process_priority()
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
         workers = [w for w in (self._mapping, self._closing) if w is not None]
@@ -395,8 +402,15 @@ class ThreadedRunner:
                 )
                 self._on_fault(fault)
                 return
+        if self.loop_closer is not None:
+            # ORB-SLAM2 Shutdown waits for a running global BA
+            self.loop_closer.join_global_ba()
+            if self.loop_closer.global_ba_error is not None:
+                self._on_fault(ThreadFault("global-ba", self.loop_closer.global_ba_error, ""))
 
     def _stop_all(self, workers: list[PipelineWorker[KeyFrame]]) -> None:
+        if self.loop_closer is not None:
+            self.loop_closer.abort_global_ba()
         for worker in workers:
             worker.stop(drain=False)
         for worker in workers:

@@ -305,9 +305,35 @@ def twins_scene() -> Scene:
     return Scene("twins", tuple(twins), path)
 
 
+def twins_translated_scene() -> Scene:
+    """The ``twins`` corridor ring and camera path, but the twin places are related by a TRANSLATION: the outer
+    south wall (18 m, three 6 m panels) shows the same texture on its west panel (x in [-9, -3] m) and its east
+    panel (x in [3, 9] m), 12 m apart along the same straight stretch, seen from the same relative pose with the
+    same orientation. A false loop between them would imply almost no rotation (a rotation prior cannot reject
+    it): only geometry and consistency can. The map starts by the west twin (the path's first waypoint faces
+    it), so the east twin is met ~20 s later; what differs is the context (the floor, ceiling and inner-wall
+    panels, and the corridor's corners: the west twin has the south-west corner behind it, the east one the
+    south-east corner ahead of it). The real loop closes when the camera passes its start again."""
+    planes = corridor_ring("ring", (9.0, 6.0), 2.6, 3.0)
+    twins = []
+    for p in planes:
+        if p.name in ("ring/outer/wall_s/0", "ring/outer/wall_s/2"):
+            p = Plane(p.name, p.origin_m, p.u_m, p.v_m, "twin_wall")
+        twins.append(p)
+    way = rounded_rectangle((7.7, 4.7), corner_m=1.1, spacing_m=1.5, z=1.5)
+    path = CameraPath(way, period_s=80.0, duration_s=86.0, look_ahead_s=1.2, yaw_offset_deg=-40.0)
+    return Scene("twins_translated", tuple(twins), path)
+
+
 #: scene name -> builder. Read-only; add a scene by adding an entry.
 SCENES: MappingProxyType[str, Callable[[], Scene]] = MappingProxyType(
-    {"room": room_scene, "planar": planar_scene, "long_loop": long_loop_scene, "twins": twins_scene}
+    {
+        "room": room_scene,
+        "planar": planar_scene,
+        "long_loop": long_loop_scene,
+        "twins": twins_scene,
+        "twins_translated": twins_translated_scene,
+    }
 )
 
 

@@ -296,3 +296,53 @@ def test_verification_constants_default_to_the_papers_and_are_configurable(key: 
     cfg = compose_config([f"pipeline.loop_closing.{key}={new}"])
     typed = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline))  # type: ignore[arg-type]
     assert getattr(typed.loop_closing, key) == new
+
+
+# ---- ORB-SLAM3 DetectCommonRegionsFromBoW (LoopCloser._common_region) ------------------------------------
+
+
+def test_a_true_revisit_is_a_common_region_with_the_drift_undone(world: World) -> None:
+    """The revisit's own map drifted by 0.7 m: pooled BoW matches, Sim3 RANSAC, guided matching, Sim3
+    optimisation and refined matching recover the current keyframe's true pose and match all the window."""
+    drift = translation(np.array([0.5, -0.4, 0.3]))
+    ids = world.add_group([pose_at(x, 0.3) for x in (0.05, 0.15, -0.1, 0.25)], world.xyz_a, world.desc_a, drift)
+    closer = loop_closer(world)
+    info: dict[str, object] = {}
+    hyp = closer._common_region(world.store.get_keyframe(ids[0]), world.loop_ids[0], info)
+    assert hyp is not None, info
+    assert hyp.matched_kf_id in world.loop_ids and "rejected" not in info
+    assert np.allclose(hyp.S_cw.to_se3(), pose_at(0.05, 0.3), atol=1e-3)
+    assert len(hyp.matches) >= 0.95 * (N_WALL + N_OTHER)
+    assert all(pid == feat for feat, pid in hyp.matches.items())  # feature i sees point i of place A
+
+
+def test_a_translated_twin_with_other_surroundings_is_rejected_by_geometry(world: World) -> None:
+    """Place C shows A's wall 12 m further along x (same orientation: no rotation prior can tell) with other
+    surroundings. Its wall alone matches (BoW, the Sim3, the first guided search), but the refined guided search
+    over the candidate's window finds too few points (ORB-SLAM3 nProjOptMatches = 80)."""
+    shift = translation(np.array([12.0, 0.0, 0.0]))
+    rng = np.random.default_rng(5)
+    other = np.column_stack([rng.uniform(0.2, 1.6, N_OTHER), np.full(N_OTHER, 4.0), rng.uniform(-1, 1, N_OTHER)])
+    xyz_c = np.vstack([world.xyz_a[:N_WALL], other]) + np.array([12.0, 0.0, 0.0])
+    desc_c = np.vstack([world.desc_a[:N_WALL], rng.integers(0, 256, (N_OTHER, 32), dtype=np.uint8)])
+    ids = world.add_group([pose_at(x) @ invert_T(shift) for x in (0.05, 0.15, -0.1, 0.25)], xyz_c, desc_c, np.eye(4))
+    closer = loop_closer(world)
+    info: dict[str, object] = {}
+    hyp = closer._common_region(world.store.get_keyframe(ids[0]), world.loop_ids[0], info)
+    assert hyp is None
+    assert int(info["bow_matches"]) >= 20  # type: ignore[call-overload]  # the twin wall fools the BoW stage
+    assert "matches <" in str(info["rejected"])
+
+
+def test_a_candidate_whose_group_is_connected_to_the_current_keyframe_is_aborted(world: World) -> None:
+    """ORB-SLAM3 bAbortByNearKF: a keyframe of the candidate's covisible group is connected to the current
+    keyframe (here the candidate's own neighbour is the current keyframe), so its matches would confirm the
+    current side against itself."""
+    store = world.store
+    current, cand = world.loop_ids[2], world.loop_ids[0]
+    assert current in store.covisibility.neighbors(cand)
+    closer = loop_closer(world)
+    info: dict[str, object] = {}
+    assert closer._common_region(store.get_keyframe(current), cand, info) is None
+    assert "connected to the current keyframe" in str(info["rejected"])
+    assert "bow_matches" not in info  # aborted before any matching

@@ -69,3 +69,43 @@ def test_twins_share_a_wall_texture_other_places_do_not(synthetic: Callable[...,
     assert keys.count("twin_wall") == 2
     others = [k for k in keys if k != "twin_wall"]
     assert len(others) == len(set(others))  # every other plane has its own texture
+
+
+def _facing(position: tuple[float, float, float], yaw_deg: float) -> np.ndarray:
+    """T_w_c of a level camera at ``position`` looking along world direction (cos yaw, sin yaw, 0)."""
+    a = np.radians(yaw_deg)
+    z = np.array([np.cos(a), np.sin(a), 0.0])
+    y = np.array([0.0, 0.0, -1.0])
+    T = np.eye(4)
+    T[:3, :3] = np.stack([np.cross(y, z), y, z], axis=1)
+    T[:3, 3] = position
+    return T
+
+
+def test_translated_twins_look_the_same_from_translated_poses_but_not_their_surroundings(
+    synthetic: Callable[..., SyntheticDataset],
+) -> None:
+    """twins_translated: the two twin panels are one texture 12 m apart on the same wall (same orientation), so
+    a camera moved by those 12 m sees identical pixels when it faces the twin wall, but a wider oblique view
+    shows different surroundings (what geometry and consistency must use to reject the false loop)."""
+    ds = synthetic(scene="twins_translated")
+    twins = [p for p in ds.scene.planes if p.texture == "twin_wall"]
+    assert len(twins) == 2
+    others = [p.texture for p in ds.scene.planes if p.texture != "twin_wall"]
+    assert len(others) == len(set(others))
+    shift = np.asarray(twins[1].origin_m) - np.asarray(twins[0].origin_m)
+    np.testing.assert_allclose(np.abs(shift), [12.0, 0.0, 0.0])  # a pure translation along the wall
+    np.testing.assert_allclose(twins[0].u_m, twins[1].u_m)
+    np.testing.assert_allclose(twins[0].v_m, twins[1].v_m)
+    west = min(twins, key=lambda p: p.origin_m[0] + p.u_m[0] / 2)
+    x_west = west.origin_m[0] + west.u_m[0] / 2
+    # facing the south wall square on, 1.3 m from it: only the twin panel in view
+    a = ds.renderer.render(_facing((x_west, -4.7, 1.5), -90.0), labels=True)
+    b = ds.renderer.render(_facing((x_west + 12.0, -4.7, 1.5), -90.0), labels=True)
+    assert a.grey is not None and b.grey is not None
+    assert np.abs(a.grey.astype(int) - b.grey.astype(int)).mean() < 1.0
+    # looking along the corridor at 45 degrees: the twin panel and different surroundings
+    a = ds.renderer.render(_facing((x_west, -4.7, 1.5), -45.0), labels=True)
+    b = ds.renderer.render(_facing((x_west + 12.0, -4.7, 1.5), -45.0), labels=True)
+    assert a.grey is not None and b.grey is not None
+    assert np.abs(a.grey.astype(int) - b.grey.astype(int)).mean() > 10.0
