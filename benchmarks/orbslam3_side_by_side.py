@@ -40,7 +40,6 @@ import argparse
 import csv
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -100,15 +99,10 @@ class Sequence:
 
 
 def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo``) and the number of cores this process may use."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    """The CPU's model name (``/proc/cpuinfo``, as `slamkit bench` reads it) and the cores this process may use."""
+    from slamkit.bench.optimizer import machine_info
+
+    model = machine_info()["cpu"]
     n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return f"{model}, {n} cores"
 
