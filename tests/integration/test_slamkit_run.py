@@ -82,7 +82,11 @@ def test_late_failure_writes_what_it_has_and_fails(tmp_path: Path, shared_datase
     bad = seq / "image_0" / "000035.png"
     bad.write_bytes(bad.read_bytes()[:200])  # truncated: unreadable
     out = tmp_path / "run"
-    result = slamkit_run(tmp_path, "+experiment=kitti07", f"dataset.root={root}", f"hydra.run.dir={out}")
+    # sequential: the point is what a late failure keeps; with the threaded runner how many frames are tracked by
+    # then depends on the machine's load (a loaded machine gives local mapping fewer keyframes before frame 35)
+    result = slamkit_run(
+        tmp_path, "runner=sequential", "+experiment=kitti07", f"dataset.root={root}", f"hydra.run.dir={out}"
+    )
     assert result.returncode != 0
     assert "000035.png" in result.stderr
     metrics = json.loads((out / "metrics.json").read_text())
