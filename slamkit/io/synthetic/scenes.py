@@ -293,16 +293,8 @@ def twins_scene() -> Scene:
     The camera looks obliquely at the outer wall, so it sees the two twin places from the same relative
     pose: a place recognizer will find them alike although they are 12 m apart (a false loop), while the
     real loop closes when the camera passes its start again."""
-    planes = corridor_ring("ring", (9.0, 6.0), 2.6, 3.0)
-    twins = []
-    for p in planes:
-        # The outer south and north walls are split into 3 panels of 6 m; the middle ones are the twins.
-        if p.name in ("ring/outer/wall_s/1", "ring/outer/wall_n/1"):
-            p = Plane(p.name, p.origin_m, p.u_m, p.v_m, "twin_wall")
-        twins.append(p)
-    way = rounded_rectangle((7.7, 4.7), corner_m=1.1, spacing_m=1.5, z=1.5)
-    path = CameraPath(way, period_s=80.0, duration_s=86.0, look_ahead_s=1.2, yaw_offset_deg=-40.0)
-    return Scene("twins", tuple(twins), path)
+    # The outer south and north walls are split into 3 panels of 6 m; the middle ones are the twins.
+    return _corridor_ring_with_twins("twins", ("ring/outer/wall_s/1", "ring/outer/wall_n/1"))
 
 
 def twins_translated_scene() -> Scene:
@@ -314,15 +306,19 @@ def twins_translated_scene() -> Scene:
     it), so the east twin is met ~20 s later; what differs is the context (the floor, ceiling and inner-wall
     panels, and the corridor's corners: the west twin has the south-west corner behind it, the east one the
     south-east corner ahead of it). The real loop closes when the camera passes its start again."""
-    planes = corridor_ring("ring", (9.0, 6.0), 2.6, 3.0)
-    twins = []
-    for p in planes:
-        if p.name in ("ring/outer/wall_s/0", "ring/outer/wall_s/2"):
-            p = Plane(p.name, p.origin_m, p.u_m, p.v_m, "twin_wall")
-        twins.append(p)
+    return _corridor_ring_with_twins("twins_translated", ("ring/outer/wall_s/0", "ring/outer/wall_s/2"))
+
+
+def _corridor_ring_with_twins(name: str, twin_panels: tuple[str, str]) -> Scene:
+    """The twin scenes' corridor ring (outer 18 x 12 m, 2.6 m wide, 3 m high) with the two named panels showing the
+    same texture, and their camera path (one lap in 80 s, looking 40 degrees to the right of the way ahead)."""
+    planes = tuple(
+        Plane(p.name, p.origin_m, p.u_m, p.v_m, "twin_wall") if p.name in twin_panels else p
+        for p in corridor_ring("ring", (9.0, 6.0), 2.6, 3.0)
+    )
     way = rounded_rectangle((7.7, 4.7), corner_m=1.1, spacing_m=1.5, z=1.5)
     path = CameraPath(way, period_s=80.0, duration_s=86.0, look_ahead_s=1.2, yaw_offset_deg=-40.0)
-    return Scene("twins_translated", tuple(twins), path)
+    return Scene(name, planes, path)
 
 
 #: scene name -> builder. Read-only; add a scene by adding an entry.
