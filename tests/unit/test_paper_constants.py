@@ -74,7 +74,7 @@ COMPONENT_CONSTANTS = [
     ("initializer", "T_H", 5.991, "IV"),
     ("initializer", "T_F", 3.841, "IV"),
     ("initializer", "gamma", 5.991, "IV: Gamma = T_H"),
-    ("initializer", "rh_threshold", 0.50, "ORB-SLAM3 TwoViewReconstruction (paper IV: 0.45)"),
+    ("initializer", "rh_threshold", 0.45, "ORB-SLAM paper IV-3 (ORB-SLAM3 code: 0.50)"),
     ("initializer", "min_parallax_deg", 1.0, "code"),
     ("features", "n_features", 1000, "VIII: 640x480"),
     ("features", "scale_factor", 1.2, "III-A"),
