@@ -53,11 +53,16 @@ class MappingState:
     ``isStopped``/``stopRequested``), given to ``Tracker.step`` as data.
 
     idle: nothing queued and no keyframe in progress (V-E condition 2). accepting_keyframes: False while local
-    mapping is parked (or asked to park) for a loop correction: tracking then makes no keyframe.
+    mapping is parked (or asked to park) for a loop correction: tracking then makes no keyframe. waits_for_idle:
+    frames do not arrive on a clock — the runner waits for a busy local mapping rather than dropping the keyframe
+    (the threaded runner as fast as possible). A camera's frame period gives local mapping time to finish; a
+    recorded sequence read as fast as possible gives it none, so without this the keyframe decision's "mapping is
+    idle" (c1b) would almost never hold and the map would get a keyframe only every ``max_frames`` frames.
     """
 
     idle: bool = True
     accepting_keyframes: bool = True
+    waits_for_idle: bool = False
 
 
 @dataclass

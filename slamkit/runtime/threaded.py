@@ -211,10 +211,16 @@ class ThreadedRunner:
     # ---- tracking (the calling thread) --------------------------------------------------------------
 
     def _mapping_state(self) -> MappingState:
-        """Local mapping's state for the tracker (ORB-SLAM AcceptKeyFrames / isStopped || stopRequested)."""
+        """Local mapping's state for the tracker (ORB-SLAM AcceptKeyFrames / isStopped || stopRequested); as fast
+        as possible the runner waits for a busy local mapping (``waits_for_idle``), as a camera's frame period
+        would give it time to finish."""
         assert self._mapping is not None
         stopping = self._mapping.stopping()
-        return MappingState(idle=self._mapping.idle() and not stopping, accepting_keyframes=not stopping)
+        return MappingState(
+            idle=self._mapping.idle() and not stopping,
+            accepting_keyframes=not stopping,
+            waits_for_idle=not self.realtime,
+        )
 
     def _keyframe_wanted_while_mapping_busy(self, out: TrackingOutcome) -> TrackingOutcome:
         """Tracking wants a keyframe but local mapping is busy (V-E condition 2 fails: ``out.keyframe`` is

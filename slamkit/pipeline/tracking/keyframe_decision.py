@@ -7,7 +7,9 @@ the code's mMaxFrames, the camera's frame rate (``keyframe_max_frames``; 0 = the
 
 - no keyframe within ``max_frames`` frames of a relocalization, unless the map holds at most ``max_frames``
   keyframes (the paper's condition 1, 20 frames);
-- c1a: at least ``max_frames`` frames since the last keyframe, or c1b: local mapping is idle (mMinFrames = 0);
+- c1a: at least ``max_frames`` frames since the last keyframe, or c1b: local mapping is idle (mMinFrames = 0) —
+  or will be before the next frame, when the runner waits for it (``MappingState.waits_for_idle``: a recorded
+  sequence read as fast as possible has no frame period);
 - c2: the frame tracks fewer than ``keyframe_max_ref_ratio`` (0.9 monocular) of the reference keyframe's points and
   more than ``keyframe_min_tracked_points`` (15; the paper's condition 3 says 50);
 - (c1a or c1b) and c2: a keyframe if local mapping is idle; otherwise MAPPING_BUSY — ORB-SLAM's monocular tracking
@@ -55,7 +57,7 @@ def decide_keyframe(facts: KeyFrameFacts, cfg: TrackingConfig) -> KeyFrameDecisi
     if recently_relocalized and facts.keyframes_in_map > max_frames:
         return KeyFrameDecision.NOT_NEEDED
     c1a = facts.frame_index >= facts.last_keyframe_frame_index + max_frames
-    c1b = facts.mapping.idle
+    c1b = facts.mapping.idle or facts.mapping.waits_for_idle
     ref = facts.reference_tracked_points
     few_of_reference = ref is None or facts.tracked_points < cfg.keyframe_max_ref_ratio * ref
     c2 = few_of_reference and facts.tracked_points > cfg.keyframe_min_tracked_points

@@ -63,6 +63,17 @@ def test_busy_local_mapping_is_told_to_the_runner_after_max_frames() -> None:
     assert decide_keyframe(facts(mapping=BUSY, tracked_points=10), CFG) == KeyFrameDecision.NOT_NEEDED
 
 
+def test_a_runner_that_waits_for_local_mapping_gets_busy_whenever_a_keyframe_is_wanted() -> None:
+    # as fast as possible there is no frame period for local mapping to finish in: the runner waits for it, so c1b
+    # holds as it would with a camera, and a busy local mapping is reported at once (not only after mMaxFrames)
+    waiting = MappingState(idle=False, accepting_keyframes=True, waits_for_idle=True)
+    assert decide_keyframe(facts(mapping=waiting), CFG) == KeyFrameDecision.MAPPING_BUSY
+    assert decide_keyframe(facts(mapping=dataclasses.replace(waiting, idle=True)), CFG) == KeyFrameDecision.INSERT
+    assert decide_keyframe(facts(mapping=waiting, tracked_points=180), CFG) == KeyFrameDecision.NOT_NEEDED
+    stopped = MappingState(idle=False, accepting_keyframes=False, waits_for_idle=True)
+    assert decide_keyframe(facts(mapping=stopped), CFG) == KeyFrameDecision.MAPPING_STOPPED
+
+
 def test_c2_more_than_15_tracked_points() -> None:
     assert decide_keyframe(facts(tracked_points=15, reference_tracked_points=100), CFG) == KeyFrameDecision.NOT_NEEDED
     assert decide_keyframe(facts(tracked_points=16, reference_tracked_points=100), CFG) == KeyFrameDecision.INSERT
