@@ -12,6 +12,8 @@ import os
 import sys
 from collections.abc import Sequence
 
+from omegaconf import DictConfig
+
 from slamkit import __version__
 from slamkit.errors import SlamkitError
 from slamkit.plugins import ComponentRegistry
@@ -20,20 +22,51 @@ from slamkit.plugins import ComponentRegistry
 EXIT_INTERRUPTED = 130
 
 
+def _one_line(exc: BaseException) -> str:
+    """An error's message on one line; a Hydra config error's cause (e.g. "Key 'x' is not in struct") appended."""
+    text = " ".join(str(exc).split())
+    cause = exc.__cause__
+    if cause is not None and str(cause).strip():
+        first = str(cause).strip().splitlines()[0].strip()
+        if first not in text:
+            text = f"{text} ({first})"
+    return text
+
+
 def _run_hydra_app(hydra_args: Sequence[str]) -> int:
+    """Run the Hydra app; a slamkit error (dataset, calibration, config value) or a Hydra config error (unknown key,
+    bad override, missing config group option) is printed as one line and exits 2, with no traceback. Anything
+    else is a bug and keeps its traceback."""
     import hydra
+    from hydra.errors import HydraException
 
     from slamkit.app import run_job
     from slamkit.config import CONFIG_NAME, CONFIG_SEARCH_PATH, prepare_registry
 
+    failures: list[tuple[SlamkitError, str]] = []
+
+    def job(cfg: DictConfig) -> object:
+        # caught inside the job: Hydra would print its own line and a traceback before handing the error back
+        try:
+            return run_job(cfg)
+        except SlamkitError as exc:
+            from hydra.core.hydra_config import HydraConfig
+
+            failures.append((exc, HydraConfig.get().runtime.output_dir))
+            return None
+
     prepare_registry()
-    app = hydra.main(config_path=CONFIG_SEARCH_PATH, config_name=CONFIG_NAME, version_base="1.3")(run_job)
-    saved_argv = sys.argv
+    app = hydra.main(config_path=CONFIG_SEARCH_PATH, config_name=CONFIG_NAME, version_base="1.3")(job)
+    saved_argv, saved_full_error = sys.argv, os.environ.get("HYDRA_FULL_ERROR")
+    user_wants_tracebacks = saved_full_error not in (None, "", "0")
     sys.argv = ["slamkit", *hydra_args]
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra then raises its config errors to us instead of printing them
     try:
         app()
-    except SlamkitError as exc:
-        print(f"slamkit run: {exc}", file=sys.stderr)
+    except HydraException as exc:
+        if user_wants_tracebacks:
+            raise
+        print(f"slamkit run: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         # the run directory already holds what was computed (metrics.json says "interrupted")
@@ -41,7 +74,25 @@ def _run_hydra_app(hydra_args: Sequence[str]) -> int:
         return EXIT_INTERRUPTED
     finally:
         sys.argv = saved_argv
-    return 0
+        if saved_full_error is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = saved_full_error
+    for error, out_dir in failures:
+        if user_wants_tracebacks:
+            raise error
+        print(f"slamkit run: {_one_line(error)}{_kept_note(out_dir)}", file=sys.stderr)
+    return 2 if failures else 0
+
+
+def _kept_note(out_dir: str) -> str:
+    """Where a run that failed after it started keeps what it computed ("" when it failed before the first frame)."""
+    try:
+        with open(os.path.join(out_dir, "metrics.json")) as f:
+            started = json.load(f).get("stage") != "build"
+    except (OSError, ValueError):
+        return ""
+    return f" (what was computed is in {out_dir})" if started else ""
 
 
 def _plugins_command(args: argparse.Namespace) -> int:

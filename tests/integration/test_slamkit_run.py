@@ -87,9 +87,48 @@ def test_late_failure_writes_what_it_has_and_fails(tmp_path: Path, shared_datase
     result = slamkit_run(
         tmp_path, "runner=sequential", "+experiment=kitti07", f"dataset.root={root}", f"hydra.run.dir={out}"
     )
-    assert result.returncode != 0
-    assert "000035.png" in result.stderr
+    assert result.returncode == 2
+    assert "000035.png" in result.stderr and "Traceback" not in result.stderr
+    assert f"what was computed is in {out}" in result.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "failed" and "000035.png" in metrics["error"]
     assert metrics["frames"] == 35 and metrics["frames_tracked"] >= 25
     assert len(pose_rows(out / "trajectory.tum")) == metrics["frames_tracked"]
+
+
+def _bad_calibration_root(tmp_path: Path) -> Path:
+    """A KITTI-layout sequence whose calib.txt has no P0 row."""
+    seq = tmp_path / "kitti" / "sequences" / "00"
+    (seq / "image_0").mkdir(parents=True)
+    (seq / "calib.txt").write_text("P1: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    (seq / "times.txt").write_text("0.0\n")
+    import cv2
+    import numpy as np
+
+    cv2.imwrite(str(seq / "image_0" / "000000.png"), np.zeros((8, 8), np.uint8))
+    return tmp_path / "kitti"
+
+
+@pytest.mark.parametrize(
+    ("case", "expected"),
+    [
+        ("root", "does not exist"),
+        ("calibration", "calib.txt"),
+        ("unknown_key", "pipeline.tracking.no_such_key"),
+        ("unknown_option", "dataset/no_such_dataset"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, case: str, expected: str) -> None:
+    """Issue 18 item 5: a bad dataset root, a bad calibration, an unknown config key or option print one line
+    naming what is wrong (no traceback) and exit with status 2."""
+    overrides = {
+        "root": ["dataset=tum_rgbd", f"dataset.root={tmp_path / 'nowhere'}"],
+        "calibration": ["dataset=kitti", f"dataset.root={_bad_calibration_root(tmp_path)}", "dataset.sequence=00"],
+        "unknown_key": ["pipeline.tracking.no_such_key=3"],
+        "unknown_option": ["dataset=no_such_dataset"],
+    }[case]
+    result = slamkit_run(tmp_path, *overrides, f"hydra.run.dir={tmp_path / 'run'}")
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("slamkit run: "), result.stderr
+    assert expected in lines[0]
