@@ -31,6 +31,7 @@ from slamkit.plugins import ComponentRegistry
 from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
 from slamkit.runtime.events import EventDispatcher
 from slamkit.runtime.sequential import SequentialRunner
+from slamkit.runtime.source import BAD_FRAME_POLICIES
 from slamkit.runtime.threaded import ThreadedRunner
 
 log = logging.getLogger("slamkit")
@@ -166,6 +167,9 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     if place is not None:
         loop_closer = LoopCloser(pipeline.loop_closing, atlas, background_optimizer, place, rng, pins)
     progress = bool(cfg.runner.get("progress", True))
+    bad_frames = str(cfg.runner.get("bad_frames", "skip"))
+    if bad_frames not in BAD_FRAME_POLICIES:
+        raise ConfigError(f"runner.bad_frames = {bad_frames!r}: expected one of {', '.join(BAD_FRAME_POLICIES)}")
     events = EventDispatcher(registry.hook, critical={OUTPUTS_PLUGIN})
     runner: Runner
     if kind == "threaded":
@@ -181,9 +185,12 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             background_niceness=_int_setting(cfg.runner, "background_niceness", 0, 19, 0),
             gil_switch_interval_s=_switch_interval_s(cfg.runner),
             events=events,
+            bad_frames=bad_frames,
         )
     else:
-        runner = SequentialRunner(tracker, mapper, atlas, progress=progress, loop_closer=loop_closer, events=events)
+        runner = SequentialRunner(
+            tracker, mapper, atlas, progress=progress, loop_closer=loop_closer, events=events, bad_frames=bad_frames
+        )
     return runner, dataset
 
 

@@ -11,6 +11,11 @@ class DatasetError(SlamkitError):
     """Bad dataset input: a missing or malformed file. The message names the file (and line) at fault."""
 
 
+class FrameReadError(DatasetError):
+    """One frame's file is missing, cannot be decoded or is damaged (a truncated JPEG); the run may skip the frame
+    (``runner.bad_frames``). The message names the file."""
+
+
 class CalibrationError(DatasetError):
     """A calibration that is missing, malformed, or disagrees with the images."""
 

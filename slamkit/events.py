@@ -76,6 +76,17 @@ class FrameTracked:
 
 
 @dataclass(frozen=True)
+class FrameSkipped:
+    """A frame the dataset could not read (a missing, undecodable or truncated image) was left out of the run
+    (``runner.bad_frames: skip``). frame_index: the frame's number in the sequence (the frames after it keep
+    theirs). reason: the reading error, naming the file."""
+
+    run_id: int
+    frame_index: int
+    reason: str
+
+
+@dataclass(frozen=True)
 class InitialKeyFrame:
     """One of the keyframes an initialisation made: id, the frame it came from, its time and pose (4, 4)."""
 

@@ -32,6 +32,7 @@ from typing import Any
 import pluggy
 
 from slamkit.events import (
+    FrameSkipped,
     FrameTracked,
     KeyFrameCulled,
     KeyFrameInserted,
@@ -112,6 +113,12 @@ class SlamkitHookSpecs:
         tracking; the sequential runner after local mapping (and loop closing) processed the keyframes the frame
         made, which is when it records the frame's pose relative to its reference keyframe (``T_c_r``).
         """
+
+    @hookspec
+    def slamkit_frame_skipped(self, event: FrameSkipped) -> None:
+        """The dataset could not read a frame (a missing, undecodable or truncated image) and the run left it out
+        (``runner.bad_frames: skip``); fired from the thread that reads the frames, before the next frame is
+        tracked."""
 
     @hookspec
     def slamkit_map_created(self, event: MapCreated) -> None:

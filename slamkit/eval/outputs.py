@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 from slamkit.errors import SlamkitError
 from slamkit.events import (
+    FrameSkipped,
     FrameTracked,
     KeyFrameCulled,
     KeyFrameInserted,
@@ -69,6 +70,12 @@ class RunOutputs:
         record = self._runs.get(event.run_id)
         if record is not None:
             record.on_map_created(event)
+
+    @hookimpl
+    def slamkit_frame_skipped(self, event: FrameSkipped) -> None:
+        record = self._runs.get(event.run_id)
+        if record is not None:
+            record.on_frame_skipped(event)
 
     @hookimpl
     def slamkit_frame_tracked(self, event: FrameTracked) -> None:
@@ -167,7 +174,7 @@ def write_run_logs(out_dir: Path, record: RunRecord) -> None:
     """frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe
     (candidates, consistency, BoW matches, Sim3 inliers and scale, corrections), so a user can see why a loop
     was or was not closed."""
-    _write_frames_csv(out_dir / "frames.csv", record.tracking)
+    _write_frames_csv(out_dir / "frames.csv", record.tracking, record.skipped)
     loops = [
         dict(lp.record)
         for lp in record.loops
@@ -176,23 +183,31 @@ def write_run_logs(out_dir: Path, record: RunRecord) -> None:
     (out_dir / "loops.json").write_text(json.dumps(loops, indent=2, default=float) + "\n")
 
 
-def _write_frames_csv(path: Path, tracking: Sequence[FrameTracked]) -> None:
+def _write_frames_csv(path: Path, tracking: Sequence[FrameTracked], skipped: Sequence[FrameSkipped] = ()) -> None:
+    """One row per frame in frame order: what tracking did with it, or ``skipped`` (no timestamp: the frame
+    could not be read) with the reading error as its message."""
+    rows: list[tuple[int, list[object]]] = [
+        (
+            o.frame_index,
+            [
+                o.frame_index,
+                f"{o.timestamp_s:.6f}",
+                o.state,
+                o.method,
+                o.n_features,
+                o.inliers,
+                f"{o.timings_ms.get('track_ms', float('nan')):.2f}",
+                o.message,
+            ],
+        )
+        for o in tracking
+    ]
+    rows += [(s.frame_index, [s.frame_index, "", "skipped", "", 0, 0, "", s.reason]) for s in skipped]
+    rows.sort(key=lambda row: row[0])  # stable: a frame's rows keep their order
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["frame", "timestamp_s", "state", "method", "features", "inliers", "track_ms", "message"])
-        for o in tracking:
-            writer.writerow(
-                [
-                    o.frame_index,
-                    f"{o.timestamp_s:.6f}",
-                    o.state,
-                    o.method,
-                    o.n_features,
-                    o.inliers,
-                    f"{o.timings_ms.get('track_ms', float('nan')):.2f}",
-                    o.message,
-                ]
-            )
+        writer.writerows(row for _, row in rows)
 
 
 __all__ = ["PLUGIN_NAME", "RunOutputs", "plugin", "write_outputs", "write_run_logs"]

@@ -77,6 +77,8 @@ class RunAccount(Protocol):
     @property
     def frames_dropped(self) -> int: ...
     @property
+    def frames_skipped(self) -> int: ...
+    @property
     def realtime_factor(self) -> float | None: ...
     @property
     def preloaded_mb(self) -> float: ...
@@ -170,6 +172,7 @@ def run_metrics(
         "wall_s": run.wall_s,
         "runner": run.runner,
         "frames_dropped": run.frames_dropped,
+        "frames_skipped": run.frames_skipped,
         "realtime_factor": run.realtime_factor,
         "preloaded_mb": run.preloaded_mb,
         "relocalizations": sum(o.method == "relocalization" and o.state == "ok" for o in run.tracking),

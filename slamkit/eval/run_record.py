@@ -11,6 +11,7 @@ System::SaveTrajectoryEuRoC writes the biggest map's).
 from __future__ import annotations
 
 from slamkit.events import (
+    FrameSkipped,
     FrameTracked,
     KeyFrameCulled,
     KeyFrameInserted,
@@ -35,6 +36,7 @@ class RunRecord:
     def __init__(self, started: RunStarted) -> None:
         self.started = started
         self.tracking: list[FrameTracked] = []
+        self.skipped: list[FrameSkipped] = []  # frames the dataset could not read, left out of the run
         self.mapping: list[KeyFrameInserted] = []
         self.loops: list[LoopChecked] = []
         self.finished: RunFinished | None = None
@@ -54,6 +56,9 @@ class RunRecord:
         self._trajectory(event.map_id).record(
             first.frame_index, first.timestamp_s, first.T_c_w, first.kf_id, first.T_c_w
         )
+
+    def on_frame_skipped(self, event: FrameSkipped) -> None:
+        self.skipped.append(event)
 
     def on_frame_tracked(self, event: FrameTracked) -> None:
         # after a map reset the poses recorded so far live under the erased map's id, which no map has any more
@@ -95,6 +100,10 @@ class RunRecord:
     @property
     def wall_s(self) -> float:
         return self._finished().wall_s
+
+    @property
+    def frames_skipped(self) -> int:
+        return len(self.skipped)
 
     @property
     def frames_dropped(self) -> int:

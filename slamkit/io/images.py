@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.errors import CalibrationError, DatasetError
+from slamkit.errors import CalibrationError, DatasetError, FrameReadError
 
 U8 = NDArray[np.uint8]
 F32 = NDArray[np.float32]
@@ -23,13 +23,32 @@ class LoadedImage:
     color: U8 | None
 
 
+#: JPEG's end-of-image marker (EOI); a file cut short lacks it
+_JPEG_EOI = b"\xff\xd9"
+#: bytes at a JPEG's end searched for EOI (some writers pad after it)
+_JPEG_TAIL_BYTES = 64
+
+
+def jpeg_is_truncated(path: Path) -> bool:
+    """True when a JPEG file lacks its end-of-image marker: OpenCV decodes such a file without an error (libjpeg
+    fills the missing rows with grey and only warns on stderr), so the damage has to be looked for."""
+    with path.open("rb") as f:
+        f.seek(0, 2)
+        size = f.tell()
+        f.seek(max(0, size - _JPEG_TAIL_BYTES))
+        tail = f.read()
+    return _JPEG_EOI not in tail
+
+
 def _imread(path: Path, flags: int) -> NDArray[np.generic]:
     if not path.is_file():
-        raise DatasetError(f"image file {path} does not exist")
+        raise FrameReadError(f"image file {path} does not exist")
+    if path.suffix.lower() in (".jpg", ".jpeg") and jpeg_is_truncated(path):
+        raise FrameReadError(f"image file {path} is damaged: a JPEG without its end marker (truncated)")
     image = cv2.imread(str(path), flags)
     if image is None:
-        # OpenCV returns None for unreadable, truncated, or non-image files.
-        raise DatasetError(f"image file {path} could not be decoded (unreadable, truncated, or not an image)")
+        # OpenCV returns None for unreadable, truncated (PNG), or non-image files.
+        raise FrameReadError(f"image file {path} could not be decoded (unreadable, truncated, or not an image)")
     return image
 
 

@@ -190,11 +190,14 @@ class StampedFiles:
         return len(self.files)
 
     def check_files_exist(self) -> None:
-        """Raise DatasetError naming the list line of the first entry whose file is absent."""
-        for path, line in zip(self.files, self.lines, strict=True):
-            if not path.is_file():
-                where = f"{self.list_path}:{int(line)}" if line > 0 else str(self.list_path)
-                raise DatasetError(f"{where}: image file {path} listed there does not exist")
+        """Raise DatasetError naming the list line of the first entry when none of the listed files exists (a
+        wrong folder, or a download without its images). A file missing here and there is a damaged recording:
+        the run skips those frames (``runner.bad_frames``) and reports them."""
+        if not self.files or any(path.is_file() for path in self.files):
+            return
+        path, line = self.files[0], self.lines[0]
+        where = f"{self.list_path}:{int(line)}" if line > 0 else str(self.list_path)
+        raise DatasetError(f"{where}: image file {path} listed there does not exist (nor does any other listed)")
 
 
 def read_stamped_files(path: Path, base: Path, sep: str | None, ns_stamps: bool, what: str) -> StampedFiles:

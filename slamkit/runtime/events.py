@@ -35,6 +35,7 @@ import numpy as np
 
 from slamkit.errors import PluginError
 from slamkit.events import (
+    FrameSkipped,
     FrameTracked,
     InitialKeyFrame,
     KeyFrameCulled,
@@ -59,6 +60,7 @@ log = logging.getLogger("slamkit.events")
 LIFECYCLE_HOOKS = (
     "slamkit_run_started",
     "slamkit_map_created",
+    "slamkit_frame_skipped",
     "slamkit_frame_tracked",
     "slamkit_keyframe_inserted",
     "slamkit_points_culled",
@@ -212,6 +214,11 @@ class RunEvents:
         )
         self.dispatcher.start(threaded)
         self.dispatcher.emit("slamkit_run_started", event)
+
+    def frame_skipped(self, frame_index: int, reason: str) -> None:
+        """A frame the dataset could not read was left out (slamkit.io.base.readable_frames)."""
+        if self.dispatcher.wants("slamkit_frame_skipped"):
+            self.dispatcher.emit("slamkit_frame_skipped", FrameSkipped(self.run_id, frame_index, reason))
 
     def map_events(self, out: TrackingOutcome) -> None:
         """Right after tracking a frame: fire map_created when the frame initialised the active map (before local

@@ -29,6 +29,7 @@ class RunLog:
     new_maps: int = 0
     wall_s: float = 0.0
     frames_dropped: int = 0
+    frames_skipped: int = 0  # frames the dataset could not read, left out (runner.bad_frames: skip)
     sequence_s: float = 0.0
     runner: str = "sequential"
     failed_thread: str | None = None

@@ -22,6 +22,7 @@ from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
+from slamkit.runtime.source import readable_frames
 from slamkit.runtime.workers import raised_by_ctrl_c
 from slamkit.sensors import FrameData
 
@@ -39,14 +40,17 @@ class SequentialRunner:
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
         events: EventDispatcher | None = None,
+        bad_frames: str = "skip",
     ) -> None:
-        """events: fires the plugins' lifecycle hooks (None: nobody listens)."""
+        """events: fires the plugins' lifecycle hooks (None: nobody listens). bad_frames: what to do with a frame
+        the dataset cannot read, "skip" (logged and reported) or "stop" (slamkit.io.base.readable_frames)."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
         self.atlas = atlas
         self.recorder = TrajectoryRecorder()
         self.progress = progress
+        self.bad_frames = bad_frames
         self.log = RunLog()
         self.events = events
         self._run_events = RunEvents(None, "sequential", atlas)
@@ -76,7 +80,7 @@ class SequentialRunner:
         first_t: float | None = None
         ended_by: BaseException | None = None
         try:
-            for data in dataset:
+            for data in readable_frames(dataset, self.bad_frames, self._frame_skipped):
                 first_t = data.timestamp_s if first_t is None else first_t
                 self.log.sequence_s = data.timestamp_s - first_t
                 self.step(data, camera)
@@ -99,6 +103,10 @@ class SequentialRunner:
             self.log.wall_s = time.perf_counter() - start
             self._run_events.finished(self.log, ended_by)
         return self.log
+
+    def _frame_skipped(self, frame_index: int, reason: str) -> None:
+        self.log.frames_skipped += 1
+        self._run_events.frame_skipped(frame_index, reason)
 
     def step(self, data: FrameData, camera: Camera) -> None:
         """Track one frame, then map the keyframes it produced (and look for a loop at each), then record its pose.

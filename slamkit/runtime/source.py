@@ -8,14 +8,60 @@ arrives is replaced and counted as dropped, as a live camera's frames are when t
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from typing import Protocol, runtime_checkable
 
+from slamkit.errors import ConfigError, FrameReadError
+from slamkit.interfaces import Dataset
 from slamkit.runtime.workers import ThreadFault
 from slamkit.sensors import FrameData
+
+log = logging.getLogger("slamkit.io")
+
+#: What a run does with a frame whose file is missing, undecodable or damaged (``runner.bad_frames``)
+BAD_FRAME_POLICIES = ("skip", "stop")
+
+
+@runtime_checkable
+class IndexedFrames(Protocol):
+    """A dataset whose frames can be read one by one by number (every SequenceDataset of slamkit.io)."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int) -> FrameData: ...
+
+
+def readable_frames(
+    dataset: Dataset, policy: str, on_skip: Callable[[int, str], None] | None = None
+) -> Iterable[FrameData]:
+    """The dataset's frames in order; with ``policy`` "skip" a frame that cannot be read (FrameReadError: a
+    missing, undecodable or truncated image) is logged, reported to ``on_skip(frame_index, reason)`` and left
+    out, and the sequence goes on; with "stop" the error ends the iteration. The frames after a skipped one keep
+    their numbers (a gap, as a dropped camera frame leaves). A dataset that cannot be read by number is iterated
+    as it is."""
+    if policy not in BAD_FRAME_POLICIES:
+        raise ConfigError(f"runner.bad_frames = {policy!r}: expected one of {', '.join(BAD_FRAME_POLICIES)}")
+    if policy == "stop" or not isinstance(dataset, IndexedFrames):
+        return dataset
+    return _skipping_unreadable(dataset, on_skip)
+
+
+def _skipping_unreadable(dataset: IndexedFrames, on_skip: Callable[[int, str], None] | None) -> Iterator[FrameData]:
+    for i in range(len(dataset)):
+        try:
+            frame = dataset[i]
+        except FrameReadError as exc:
+            log.warning("frame %d skipped: %s", i, exc)
+            if on_skip is not None:
+                on_skip(i, str(exc))
+            continue
+        yield frame
+
 
 #: Frames read ahead in as-fast-as-possible mode.
 PREFETCH_FRAMES = 4

@@ -53,7 +53,7 @@ from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
-from slamkit.runtime.source import END, FrameSource
+from slamkit.runtime.source import END, FrameSource, readable_frames
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault, raised_by_ctrl_c
 from slamkit.sensors import FrameData
 
@@ -91,7 +91,10 @@ class ThreadedRunner:
         background_niceness: int = 0,
         gil_switch_interval_s: float | None = None,
         events: EventDispatcher | None = None,
+        bad_frames: str = "skip",
     ) -> None:
+        """bad_frames: what to do with a frame the dataset cannot read, "skip" (logged and reported) or "stop"
+        (slamkit.io.base.readable_frames)."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -103,6 +106,7 @@ class ThreadedRunner:
         self.preload = preload
         self.background_niceness = background_niceness
         self.gil_switch_interval_s = gil_switch_interval_s
+        self.bad_frames = bad_frames
         self.log = RunLog(runner="threaded")
         self.events = events
         self._run_events = RunEvents(None, "threaded", atlas)
@@ -177,9 +181,7 @@ class ThreadedRunner:
         self._run_events.loop_checked(outcome)
 
     @contextlib.contextmanager
-    def _parked(
-        self, *workers: PipelineWorker[KeyFrame] | None, finish_queue: bool = False
-    ) -> Iterator[None]:
+    def _parked(self, *workers: PipelineWorker[KeyFrame] | None, finish_queue: bool = False) -> Iterator[None]:
         """Park workers at a safe point for the duration of the block (raises if one of them died); with
         finish_queue they first process what is queued."""
         parked = []
@@ -304,7 +306,8 @@ class ThreadedRunner:
 
     def _run(self, dataset: Dataset, camera: Camera, on_frame: Callable[[TrackingOutcome], None] | None = None) -> None:
         self._prepare(dataset, camera)
-        frames: Iterable[FrameData] = self._preloaded(dataset) if self.preload else dataset
+        readable = readable_frames(dataset, self.bad_frames, self._frame_skipped)
+        frames: Iterable[FrameData] = self._preloaded(readable, len(dataset)) if self.preload else readable
         start = time.perf_counter()
         self._source = FrameSource(frames, self.realtime, self._on_fault, self.speed)
         # Only against a clock: playing as fast as possible, tracking is always runnable and would starve the
@@ -376,11 +379,16 @@ class ThreadedRunner:
         self.tracker.warm_up(camera)
         log.info("prepared playback in %.2f s", time.perf_counter() - t0)
 
-    def _preloaded(self, dataset: Dataset) -> list[FrameData]:
+    def _frame_skipped(self, frame_index: int, reason: str) -> None:
+        """A frame the dataset could not read (called from the frame source's thread)."""
+        self.log.frames_skipped += 1
+        self._run_events.frame_skipped(frame_index, reason)
+
+    def _preloaded(self, dataset: Iterable[FrameData], n_frames: int) -> list[FrameData]:
         """Every frame of the dataset, read (rendered) now; records their memory in ``log.preloaded_mb``."""
         frames: list[FrameData] = []
         nbytes = 0
-        for data in tqdm(dataset, total=len(dataset), unit="frame", desc="preloading", disable=not self.progress):
+        for data in tqdm(dataset, total=n_frames, unit="frame", desc="preloading", disable=not self.progress):
             frames.append(data)
             images = (data.image, data.color, data.depth_m, data.image_right)
             nbytes += sum(a.nbytes for a in images if a is not None)

@@ -85,7 +85,12 @@ def test_late_failure_writes_what_it_has_and_fails(tmp_path: Path, shared_datase
     # sequential: the point is what a late failure keeps; with the threaded runner how many frames are tracked by
     # then depends on the machine's load (a loaded machine gives local mapping fewer keyframes before frame 35)
     result = slamkit_run(
-        tmp_path, "runner=sequential", "+experiment=kitti07", f"dataset.root={root}", f"hydra.run.dir={out}"
+        tmp_path,
+        "runner=sequential",
+        "runner.bad_frames=stop",  # the default skips the frame (test_bad_frames_are_skipped_and_reported)
+        "+experiment=kitti07",
+        f"dataset.root={root}",
+        f"hydra.run.dir={out}",
     )
     assert result.returncode == 2
     assert "000035.png" in result.stderr and "Traceback" not in result.stderr
@@ -132,3 +137,39 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, case: str, expected: s
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("slamkit run: "), result.stderr
     assert expected in lines[0]
+
+
+@pytest.mark.shared_data
+def test_bad_frames_are_skipped_and_reported(tmp_path: Path, shared_datasets: Path) -> None:
+    """Issue 18 item 5: a truncated JPEG (OpenCV decodes it half grey, libjpeg only warns) and a missing image in
+    the middle of a TUM sequence: the run goes to the end, both frames listed as skipped in frames.csv (naming
+    the file) and in the log, the other frames keep their numbers."""
+    src = shared_datasets / "tum_rgbd" / "rgbd_dataset_freiburg1_xyz"
+    root = tmp_path / "fr1"
+    (root / "rgb").mkdir(parents=True)
+    listed = [line for line in (src / "rgb.txt").read_text().splitlines() if line and not line.startswith("#")][:40]
+    (root / "rgb.txt").write_text("\n".join(listed) + "\n")
+    shutil.copy(src / "groundtruth.txt", root / "groundtruth.txt")
+    names = [line.split()[1] for line in listed]
+    for name in names:
+        shutil.copy(src / name, root / name)
+    truncated, missing = root / names[20], root / names[30]
+    truncated.write_bytes(truncated.read_bytes()[: truncated.stat().st_size // 2])
+    missing.unlink()
+    out = tmp_path / "run"
+    result = slamkit_run(
+        tmp_path, "runner=sequential", "dataset=tum_rgbd", f"dataset.root={root}", f"hydra.run.dir={out}"
+    )
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "ok" and metrics["frames_skipped"] == 2 and metrics["frames"] == 38
+    rows = [line.split(",") for line in (out / "frames.csv").read_text().splitlines()[1:]]
+    assert [int(r[0]) for r in rows] == list(range(40))
+    skipped = {int(r[0]): r for r in rows if r[2] == "skipped"}
+    assert set(skipped) == {20, 30}
+    assert truncated.name in skipped[20][-1] and "truncated" in skipped[20][-1]
+    assert missing.name in skipped[30][-1] and "does not exist" in skipped[30][-1]
+    logged = result.stdout + result.stderr  # Hydra's log handler writes to stdout
+    assert f"frame 20 skipped: image file {truncated}" in logged
+    assert f"frame 30 skipped: image file {missing}" in logged
+    assert rows[-1][2] == "ok"  # tracking went on after the gaps
