@@ -140,7 +140,8 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, case: str, expected: s
 
 
 @pytest.mark.shared_data
-def test_bad_frames_are_skipped_and_reported(tmp_path: Path, shared_datasets: Path) -> None:
+@pytest.mark.parametrize("runner", ["sequential", pytest.param("threaded", marks=pytest.mark.slow)])
+def test_bad_frames_are_skipped_and_reported(tmp_path: Path, shared_datasets: Path, runner: str) -> None:
     """Issue 18 item 5: a truncated JPEG (OpenCV decodes it half grey, libjpeg only warns) and a missing image in
     the middle of a TUM sequence: the run goes to the end, both frames listed as skipped in frames.csv (naming
     the file) and in the log, the other frames keep their numbers."""
@@ -158,7 +159,7 @@ def test_bad_frames_are_skipped_and_reported(tmp_path: Path, shared_datasets: Pa
     missing.unlink()
     out = tmp_path / "run"
     result = slamkit_run(
-        tmp_path, "runner=sequential", "dataset=tum_rgbd", f"dataset.root={root}", f"hydra.run.dir={out}"
+        tmp_path, f"runner={runner}", "dataset=tum_rgbd", f"dataset.root={root}", f"hydra.run.dir={out}"
     )
     assert result.returncode == 0, result.stderr
     metrics = json.loads((out / "metrics.json").read_text())
