@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -45,6 +46,7 @@ def _run_hydra_app(hydra_args: Sequence[str]) -> int:
 
     failures: list[tuple[SlamkitError, str]] = []
 
+    @functools.wraps(run_job)  # Hydra names the job (and its log, app.log) after the wrapped function's module
     def job(cfg: DictConfig) -> object:
         # caught inside the job: Hydra would print its own line and a traceback before handing the error back
         try:
