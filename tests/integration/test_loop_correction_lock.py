@@ -15,7 +15,8 @@ from slamkit.eval.run_metrics import runner_metrics
 from slamkit.problems import EssentialGraphProblem, EssentialGraphResult
 from slamkit.runtime.sequential import SequentialRunner
 
-pytestmark = pytest.mark.timeout(900)
+# a whole room run for its one loop: slow (the default suite stays under 10 minutes on CI)
+pytestmark = [pytest.mark.timeout(900), pytest.mark.slow]
 
 
 class _ReadabilityProbe:
