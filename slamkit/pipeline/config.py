@@ -103,7 +103,7 @@ class TrackingConfig:
     reloc_search_radius_fine_px: float = 3.0
     reloc_search_max_distance_fine: int = 64
     init_feature_factor: float = 2.0
-    init_extractor_frames_after_init: int = 0
+    init_extractor_after_init: bool = False
     init_min_features: int = 100
     init_min_matches: int = 100
     init_search_radius_px: float = 100.0

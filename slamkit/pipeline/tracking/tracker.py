@@ -144,17 +144,14 @@ class Tracker:
         return outcome
 
     def _in_init_extractor_window(self, frame_index: int) -> bool:
-        """Whether a frame of a tracked map still gets the initialisation extractor: ORB-SLAM3
-        (Tracking::GrabImageMonocular) extracts with mpIniORBextractor while ``lastID - initID < mMaxFrames``,
-        i.e. for about mMaxFrames frames after the map was initialised (``init_extractor_frames_after_init``:
-        0 = never, as ORB-SLAM2; -1 = mMaxFrames, the camera's fps; n > 0 = n frames). ORB-SLAM3 compares the
-        previous frame's id with the initial keyframe's id (a keyframe counter); slamkit counts frames from the
-        initialising frame."""
-        window = self.cfg.init_extractor_frames_after_init
-        if window == 0 or self._init_frame_index is None:
+        """Whether a frame of a tracked map still gets the initialisation extractor: with
+        ``init_extractor_after_init``, the mMaxFrames frames after the initialising one (ORB-SLAM3
+        Tracking::GrabImageMonocular extracts with mpIniORBextractor while ``lastID - initID < mMaxFrames``;
+        it compares the previous frame's id with the initial keyframe's id, a keyframe counter, where slamkit
+        counts frames from the initialising frame). Without it, never (ORB-SLAM2)."""
+        if not self.cfg.init_extractor_after_init or self._init_frame_index is None:
             return False
-        frames = self.max_frames if window < 0 else window
-        return frame_index - self._init_frame_index <= frames
+        return frame_index - self._init_frame_index <= self.max_frames
 
     def make_keyframe(self, outcome: TrackingOutcome) -> TrackingOutcome:
         """Make the keyframe the last step wanted when local mapping was busy (``outcome.keyframe ==

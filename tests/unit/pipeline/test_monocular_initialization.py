@@ -122,8 +122,8 @@ class FlagRecordingFrontEnd(RecordedFrontEnd):
 
 def test_the_initialisation_extractor_stays_on_for_max_frames_after_initialising() -> None:
     """ORB-SLAM3 Tracking::GrabImageMonocular extracts with mpIniORBextractor until mMaxFrames frames after the map
-    was initialised (``init_extractor_frames_after_init`` -1: the camera's fps, here 4 Hz); 0 (ORB-SLAM2) switches
-    to the tracking extractor on the first frame after the initialisation."""
+    was initialised (``init_extractor_after_init``; mMaxFrames = the camera's fps, here 4 Hz); without it
+    (ORB-SLAM2) the tracking extractor takes over on the first frame after the initialisation."""
     rng = np.random.default_rng(3)
     xyz = rng.uniform([-3.0, -2.0, 3.0], [3.0, 2.0, 6.0], (N_POINTS, 3))
     desc = rng.integers(0, 256, (N_POINTS, 32), dtype=np.uint8)
@@ -131,10 +131,10 @@ def test_the_initialisation_extractor_stays_on_for_max_frames_after_initialising
     registry = ComponentRegistry.discover()
     optimizer = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
     initializer = registry.instantiate("initializer", {"_target_": registry.get("initializer", "twoview").spec.target})
-    for window, expected in ((-1, {0, 1, 2, 3, 4, 5}), (0, {0, 1})):
+    for window, expected in ((True, {0, 1, 2, 3, 4, 5}), (False, {0, 1})):
         frontend = FlagRecordingFrontEnd(records)
         tracker = Tracker(
-            TrackingConfig(init_extractor_frames_after_init=window),
+            TrackingConfig(init_extractor_after_init=window),
             frontend,
             initializer,
             optimizer,
