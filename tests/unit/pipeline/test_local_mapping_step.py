@@ -302,7 +302,8 @@ def test_local_ba_refreshes_the_viewing_data_of_the_points_it_moves() -> None:
     for kf in kfs:
         store.update_connections(kf.id)
     stale_d_max = store.get_point(7).d_max_m
-    mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), WatchingOptimizer(store))  # type: ignore[arg-type]
+    cfg = LocalMappingConfig(ba_update_normal_and_depth=True)
+    mapper = LocalMapper(cfg, Atlas.of(store), WatchingOptimizer(store))  # type: ignore[arg-type]
     outliers, aborted = mapper._local_bundle_adjustment(kfs[2], None)
     assert not aborted and outliers == 0
     point = store.get_point(7)
