@@ -155,25 +155,34 @@ def _bundle_camera(keyframes: list[Any]) -> dict[str, Any]:
 
 
 def run_bundle(
-    store: MapStore, optimizer: Optimizer, snap: BundleSnapshot, abort: AbortToken | None = None
+    store: MapStore,
+    optimizer: Optimizer,
+    snap: BundleSnapshot,
+    abort: AbortToken | None = None,
+    bad_max_observations: int = 1,
 ) -> BundleResult:
-    """Optimize a snapshot (no lock held) and commit it under the map's write lock."""
+    """Optimize a snapshot (no lock held) and commit it under the map's write lock (``bad_max_observations``:
+    see commit_bundle)."""
     problem = snap.problem
     if problem.obs_pose.size == 0 or problem.pose_fixed.all():
         # nothing to optimize: only erase the points the snapshot dropped
         result = BundleResult(problem.T_c_w, problem.xyz_w, np.zeros(0, bool), 0.0, 0.0, 0)
         with store.write():
-            commit_bundle(store, snap, result)
+            commit_bundle(store, snap, result, bad_max_observations)
         return result
     result = optimizer.bundle_adjust(problem, abort)
     with store.write():
-        commit_bundle(store, snap, result)
+        commit_bundle(store, snap, result, bad_max_observations)
     return result
 
 
-def commit_bundle(store: MapStore, snap: BundleSnapshot, result: BundleResult) -> int:
+def commit_bundle(
+    store: MapStore, snap: BundleSnapshot, result: BundleResult, bad_max_observations: int = 1
+) -> int:
     """Write optimized poses and points back, skipping entities culled meanwhile, and erase the
-    observations flagged as outliers (points left with fewer than 2 observations go too).
+    observations flagged as outliers: a point one of them leaves with at most ``bad_max_observations``
+    observations goes too (1: the store's own rule, a point needs two; ORB-SLAM2/3's MapPoint::EraseObservation
+    sets a point bad at nObs <= 2).
 
     Points the snapshot left out (behind every camera) are erased. Returns the number of observations removed.
     """
@@ -195,4 +204,6 @@ def commit_bundle(store: MapStore, snap: BundleSnapshot, result: BundleResult) -
             continue
         store.remove_observation(pid, kf_id)
         removed += 1
+        if store.has_point(pid) and len(store.get_point(pid).observations) <= bad_max_observations:
+            store.remove_point(pid)
     return removed

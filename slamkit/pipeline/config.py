@@ -103,6 +103,7 @@ class TrackingConfig:
     reloc_search_radius_fine_px: float = 3.0
     reloc_search_max_distance_fine: int = 64
     init_feature_factor: float = 2.0
+    init_extractor_after_init: bool = False
     init_min_features: int = 100
     init_min_matches: int = 100
     init_search_radius_px: float = 100.0
@@ -136,6 +137,8 @@ class LocalMappingConfig:
     min_baseline_depth_ratio: float = 0.01
     ba_iterations_first: int = 5
     ba_iterations_second: int = 10
+    ba_update_normal_and_depth: bool = False
+    ba_point_bad_max_observations: int = 1
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

@@ -352,7 +352,13 @@ class LocalMapper:
                 cfg.chi2.mono,
                 cfg.chi2.stereo,
             )
-        result = run_bundle(store, self.optimizer, snap, abort)
+        result = run_bundle(store, self.optimizer, snap, abort, self.cfg.ba_point_bad_max_observations)
+        if self.cfg.ba_update_normal_and_depth:
+            # ORB-SLAM2/3 LocalBundleAdjustment, "Recover optimized data" (aborted or not): every local point the BA
+            # wrote gets UpdateNormalAndDepth, so tracking's viewing-angle filter (V-D), its predicted level and the
+            # [d_min, d_max] range check see the optimised point and keyframes, not those at the point's creation
+            with store.write():
+                refresh_points(store, snap.point_ids.tolist(), normals=True, descriptors=False)
         return int(result.outlier.sum()), bool(result.aborted)
 
     # ---- VI-E -------------------------------------------------------------------------------------------

@@ -109,6 +109,7 @@ class Tracker:
         self.reference_kf_id: int | None = None
         self.last_kf_frame_index = -(10**9)
         self.last_reloc_frame_index = -(10**9)
+        self._init_frame_index: int | None = None  # the frame that initialised the active map
         self._bounds: dict[int, ImageBounds] = {}
         self._last_T_l_r: F64 | None = None
         self._frame_bow: BowDescription | None = None
@@ -131,8 +132,9 @@ class Tracker:
         default: idle, for a tracker stepped without a local mapping thread)."""
         t0 = time.perf_counter()
         initializing = self.state == TrackingState.NOT_INITIALIZED
-        # ORB-SLAM extracts twice the features on frames used for monocular initialisation: the front end's job
-        features = self.frontend.observe(data, camera, initializing)
+        # ORB-SLAM extracts twice the features on frames used for monocular initialisation (the front end's job),
+        # and ORB-SLAM3 goes on with that extractor for a while after initialising (_init_extractor_window)
+        features = self.frontend.observe(data, camera, initializing or self._in_init_extractor_window(data.index))
         t1 = time.perf_counter()
         frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
         timings = {"extract_ms": (t1 - t0) * 1e3}
@@ -140,6 +142,16 @@ class Tracker:
         timings["track_ms"] = (time.perf_counter() - t0) * 1e3
         outcome.timings_ms.update(timings)
         return outcome
+
+    def _in_init_extractor_window(self, frame_index: int) -> bool:
+        """Whether a frame of a tracked map still gets the initialisation extractor: with
+        ``init_extractor_after_init``, the mMaxFrames frames after the initialising one (ORB-SLAM3
+        Tracking::GrabImageMonocular extracts with mpIniORBextractor while ``lastID - initID < mMaxFrames``;
+        it compares the previous frame's id with the initial keyframe's id, a keyframe counter, where slamkit
+        counts frames from the initialising frame). Without it, never (ORB-SLAM2)."""
+        if not self.cfg.init_extractor_after_init or self._init_frame_index is None:
+            return False
+        return frame_index - self._init_frame_index <= self.max_frames
 
     def make_keyframe(self, outcome: TrackingOutcome) -> TrackingOutcome:
         """Make the keyframe the last step wanted when local mapping was busy (``outcome.keyframe ==
@@ -176,6 +188,7 @@ class Tracker:
         self._lost_since_s = None
         self.refiner = PoseRefiner(self.cfg, self.store, self.optimize_pose)  # reads the (new) active map's points
         self.state = TrackingState.NOT_INITIALIZED
+        self._init_frame_index = None
         self.init.reset()
         self.last_frame = None
         self.velocity = None
@@ -212,6 +225,7 @@ class Tracker:
         frame.ref_kf_id = kf_cur.id
         self.reference_kf_id = kf_cur.id
         self.last_kf_frame_index = frame.index
+        self._init_frame_index = frame.index
         self.last_frame = frame
         self.velocity = None
         self.state = TrackingState.OK

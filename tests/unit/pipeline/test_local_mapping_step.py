@@ -279,3 +279,35 @@ def test_points_a_culled_keyframe_leaves_with_two_observations_are_erased(bad_ma
     assert culled == {1, 2}
     assert all(store.has_point(p) for p in pids[:100])
     assert all(store.has_point(p) != (bad_max == 2) for p in pids[100:])
+
+
+def test_local_ba_refreshes_the_viewing_data_of_the_points_it_moves() -> None:
+    """ORB-SLAM2/3 LocalBundleAdjustment ends with SetWorldPos + UpdateNormalAndDepth for every local point: a point
+    triangulated 30 cm too deep is pulled back onto its exact projections by the BA, and its distance range
+    [d_min, d_max] (which tracking's scale prediction and range check read) is that of the optimised point, not of
+    the one it replaced."""
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kfs = [keyframe(store, 0.3 * i, xyz, desc) for i in range(3)]
+    for kf in kfs:
+        store.add_keyframe(kf)
+    for j in range(N_MAPPED):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
+        for kf in kfs:
+            store.add_observation(pid, kf.id, j)
+    wrong = xyz[7] + np.array([0.0, 0.0, 0.3])
+    store.assign_points(np.array([7]), "xyz_w", wrong[None])
+    refresh_points(store, store.point_ids())
+    for kf in kfs:
+        store.update_connections(kf.id)
+    stale_d_max = store.get_point(7).d_max_m
+    cfg = LocalMappingConfig(ba_update_normal_and_depth=True)
+    mapper = LocalMapper(cfg, Atlas.of(store), WatchingOptimizer(store))  # type: ignore[arg-type]
+    outliers, aborted = mapper._local_bundle_adjustment(kfs[2], None)
+    assert not aborted and outliers == 0
+    point = store.get_point(7)
+    np.testing.assert_allclose(point.xyz_w, xyz[7], atol=5e-3)  # 30 cm off before
+    ref_center = store.get_keyframe(point.ref_kf_id).center_w
+    assert point.d_max_m == pytest.approx(np.linalg.norm(point.xyz_w - ref_center), rel=1e-9)
+    assert abs(point.d_max_m - stale_d_max) > 0.1

@@ -106,3 +106,42 @@ def test_reference_rules_and_initial_map() -> None:
     T_rel = store.get_keyframe(kf_cur.id).T_c_w
     t_true = T_rel_true[:3, 3] / np.linalg.norm(T_rel_true[:3, 3])
     assert np.degrees(np.arccos(np.clip(T_rel[:3, 3] @ t_true / np.linalg.norm(T_rel[:3, 3]), -1, 1))) < 2.0
+
+
+class FlagRecordingFrontEnd(RecordedFrontEnd):
+    """A RecordedFrontEnd that notes which frames asked for the initialisation extractor."""
+
+    def __init__(self, records: dict[int, Observations]) -> None:
+        super().__init__(records)
+        self.initializing: dict[int, bool] = {}
+
+    def observe(self, data: FrameData, camera: object, initializing: bool = False) -> Observations:
+        self.initializing[data.index] = initializing
+        return self.records[data.index]
+
+
+def test_the_initialisation_extractor_stays_on_for_max_frames_after_initialising() -> None:
+    """ORB-SLAM3 Tracking::GrabImageMonocular extracts with mpIniORBextractor until mMaxFrames frames after the map
+    was initialised (``init_extractor_after_init``; mMaxFrames = the camera's fps, here 4 Hz); without it
+    (ORB-SLAM2) the tracking extractor takes over on the first frame after the initialisation."""
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform([-3.0, -2.0, 3.0], [3.0, 2.0, 6.0], (N_POINTS, 3))
+    desc = rng.integers(0, 256, (N_POINTS, 32), dtype=np.uint8)
+    records = {i: view(pose(0.3 * i, 1.5 * i), xyz, desc, 0.3, rng) for i in range(10)}  # initialises at frame 1
+    registry = ComponentRegistry.discover()
+    optimizer = registry.instantiate("optimizer", {"_target_": registry.get("optimizer", "scipy").spec.target})
+    initializer = registry.instantiate("initializer", {"_target_": registry.get("initializer", "twoview").spec.target})
+    for window, expected in ((True, {0, 1, 2, 3, 4, 5}), (False, {0, 1})):
+        frontend = FlagRecordingFrontEnd(records)
+        tracker = Tracker(
+            TrackingConfig(init_extractor_after_init=window),
+            frontend,
+            initializer,
+            optimizer,
+            Atlas.of(InMemoryMapStore()),
+            np.random.default_rng(0),
+            fps=4.0,
+        )
+        out = [tracker.step(FrameData(i, i / 4.0, np.zeros((1, 1), np.uint8)), CAMERA) for i in range(10)]
+        assert out[1].initialized_map, out[1].message
+        assert {i for i, flag in frontend.initializing.items() if flag} == expected
