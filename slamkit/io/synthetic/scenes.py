@@ -302,20 +302,48 @@ def twins_translated_scene() -> Scene:
     south wall (18 m, three 6 m panels) shows the same texture on its west panel (x in [-9, -3] m) and its east
     panel (x in [3, 9] m), 12 m apart along the same straight stretch, seen from the same relative pose with the
     same orientation. A false loop between them would imply almost no rotation (a rotation prior cannot reject
-    it): only geometry and consistency can. The map starts by the west twin (the path's first waypoint faces
-    it), so the east twin is met ~20 s later; what differs is the context (the floor, ceiling and inner-wall
-    panels, and the corridor's corners: the west twin has the south-west corner behind it, the east one the
-    south-east corner ahead of it). The real loop closes when the camera passes its start again."""
-    return _corridor_ring_with_twins("twins_translated", ("ring/outer/wall_s/0", "ring/outer/wall_s/2"))
+    it): only geometry and consistency can.
+
+    What makes the two places different is STRUCTURE in front of the twin panels: crates of their own textures
+    stand against each twin, in different places (five by each twin, a tall one where the other place has a low one), so each view shows
+    the twin texture partly hidden by boxes the other place does not have. Without them (the first version of
+    this scene) the twin filled the view exactly as at its twin place, a revisit no check on the views can tell
+    from the true one (ORB-SLAM3's counts were all passed: 91 refined matches at 5 px, 3 covisibles agreeing),
+    and the camera saw a single plane for 17 s, so the map started late (frame 523) by the east twin and the
+    true revisit came after the sequence's end. The west crates also give the start its depth structure, so the
+    map starts by the west twin (the path's first waypoint faces it) and the east twin is met ~20 s later, as a
+    false hypothesis; the real loop closes when the camera passes its start again (~80 s)."""
+    # (x along the wall, depth from the wall, height, width), m; the crates' fronts stay >= 0.6 m from the path
+    crates = [
+        (-8.2, 0.7, 1.3, 0.9),
+        (-7.0, 0.5, 1.9, 1.0),
+        (-5.8, 0.7, 1.1, 1.0),
+        (-4.6, 0.6, 1.6, 1.0),
+        (-3.6, 0.7, 0.9, 0.8),
+        (3.9, 0.4, 2.1, 1.0),
+        (5.0, 0.5, 0.8, 0.9),
+        (6.2, 0.4, 2.0, 1.1),
+        (7.4, 0.5, 0.9, 0.9),
+        (8.4, 0.4, 1.8, 0.8),
+    ]
+    extra: list[Plane] = []
+    for i, (x, depth, height, width) in enumerate(crates):
+        extra += box(f"crate{i}", (x, -6.0 + depth / 2), (width, depth, height))
+    return _corridor_ring_with_twins(
+        "twins_translated", ("ring/outer/wall_s/0", "ring/outer/wall_s/2"), extra_planes=tuple(extra)
+    )
 
 
-def _corridor_ring_with_twins(name: str, twin_panels: tuple[str, str]) -> Scene:
+def _corridor_ring_with_twins(
+    name: str, twin_panels: tuple[str, str], extra_planes: tuple[Plane, ...] = ()
+) -> Scene:
     """The twin scenes' corridor ring (outer 18 x 12 m, 2.6 m wide, 3 m high) with the two named panels showing the
-    same texture, and their camera path (one lap in 80 s, looking 40 degrees to the right of the way ahead)."""
+    same texture, ``extra_planes`` (furniture) added, and their camera path (one lap in 80 s, looking 40 degrees to
+    the right of the way ahead)."""
     planes = tuple(
         Plane(p.name, p.origin_m, p.u_m, p.v_m, "twin_wall") if p.name in twin_panels else p
         for p in corridor_ring("ring", (9.0, 6.0), 2.6, 3.0)
-    )
+    ) + tuple(extra_planes)
     way = rounded_rectangle((7.7, 4.7), corner_m=1.1, spacing_m=1.5, z=1.5)
     path = CameraPath(way, period_s=80.0, duration_s=86.0, look_ahead_s=1.2, yaw_offset_deg=-40.0)
     return Scene(name, planes, path)

@@ -82,12 +82,14 @@ def _facing(position: tuple[float, float, float], yaw_deg: float) -> np.ndarray:
     return T
 
 
-def test_translated_twins_look_the_same_from_translated_poses_but_not_their_surroundings(
+def test_translated_twins_look_the_same_from_translated_poses_but_their_structure_differs(
     synthetic: Callable[..., SyntheticDataset],
 ) -> None:
     """twins_translated: the two twin panels are one texture 12 m apart on the same wall (same orientation), so
-    a camera moved by those 12 m sees identical pixels when it faces the twin wall, but a wider oblique view
-    shows different surroundings (what geometry and consistency must use to reject the false loop)."""
+    a camera moved by those 12 m sees identical pixels wherever both views show the twin panel; but crates stand
+    in different places in front of each twin, so from the path's poses by the west twin (the map's start) and
+    the same poses moved 12 m east, at most a third of the view is twin panel in both (the first version of the
+    scene: 44-74 %, a revisit no check can tell from a true one); what geometry must use to reject the false loop."""
     ds = synthetic(scene="twins_translated")
     twins = [p for p in ds.scene.planes if p.texture == "twin_wall"]
     assert len(twins) == 2
@@ -97,15 +99,19 @@ def test_translated_twins_look_the_same_from_translated_poses_but_not_their_surr
     np.testing.assert_allclose(np.abs(shift), [12.0, 0.0, 0.0])  # a pure translation along the wall
     np.testing.assert_allclose(twins[0].u_m, twins[1].u_m)
     np.testing.assert_allclose(twins[0].v_m, twins[1].v_m)
-    west = min(twins, key=lambda p: p.origin_m[0] + p.u_m[0] / 2)
-    x_west = west.origin_m[0] + west.u_m[0] / 2
-    # facing the south wall square on, 1.3 m from it: only the twin panel in view
-    a = ds.renderer.render(_facing((x_west, -4.7, 1.5), -90.0), labels=True)
-    b = ds.renderer.render(_facing((x_west + 12.0, -4.7, 1.5), -90.0), labels=True)
-    assert a.grey is not None and b.grey is not None
-    assert np.abs(a.grey.astype(int) - b.grey.astype(int)).mean() < 1.0
-    # looking along the corridor at 45 degrees: the twin panel and different surroundings
-    a = ds.renderer.render(_facing((x_west, -4.7, 1.5), -45.0), labels=True)
-    b = ds.renderer.render(_facing((x_west + 12.0, -4.7, 1.5), -45.0), labels=True)
-    assert a.grey is not None and b.grey is not None
-    assert np.abs(a.grey.astype(int) - b.grey.astype(int)).mean() > 10.0
+    is_twin = np.array([p.texture == "twin_wall" for p in ds.scene.planes] + [False])  # label -1: nothing
+    both_seen: list[float] = []
+    for t_s in (0.5, 1.0, 2.0, 3.0, 4.0):
+        T_w_c = ds.ground_truth.T_w_c[round(t_s * ds.fps)]
+        assert T_w_c[0, 3] < -3.0  # by the west twin
+        T_east = T_w_c.copy()
+        T_east[0, 3] += 12.0
+        a = ds.renderer.render(T_w_c, labels=True)
+        b = ds.renderer.render(T_east, labels=True)
+        assert a.grey is not None and b.grey is not None and a.labels is not None and b.labels is not None
+        both = is_twin[a.labels] & is_twin[b.labels]
+        assert is_twin[a.labels].mean() > 0.15  # the twin panel is in view
+        if both.any():  # the same texture seen from translated poses: the same pixels
+            assert np.abs(a.grey[both].astype(int) - b.grey[both].astype(int)).mean() < 1.0
+        both_seen.append(float(both.mean()))
+    assert max(both_seen) < 1 / 3, both_seen
