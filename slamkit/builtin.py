@@ -50,6 +50,12 @@ def slamkit_components() -> list[ComponentSpec]:
             description="monocular: ORB features, their bearings from the camera model, no depth",
         ),
         ComponentSpec(
+            "frontend",
+            "rgbd",
+            "slamkit.frontend.rgbd.RgbdFrontEnd",
+            description="RGB-D: ORB features, depth from the registered depth map, virtual right u = u - bf / depth",
+        ),
+        ComponentSpec(
             "map",
             "memory",
             "slamkit.map.store.InMemoryMapStore",

@@ -90,6 +90,11 @@ class TrackingConfig:
     keyframe_max_ref_ratio: float = 0.9
     keyframe_ref_min_observations: int = 3
     keyframe_ref_min_observations_small_map: int = 2
+    keyframe_max_ref_ratio_stereo: float = 0.75
+    keyframe_max_ref_ratio_stereo_single: float = 0.4
+    keyframe_c1c_ref_ratio_stereo: float = 0.25
+    keyframe_close_tracked_max: int = 100
+    keyframe_close_untracked_min: int = 70
     reloc_min_bow_matches: int = 15
     reloc_pnp_ransac_iterations: int = 300
     reloc_pnp_ransac_confidence: float = 0.99
@@ -104,6 +109,7 @@ class TrackingConfig:
     reloc_search_max_distance_fine: int = 64
     init_feature_factor: float = 2.0
     init_min_features: int = 100
+    stereo_init_min_features: int = 500
     init_min_matches: int = 100
     init_search_radius_px: float = 100.0
     init_min_map_points: int = 50
@@ -122,6 +128,7 @@ class LocalMappingConfig:
     point_min_found_ratio: float = 0.25
     point_min_observations: int = 3
     point_culling_window_kfs: int = 3
+    point_culling_max_observations_stereo: int = 3
     triangulation_neighbors: int = 20
     min_parallax_cos: float = 0.9998
     scale_consistency_factor: float = 1.5
@@ -134,6 +141,7 @@ class LocalMappingConfig:
     point_bad_max_observations: int = 2
     keyframe_culling_min_observers: int = 3
     min_baseline_depth_ratio: float = 0.01
+    stereo_new_points_min: int = 100
     ba_iterations_first: int = 5
     ba_iterations_second: int = 10
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)

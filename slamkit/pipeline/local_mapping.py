@@ -25,7 +25,7 @@ from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.keyframe_pins import KeyFramePins
-from slamkit.pipeline.map_points import refresh_points
+from slamkit.pipeline.map_points import create_depth_points, orbslam_observation_counts, refresh_points
 from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.outcomes import CulledKeyFrame, MappingOutcome
 from slamkit.pipeline.projection import project_points, require_pinhole_image
@@ -99,6 +99,8 @@ class LocalMapper:
         inserted), describe it with a bag of words, update its covisibility connections."""
         store = self.store
         insert_keyframe(store, kf)
+        if kf.features.bf > 0.0:
+            self.recent_points.extend(create_depth_points(store, kf, self.cfg.stereo_new_points_min))
         if self.place is not None and kf.bow is None:
             store.set_keyframe_bow(kf.id, self.place.transform(kf.features.descriptors))
         store.update_connections(kf.id)
@@ -119,12 +121,19 @@ class LocalMapper:
             if ids.size
             else np.zeros(0)
         )
+        stereo = kf.features.bf > 0.0
+        # stereo/RGB-D: ORB-SLAM2 MapPointCulling's cnThObs = 3 on Observations(), which counts a stereo observation
+        # twice; monocular: fewer than point_min_observations keyframes (cnThObs = 2)
+        n_obs = orbslam_observation_counts(store, alive) if stereo else None
         for i, pid in enumerate(alive):
             point = store.get_point(pid)
             age = kf.id - point.first_kf_id
-            if found_ratio[i] < cfg.point_min_found_ratio or (
-                age >= cfg.point_culling_window_kfs - 1 and len(point.observations) < cfg.point_min_observations
-            ):
+            too_few = (
+                n_obs[i] <= cfg.point_culling_max_observations_stereo
+                if n_obs is not None
+                else len(point.observations) < cfg.point_min_observations
+            )
+            if found_ratio[i] < cfg.point_min_found_ratio or (age >= cfg.point_culling_window_kfs - 1 and too_few):
                 store.remove_point(pid)
                 culled += 1
             elif age < cfg.point_culling_window_kfs:

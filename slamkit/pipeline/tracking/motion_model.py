@@ -21,11 +21,19 @@ F64 = NDArray[np.float64]
 def update_last_frame(store: MapStore, last: Frame, T_l_r: F64 | None) -> None:
     """ORB-SLAM UpdateLastFrame: the last frame's pose follows its reference keyframe (T_l_r (4, 4): its pose
     relative to that keyframe when it was tracked), so corrections of the map (local BA, loop closing) reach the
-    motion model's starting point."""
-    if T_l_r is None or last.ref_kf_id is None:
+    motion model's starting point. A stereo/RGB-D last frame that became a keyframe takes that keyframe's points
+    (the ones local mapping made from its depths among them)."""
+    if last.ref_kf_id is None or not store.has_keyframe(last.ref_kf_id):
         return
-    if store.has_keyframe(last.ref_kf_id):
-        last.T_c_w = T_l_r @ store.get_keyframe(last.ref_kf_id).T_c_w
+    kf = store.get_keyframe(last.ref_kf_id)
+    if kf.features.bf > 0.0 and kf.frame_index == last.index:
+        # stereo/RGB-D: the last frame is that keyframe; it tracks the points made from its depths too (ORB-SLAM2
+        # CreateNewKeyFrame sets mCurrentFrame.mvpMapPoints[i] to each new point)
+        last.point_ids = np.array(kf.point_ids, np.int64)
+        last.outlier[:] = False
+    if T_l_r is None:
+        return
+    last.T_c_w = T_l_r @ kf.T_c_w
 
 
 def pose_relative_to_reference(store: MapStore, frame: Frame) -> F64 | None:
