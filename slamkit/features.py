@@ -65,6 +65,8 @@ class Observations(Features):
     bf: baseline times fx of the rectified pair, m px (0 for a monocular sensor).
     th_depth_m: close/far threshold, m (ORB-SLAM2 Frame::mThDepth = bf * ThDepth / fx): a keypoint with a depth
         below it is *close* (its depth is trusted); inf for a monocular sensor.
+    sensor: "mono", "stereo" or "rgbd", the front end that built the record (ORB-SLAM2 switches a few search radii
+        on it: mSensor).
     """
 
     bearing: NDArray[np.float64]
@@ -72,6 +74,7 @@ class Observations(Features):
     depth_m: NDArray[np.float32]
     bf: float = 0.0
     th_depth_m: float = float("inf")
+    sensor: str = "mono"
 
     @staticmethod
     def monocular(features: Features, bearing: NDArray[np.float64]) -> Observations:

@@ -81,5 +81,10 @@ class RgbdFrontEnd(MonocularFrontEnd):
         u_right[valid] = (obs.uv_undist_px[valid, 0].astype(np.float64) - self.bf / d[valid]).astype(np.float32)
         fx = float(camera.K[0, 0])
         return dataclasses.replace(
-            obs, depth_m=depth_m, u_right_px=u_right, bf=self.bf, th_depth_m=self.bf * self.th_depth / fx
+            obs,
+            depth_m=depth_m,
+            u_right_px=u_right,
+            bf=self.bf,
+            th_depth_m=self.bf * self.th_depth / fx,
+            sensor="rgbd",
         )

@@ -80,6 +80,8 @@ class TrackingConfig:
     local_map_min_view_cos: float = 0.5
     local_map_search_radius_px: float = 1.0
     local_map_search_radius_relocalized_px: float = 5.0
+    local_map_search_radius_rgbd_px: float = 3.0
+    motion_model_search_radius_stereo_px: float = 7.0
     local_map_covisible_keyframes: int = 80
     local_map_neighbors_per_keyframe: int = 10
     local_map_wide_search_frames_after_reloc: int = 2
@@ -130,9 +132,11 @@ class LocalMappingConfig:
     point_culling_window_kfs: int = 3
     point_culling_max_observations_stereo: int = 3
     triangulation_neighbors: int = 20
+    triangulation_neighbors_stereo: int = 10
     min_parallax_cos: float = 0.9998
     scale_consistency_factor: float = 1.5
     fuse_neighbors: int = 20
+    fuse_neighbors_stereo: int = 10
     fuse_second_neighbors: int = 5
     fuse_search_radius_px: float = 3.0
     local_ba: bool = True

@@ -152,7 +152,8 @@ class LocalMapper:
         write lock (done again there if a loop correction bumped the map's epoch in between)."""
         store = self.store
         with store.read():
-            neighbors = store.covisibility.best_neighbors(kf.id, self.cfg.triangulation_neighbors)
+            nn = self.cfg.triangulation_neighbors_stereo if kf.features.bf > 0.0 else self.cfg.triangulation_neighbors
+            neighbors = store.covisibility.best_neighbors(kf.id, nn)
         created = 0
         for i, n_id in enumerate(neighbors):
             if i > 0 and abort is not None and abort.is_set():
@@ -295,7 +296,8 @@ class LocalMapper:
         targets: list[int] = []
         seen = {kf.id}
         with store.read():
-            for n in store.covisibility.best_neighbors(kf.id, cfg.fuse_neighbors):
+            nn = cfg.fuse_neighbors_stereo if kf.features.bf > 0.0 else cfg.fuse_neighbors
+            for n in store.covisibility.best_neighbors(kf.id, nn):
                 if n not in seen:
                     targets.append(n)
                     seen.add(n)

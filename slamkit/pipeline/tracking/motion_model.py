@@ -72,7 +72,23 @@ def track_with_motion_model(
     q = np.flatnonzero(inside)
     last_level = last.features.level[valid[q]].astype(np.int64)
     scale = np.power(frame.features.scale_factor, last_level)
-    for th in (cfg.motion_model_search_radius_px, 2.0 * cfg.motion_model_search_radius_px):
+    lo, hi = last_level - 1, last_level + 1
+    feats = frame.features
+    radius = cfg.motion_model_search_radius_stereo_px if feats.sensor == "stereo" else cfg.motion_model_search_radius_px
+    if feats.bf > 0.0:
+        # ORB-SLAM2 SearchByProjection(CurrentFrame, LastFrame), stereo/RGB-D: the current camera centre in the last
+        # camera (tlc); more than a baseline forward: points look bigger, searched at the last level or coarser;
+        # more than a baseline backward: at the last level or finer
+        centre = -T_pred[:3, :3].T @ T_pred[:3, 3]
+        z_cur = float(last.T_c_w[2, :3] @ centre + last.T_c_w[2, 3])
+        baseline = feats.bf / float(frame.camera.K[0, 0])
+        if z_cur > baseline:
+            hi = np.full_like(last_level, feats.n_levels - 1)
+            lo = last_level
+        elif -z_cur > baseline:
+            lo = np.zeros_like(last_level)
+            hi = last_level
+    for th in (radius, 2.0 * radius):
         frame.point_ids[:] = -1
         m = match_projected(
             frame.features,
@@ -81,8 +97,8 @@ def track_with_motion_model(
             uv[q],
             desc[q],
             th * scale,
-            last_level - 1,
-            last_level + 1,
+            lo,
+            hi,
             cfg.matcher.th_high,
             None,
             last.features.angle_deg[valid[q]].astype(np.float64),
