@@ -1,4 +1,4 @@
-"""RGB-D ORB-SLAM (frontend=rgbd) end to end on the synthetic room (sequential runner): it initialises from the
+"""RGB-D and stereo ORB-SLAM (frontend=rgbd, frontend=stereo) end to end on the synthetic room (sequential runner): it initialises from the
 first frame, tracks every frame, and its trajectory is metric (ATE after an SE(3) alignment, no scale); monocular
 runs are untouched by the stereo code paths."""
 
@@ -12,7 +12,9 @@ from slamkit.eval.metrics import compute_ate
 from slamkit.eval.run_metrics import runner_metrics
 from slamkit.pipeline.tracking import TrackingState
 
-BASE = ["runner=sequential", "runner.progress=false", "optimizer.worker=inline", "frontend=rgbd"]
+BASE = ["runner=sequential", "runner.progress=false", "optimizer.worker=inline"]
+RGBD = ["frontend=rgbd"]
+STEREO = ["frontend=stereo", "dataset.stereo=true"]
 
 
 def run(*overrides: str) -> tuple[dict, object, object]:
@@ -33,15 +35,17 @@ def _check_metric(metrics: dict, runner: object, dataset: object, ate_se3_m: flo
     assert abs(ate.scale - 1.0) < 0.005
 
 
-def test_rgbd_room_start_is_tracked_with_metric_scale() -> None:
-    metrics, runner, dataset = run("dataset.max_frames=45")
+@pytest.mark.parametrize("sensor", [RGBD, STEREO], ids=["rgbd", "stereo"])
+def test_room_start_is_tracked_with_metric_scale(sensor: list[str]) -> None:
+    metrics, runner, dataset = run(*sensor, "dataset.max_frames=45")
     assert metrics["keyframes"] >= 2
     _check_metric(metrics, runner, dataset, 0.01)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_rgbd_room_whole_loop(seed: int) -> None:
-    metrics, runner, dataset = run(f"seed={seed}")
+@pytest.mark.parametrize("sensor", [RGBD, STEREO], ids=["rgbd", "stereo"])
+def test_room_whole_loop(sensor: list[str], seed: int) -> None:
+    metrics, runner, dataset = run(*sensor, f"seed={seed}")
     _check_metric(metrics, runner, dataset, 0.01)
     assert metrics["loops_false"] == 0
