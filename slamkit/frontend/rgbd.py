@@ -15,7 +15,7 @@ mpIniORBextractor for monocular only).
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -49,6 +49,16 @@ class RgbdFrontEnd(MonocularFrontEnd):
             raise ValueError(f"frontend=rgbd: bf = {bf} and th_depth = {th_depth} must be > 0")
         self.bf = float(bf)
         self.th_depth = float(th_depth)
+
+    def bind_dataset(self, dataset: Any) -> None:
+        """Take bf and ThDepth from the dataset's ORB-SLAM settings file when it gives them (``settings_bf``,
+        ``settings_th_depth``: Camera.bf / Stereo.b, ThDepth), as ORB-SLAM reads them; else keep the config's."""
+        bf = getattr(dataset, "settings_bf", None)
+        th_depth = getattr(dataset, "settings_th_depth", None)
+        if bf is not None and bf > 0.0:
+            self.bf = float(bf)
+        if th_depth is not None and th_depth > 0.0:
+            self.th_depth = float(th_depth)
 
     def observe(self, data: FrameData, camera: Camera, initializing: bool = False) -> Observations:
         """data.image (H, W) uint8 and data.depth_m (H, W) float32 m (0 = unknown) -> the record with depth_m and

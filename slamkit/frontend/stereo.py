@@ -50,18 +50,17 @@ def _hamming(a: NDArray[np.uint8], b: NDArray[np.uint8], table: NDArray[np.int64
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _sad(
-    pyr_l: F32, pyr_r: F32, off: int, width: int, vl: int, ul: int, ur: int, w: int
+    pyr_l: NDArray[np.uint8], pyr_r: NDArray[np.uint8], off: int, width: int, vl: int, ul: int, ur: int, w: int
 ) -> float:  # pragma: no cover - numba
     """Sum of |(IL - IL[centre]) - (IR - IR[centre])| of the (2w+1)^2 windows centred at (ul, vl) of the left level
     image and (ur, vl) of the right one (both stored row-major from ``off`` with ``width`` columns)."""
-    cl = pyr_l[off + vl * width + ul]
-    cr = pyr_r[off + vl * width + ur]
-    s = 0.0
+    c = np.int64(pyr_l[off + vl * width + ul]) - np.int64(pyr_r[off + vl * width + ur])
+    s = np.int64(0)
     for dy in range(-w, w + 1):
         row = off + (vl + dy) * width
         for dx in range(-w, w + 1):
-            s += abs((pyr_l[row + ul + dx] - cl) - (pyr_r[row + ur + dx] - cr))
-    return s
+            s += abs(np.int64(pyr_l[row + ul + dx]) - np.int64(pyr_r[row + ur + dx]) - c)
+    return float(s)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -73,8 +72,8 @@ def _stereo_match_kernel(
     lev_r: I64,
     desc_r: NDArray[np.uint8],
     scales: F64,
-    pyr_l: F32,
-    pyr_r: F32,
+    pyr_l: NDArray[np.uint8],
+    pyr_r: NDArray[np.uint8],
     offsets: I64,
     widths: I64,
     heights: I64,
@@ -191,9 +190,11 @@ def _popcount_table() -> NDArray[np.int64]:
 _POPCOUNT = _popcount_table()
 
 
-def image_pyramid(image: NDArray[np.uint8], n_levels: int, scale_factor: float) -> tuple[F32, I64, I64, I64]:
+def image_pyramid(
+    image: NDArray[np.uint8], n_levels: int, scale_factor: float
+) -> tuple[NDArray[np.uint8], I64, I64, I64]:
     """ORB-SLAM's image pyramid (ORBextractor::ComputePyramid: level l is level l-1 resized by INTER_LINEAR to
-    round(size / scale_factor^l)) packed row-major into one float32 array -> (pixels, offsets, widths, heights)."""
+    round(size / scale_factor^l)) packed row-major into one uint8 array -> (pixels, offsets, widths, heights)."""
     h, w = image.shape[:2]
     levels: list[NDArray[Any]] = [image]
     for lev in range(1, n_levels):
@@ -202,8 +203,12 @@ def image_pyramid(image: NDArray[np.uint8], n_levels: int, scale_factor: float) 
         levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR))
     widths = np.array([im.shape[1] for im in levels], np.int64)
     heights = np.array([im.shape[0] for im in levels], np.int64)
-    offsets = np.concatenate([[0], np.cumsum(widths * heights)[:-1]]).astype(np.int64)
-    pixels = np.concatenate([im.astype(np.float32).ravel() for im in levels])
+    sizes = widths * heights
+    offsets = np.zeros(n_levels, np.int64)
+    offsets[1:] = np.cumsum(sizes)[:-1]
+    pixels = np.empty(int(sizes.sum()), np.uint8)
+    for im, off, size in zip(levels, offsets.tolist(), sizes.tolist(), strict=True):
+        pixels[off : off + size] = im.ravel()
     return pixels, offsets, widths, heights
 
 

@@ -79,3 +79,21 @@ def test_a_missing_or_misregistered_depth_map_is_refused_naming_the_frame(built:
     assert data.depth_m is not None
     with pytest.raises(DatasetError, match=r"frame 1 .*shape"):
         frontend.observe(dataclasses.replace(data, depth_m=data.depth_m[:-2]), camera)
+
+
+def test_bf_and_th_depth_come_from_the_settings_file(built: tuple[RgbdFrontEnd, object]) -> None:
+    """ORB-SLAM3's RGB-D settings (File.version 1.0: Stereo.b 0.08, Stereo.ThDepth 40) give bf = b x fx."""
+    from pathlib import Path
+
+    from slamkit.io.tum_rgbd import TumRgbdDataset
+
+    root = Path("/work/shared/datasets/tum_rgbd/rgbd_dataset_freiburg1_xyz_first10")
+    settings = Path("/work/shared/peers/configs/rgbd_TUM1.yaml")
+    if not (root.is_dir() and settings.is_file()):
+        pytest.skip("TUM fr1_xyz_first10 or the ORB-SLAM3 RGB-D settings not in /work/shared")
+    frontend = RgbdFrontEnd(built[0].extractor, bf=12.0, th_depth=7.0)
+    frontend.bind_dataset(TumRgbdDataset(root, settings=settings))
+    assert frontend.bf == pytest.approx(0.08 * 517.306408) and frontend.th_depth == 40.0
+    plain = RgbdFrontEnd(built[0].extractor, bf=12.0, th_depth=7.0)
+    plain.bind_dataset(TumRgbdDataset(root))  # TUM's own calibration: no bf, the config's values stay
+    assert plain.bf == 12.0 and plain.th_depth == 7.0
