@@ -155,7 +155,7 @@ def run_metrics(
     metrics: dict[str, Any] = {
         "dataset": dataset_name,
         "frames": len(run.tracking),
-        # frames with an estimated pose: tracked frames plus the initialisation's reference frame (keyframe 0)
+        # frames with an estimated pose: tracked frames plus a monocular initialisation's reference frame (keyframe 0)
         "frames_tracked": len(frames),
         "frames_lost": int(sum(s == "lost" for s in states)),
         "initialized_at_frame": init_frame,
