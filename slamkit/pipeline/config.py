@@ -68,6 +68,7 @@ class Chi2Config:
     fuse_mono: float = 5.99
     sim3: float = 10.0
     sim3_ransac: float = 9.21
+    stereo_rounded: float = 7.8
 
 
 @dataclass(frozen=True)
