@@ -268,7 +268,9 @@ class LocalMapper:
             ur = kf.features.u_right_px[idx].astype(np.float64)
             has_ur = np.isfinite(ur)
             z_safe = np.where(z > 0, z, 1.0)
-            err_r = np.where(has_ur, np.where(np.isfinite(proj[:, 0]), proj[:, 0], 1e9) - kf.features.bf / z_safe - ur, 0)
+            err_r = np.where(
+                has_ur, np.where(np.isfinite(proj[:, 0]), proj[:, 0], 1e9) - kf.features.bf / z_safe - ur, 0
+            )
             ok &= np.where(has_ur, err2 + err_r**2 < cfg.chi2.stereo_rounded * s2, err2 < cfg.chi2.mono * s2)
         dist1 = np.linalg.norm(xyz - kf1.center_w, axis=1)
         dist2 = np.linalg.norm(xyz - kf2.center_w, axis=1)
