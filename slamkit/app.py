@@ -144,6 +144,8 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     frontend = registry.instantiate(
         "frontend", frontend_node, extractor=components["features"], init_extractor=init_extractor
     )
+    if hasattr(frontend, "bind_dataset"):  # optional: a front end taking calibration from the dataset (stereo bf)
+        frontend.bind_dataset(dataset)
     tracker = Tracker(
         pipeline.tracking,
         frontend,

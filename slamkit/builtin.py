@@ -50,6 +50,18 @@ def slamkit_components() -> list[ComponentSpec]:
             description="monocular: ORB features, their bearings from the camera model, no depth",
         ),
         ComponentSpec(
+            "frontend",
+            "rgbd",
+            "slamkit.frontend.rgbd.RgbdFrontEnd",
+            description="RGB-D: ORB features, depth from the registered depth map, virtual right u = u - bf / depth",
+        ),
+        ComponentSpec(
+            "frontend",
+            "stereo",
+            "slamkit.frontend.stereo.StereoFrontEnd",
+            description="rectified stereo: ORB in both images, ORB-SLAM2's row search, SAD refinement, depth = bf / d",
+        ),
+        ComponentSpec(
             "map",
             "memory",
             "slamkit.map.store.InMemoryMapStore",

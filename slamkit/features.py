@@ -63,12 +63,18 @@ class Observations(Features):
         right from depth for RGB-D: u - bf / depth); NaN where the sensor gives none (monocular).
     depth_m: (N,) float32 m, the keypoint's depth along the optical axis (stereo or RGB-D); NaN where unknown.
     bf: baseline times fx of the rectified pair, m px (0 for a monocular sensor).
+    th_depth_m: close/far threshold, m (ORB-SLAM2 Frame::mThDepth = bf * ThDepth / fx): a keypoint with a depth
+        below it is *close* (its depth is trusted); inf for a monocular sensor.
+    sensor: "mono", "stereo" or "rgbd", the front end that built the record (ORB-SLAM2 switches a few search radii
+        on it: mSensor).
     """
 
     bearing: NDArray[np.float64]
     u_right_px: NDArray[np.float32]
     depth_m: NDArray[np.float32]
     bf: float = 0.0
+    th_depth_m: float = float("inf")
+    sensor: str = "mono"
 
     @staticmethod
     def monocular(features: Features, bearing: NDArray[np.float64]) -> Observations:
@@ -88,6 +94,24 @@ class Observations(Features):
             depth_m=np.full(n, np.nan, np.float32),
             bf=0.0,
         )
+
+    def is_close(self) -> NDArray[np.bool_]:
+        """(N,) bool: keypoints with a depth in (0, th_depth_m) (ORB-SLAM2's close points)."""
+        d = self.depth_m
+        return np.isfinite(d) & (d > 0) & (d < self.th_depth_m)
+
+    def unproject_stereo(
+        self, idx: NDArray[np.int64], T_w_c: NDArray[np.float64], K: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """(M, 3) m world points of keypoints ``idx`` with a depth (ORB-SLAM2 Frame::UnprojectStereo): the undistorted
+        keypoint back-projected at its depth through the pinhole K (3, 3), then mapped by T_w_c (4, 4)."""
+        uv = self.uv_undist_px[idx].astype(np.float64)
+        z = self.depth_m[idx].astype(np.float64)
+        x = (uv[:, 0] - K[0, 2]) * z / K[0, 0]
+        y = (uv[:, 1] - K[1, 2]) * z / K[1, 1]
+        p_c = np.stack([x, y, z], axis=1)
+        out: NDArray[np.float64] = p_c @ T_w_c[:3, :3].T + T_w_c[:3, 3]
+        return out
 
     def is_stereo(self) -> NDArray[np.bool_]:
         """(N,) bool: keypoints with a right coordinate (a stereo or RGB-D measurement)."""

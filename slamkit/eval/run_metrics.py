@@ -157,7 +157,7 @@ def run_metrics(
     metrics: dict[str, Any] = {
         "dataset": dataset_name,
         "frames": len(run.tracking),
-        # frames with an estimated pose: tracked frames plus the initialisation's reference frame (keyframe 0)
+        # frames with an estimated pose: tracked frames plus a monocular initialisation's reference frame (keyframe 0)
         "frames_tracked": len(frames),
         "frames_lost": int(sum(s == "lost" for s in states)),
         "initialized_at_frame": init_frame,
@@ -204,6 +204,9 @@ def run_metrics(
             metrics[f"{name}ate_rmse_m"] = ate.rmse_m
             metrics[f"{name}ate_matched_poses"] = ate.matched_poses
             metrics[f"{name}ate_rmse_pct_of_path"] = 100.0 * ate.rmse_m / max(metrics["path_length_m"], 1e-12)
+            # SE(3) alignment (no scale): the figure of a stereo/RGB-D run, whose scale is part of the estimate
+            se3 = compute_ate(gt, traj, align="se3", max_diff_s=0.01)
+            metrics[f"{name}ate_se3_rmse_m"] = se3.rmse_m
         metrics["ate_align"] = "sim3"
         times = {k: t for m in (all_maps or (final_map,)) for k, t in m.keyframe_timestamps().items()}
         metrics["loops_false"] = count_false_loops(run, times, ground_truth)

@@ -51,7 +51,10 @@ class RunRecord:
     # ---- events ----------------------------------------------------------------------------------
 
     def on_map_created(self, event: MapCreated) -> None:
-        # the initialisation's reference frame became keyframe 0: it has an estimated pose too
+        # the initialisation's reference frame became keyframe 0: it has an estimated pose too (a stereo/RGB-D map
+        # starts from one keyframe, the tracked frame itself, which on_frame_tracked records)
+        if len(event.keyframes) < 2:
+            return
         first = event.keyframes[0]
         self._trajectory(event.map_id).record(
             first.frame_index, first.timestamp_s, first.T_c_w, first.kf_id, first.T_c_w

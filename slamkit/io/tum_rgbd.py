@@ -143,6 +143,9 @@ class TumRgbdDataset(SequenceDataset):
         self._rgb_files = [rgb.files[int(i)] for i in ia]
 
         loaded = load_settings(settings, TUM_SIZE)
+        # the RGB-D front end's virtual baseline and close/far threshold, when the settings file gives them
+        self.settings_bf: float | None = loaded.bf if loaded is not None else None
+        self.settings_th_depth: float | None = loaded.th_depth if loaded is not None else None
         self.orb_settings = orb_extractor_from_options(orb_extractor, loaded)
         if loaded is not None:
             self.camera = loaded.camera

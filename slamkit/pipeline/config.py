@@ -68,6 +68,7 @@ class Chi2Config:
     fuse_mono: float = 5.99
     sim3: float = 10.0
     sim3_ransac: float = 9.21
+    stereo_rounded: float = 7.8
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,8 @@ class TrackingConfig:
     local_map_min_view_cos: float = 0.5
     local_map_search_radius_px: float = 1.0
     local_map_search_radius_relocalized_px: float = 5.0
+    local_map_search_radius_rgbd_px: float = 3.0
+    motion_model_search_radius_stereo_px: float = 7.0
     local_map_covisible_keyframes: int = 80
     local_map_neighbors_per_keyframe: int = 10
     local_map_wide_search_frames_after_reloc: int = 2
@@ -90,6 +93,11 @@ class TrackingConfig:
     keyframe_max_ref_ratio: float = 0.9
     keyframe_ref_min_observations: int = 3
     keyframe_ref_min_observations_small_map: int = 2
+    keyframe_max_ref_ratio_stereo: float = 0.75
+    keyframe_max_ref_ratio_stereo_single: float = 0.4
+    keyframe_c1c_ref_ratio_stereo: float = 0.25
+    keyframe_close_tracked_max: int = 100
+    keyframe_close_untracked_min: int = 70
     reloc_min_bow_matches: int = 15
     reloc_pnp_ransac_iterations: int = 300
     reloc_pnp_ransac_confidence: float = 0.99
@@ -105,6 +113,7 @@ class TrackingConfig:
     init_feature_factor: float = 2.0
     init_extractor_after_init: bool = False
     init_min_features: int = 100
+    stereo_init_min_features: int = 500
     init_min_matches: int = 100
     init_search_radius_px: float = 100.0
     init_min_map_points: int = 50
@@ -123,10 +132,13 @@ class LocalMappingConfig:
     point_min_found_ratio: float = 0.25
     point_min_observations: int = 3
     point_culling_window_kfs: int = 3
+    point_culling_max_observations_stereo: int = 3
     triangulation_neighbors: int = 20
+    triangulation_neighbors_stereo: int = 10
     min_parallax_cos: float = 0.9998
     scale_consistency_factor: float = 1.5
     fuse_neighbors: int = 20
+    fuse_neighbors_stereo: int = 10
     fuse_second_neighbors: int = 5
     fuse_search_radius_px: float = 3.0
     local_ba: bool = True
@@ -135,6 +147,7 @@ class LocalMappingConfig:
     point_bad_max_observations: int = 2
     keyframe_culling_min_observers: int = 3
     min_baseline_depth_ratio: float = 0.01
+    stereo_new_points_min: int = 100
     ba_iterations_first: int = 5
     ba_iterations_second: int = 10
     ba_update_normal_and_depth: bool = False

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.geometry.se3 import invert_T
 from slamkit.interfaces import Initializer, MapStore, Optimizer, TwoViewResult
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.bundle import commit_bundle, snapshot_bundle
@@ -214,6 +215,32 @@ def create_initial_map(
         result.model,
     )
     return kf_ini, kf_cur
+
+
+def create_stereo_initial_map(store: MapStore, frame: Frame) -> KeyFrame:
+    """ORB-SLAM2 Tracking::StereoInitialization: the frame (pose ``frame.T_c_w``, the identity) becomes the map's
+    first keyframe, inserted here as initialisation's keyframes are, and every keypoint with a depth (> 0, close or
+    far) gets a map point back-projected at its depth (Frame::UnprojectStereo), observed by that keyframe; the
+    points' descriptor, normal and depth range are computed. Returns the keyframe (its ``point_ids`` set)."""
+    assert frame.T_c_w is not None
+    feats = frame.features
+    depth = feats.depth_m
+    with_depth = np.flatnonzero(np.isfinite(depth) & (depth > 0))
+    T_w_c = invert_T(frame.T_c_w)
+    xyz = feats.unproject_stereo(with_depth, T_w_c, frame.camera.K)
+    with store.write():
+        kf = new_keyframe(store, frame)
+        insert_keyframe(store, kf)
+        created: list[int] = []
+        for m, i in enumerate(with_depth.tolist()):
+            pid = store.new_point_id()
+            store.add_point(MapPoint(pid, xyz[m].copy(), feats.descriptors[i].copy(), kf.id, kf.id))
+            store.add_observation(pid, kf.id, i)
+            created.append(pid)
+        refresh_points(store, created)
+        store.update_connections(kf.id)
+        kf = store.get_keyframe(kf.id)
+    return kf
 
 
 def _depths_in(kf: KeyFrame, store: MapStore) -> F64:

@@ -25,7 +25,7 @@ from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.keyframe_pins import KeyFramePins
-from slamkit.pipeline.map_points import refresh_points
+from slamkit.pipeline.map_points import create_depth_points, orbslam_observation_counts, refresh_points
 from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.outcomes import CulledKeyFrame, MappingOutcome
 from slamkit.pipeline.projection import project_points, require_pinhole_image
@@ -99,6 +99,8 @@ class LocalMapper:
         inserted), describe it with a bag of words, update its covisibility connections."""
         store = self.store
         insert_keyframe(store, kf)
+        if kf.features.bf > 0.0:
+            self.recent_points.extend(create_depth_points(store, kf, self.cfg.stereo_new_points_min))
         if self.place is not None and kf.bow is None:
             store.set_keyframe_bow(kf.id, self.place.transform(kf.features.descriptors))
         store.update_connections(kf.id)
@@ -119,12 +121,19 @@ class LocalMapper:
             if ids.size
             else np.zeros(0)
         )
+        stereo = kf.features.bf > 0.0
+        # stereo/RGB-D: ORB-SLAM2 MapPointCulling's cnThObs = 3 on Observations(), which counts a stereo observation
+        # twice; monocular: fewer than point_min_observations keyframes (cnThObs = 2)
+        n_obs = orbslam_observation_counts(store, alive) if stereo else None
         for i, pid in enumerate(alive):
             point = store.get_point(pid)
             age = kf.id - point.first_kf_id
-            if found_ratio[i] < cfg.point_min_found_ratio or (
-                age >= cfg.point_culling_window_kfs - 1 and len(point.observations) < cfg.point_min_observations
-            ):
+            too_few = (
+                n_obs[i] <= cfg.point_culling_max_observations_stereo
+                if n_obs is not None
+                else len(point.observations) < cfg.point_min_observations
+            )
+            if found_ratio[i] < cfg.point_min_found_ratio or (age >= cfg.point_culling_window_kfs - 1 and too_few):
                 store.remove_point(pid)
                 culled += 1
             elif age < cfg.point_culling_window_kfs:
@@ -143,7 +152,8 @@ class LocalMapper:
         write lock (done again there if a loop correction bumped the map's epoch in between)."""
         store = self.store
         with store.read():
-            neighbors = store.covisibility.best_neighbors(kf.id, self.cfg.triangulation_neighbors)
+            nn = self.cfg.triangulation_neighbors_stereo if kf.features.bf > 0.0 else self.cfg.triangulation_neighbors
+            neighbors = store.covisibility.best_neighbors(kf.id, nn)
         created = 0
         for i, n_id in enumerate(neighbors):
             if i > 0 and abort is not None and abort.is_set():
@@ -237,17 +247,31 @@ class LocalMapper:
         rays1 = (np.c_[uv1, np.ones(i1.size)] @ np.linalg.inv(K1).T) @ kf1.T_c_w[:3, :3]
         rays2 = (np.c_[uv2, np.ones(i2.size)] @ np.linalg.inv(K2).T) @ kf2.T_c_w[:3, :3]
         cos_par = np.einsum("ij,ij->i", rays1, rays2) / (np.linalg.norm(rays1, axis=1) * np.linalg.norm(rays2, axis=1))
-        ok = (cos_par > 0) & (cos_par < cfg.min_parallax_cos)
-        xyz = triangulate_points(kf1.T_c_w, kf2.T_c_w, K1, K2, uv1, uv2)
+        stereo = kf1.features.bf > 0.0 or kf2.features.bf > 0.0
+        if stereo:
+            ok, xyz = _triangulate_with_depths(kf1, kf2, i1, i2, uv1, uv2, cos_par, cfg.min_parallax_cos)
+        else:
+            ok = (cos_par > 0) & (cos_par < cfg.min_parallax_cos)
+            xyz = triangulate_points(kf1.T_c_w, kf2.T_c_w, K1, K2, uv1, uv2)
         ok &= np.all(np.isfinite(xyz), axis=1)
         xyz = np.where(np.isfinite(xyz), xyz, 0.0)
         sigma1 = kf1.features.level_sigma2()[i1]
         sigma2 = kf2.features.level_sigma2()[i2]
-        for kf, uv, s2 in ((kf1, uv1, sigma1), (kf2, uv2, sigma2)):
+        for kf, idx, uv, s2 in ((kf1, i1, uv1, sigma1), (kf2, i2, uv2, sigma2)):
             proj, z, _ = project_points(kf.T_c_w, xyz, kf.camera)
             ok &= z > 0
             err2 = np.sum((np.where(np.isfinite(proj), proj, 1e9) - uv) ** 2, axis=1)
-            ok &= err2 < cfg.chi2.mono * s2
+            if not stereo:
+                ok &= err2 < cfg.chi2.mono * s2
+                continue
+            # ORB-SLAM2 CreateNewMapPoints: a keypoint with a right coordinate is checked in 3 dof (gate 7.8)
+            ur = kf.features.u_right_px[idx].astype(np.float64)
+            has_ur = np.isfinite(ur)
+            z_safe = np.where(z > 0, z, 1.0)
+            err_r = np.where(
+                has_ur, np.where(np.isfinite(proj[:, 0]), proj[:, 0], 1e9) - kf.features.bf / z_safe - ur, 0
+            )
+            ok &= np.where(has_ur, err2 + err_r**2 < cfg.chi2.stereo_rounded * s2, err2 < cfg.chi2.mono * s2)
         dist1 = np.linalg.norm(xyz - kf1.center_w, axis=1)
         dist2 = np.linalg.norm(xyz - kf2.center_w, axis=1)
         ok &= (dist1 > 0) & (dist2 > 0)
@@ -286,7 +310,8 @@ class LocalMapper:
         targets: list[int] = []
         seen = {kf.id}
         with store.read():
-            for n in store.covisibility.best_neighbors(kf.id, cfg.fuse_neighbors):
+            nn = cfg.fuse_neighbors_stereo if kf.features.bf > 0.0 else cfg.fuse_neighbors
+            for n in store.covisibility.best_neighbors(kf.id, nn):
                 if n not in seen:
                     targets.append(n)
                     seen.add(n)
@@ -398,6 +423,35 @@ class LocalMapper:
                 if self.place is not None:
                     self.place.remove(k_id)
         return culled
+
+
+def _triangulate_with_depths(
+    kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64, uv1: F64, uv2: F64, cos_par: F64, min_parallax_cos: float
+) -> tuple[NDArray[np.bool_], F64]:
+    """ORB-SLAM2 CreateNewMapPoints with stereo/RGB-D keyframes: a pair is triangulated from the two rays when their
+    parallax beats the stereo parallax of its keypoints' depths (cos 2 atan(b / 2 / depth)) and is positive (any
+    parallax with a depth on either side, above acos(min_parallax_cos) without); otherwise the keypoint whose
+    depth gives the larger stereo parallax is back-projected at its depth. -> (ok (M,), xyz (M, 3) world)."""
+    K1, K2 = kf1.camera.K, kf2.camera.K
+    xyz = triangulate_points(kf1.T_c_w, kf2.T_c_w, K1, K2, uv1, uv2)
+    d1 = kf1.features.depth_m[i1].astype(np.float64)
+    d2 = kf2.features.depth_m[i2].astype(np.float64)
+    st1 = np.isfinite(kf1.features.u_right_px[i1]) & np.isfinite(d1) & (d1 > 0)
+    st2 = np.isfinite(kf2.features.u_right_px[i2]) & np.isfinite(d2) & (d2 > 0)
+    b1 = kf1.features.bf / K1[0, 0]
+    b2 = kf2.features.bf / K2[0, 0]
+    none = cos_par + 1.0
+    cps1 = np.where(st1, np.cos(2.0 * np.arctan2(b1 / 2.0, np.where(st1, d1, 1.0))), none)
+    cps2 = np.where(st2, np.cos(2.0 * np.arctan2(b2 / 2.0, np.where(st2, d2, 1.0))), none)
+    cps = np.minimum(cps1, cps2)
+    rays = (cos_par < cps) & (cos_par > 0) & (st1 | st2 | (cos_par < min_parallax_cos))
+    use1 = ~rays & st1 & (cps1 < cps2)
+    use2 = ~rays & ~use1 & st2 & (cps2 < cps1)
+    if use1.any():
+        xyz[use1] = kf1.features.unproject_stereo(i1[use1], invert_T(kf1.T_c_w), K1)
+    if use2.any():
+        xyz[use2] = kf2.features.unproject_stereo(i2[use2], invert_T(kf2.T_c_w), K2)
+    return rays | use1 | use2, xyz
 
 
 def _median_depth(kf: KeyFrame, store: MapStore) -> float:

@@ -72,7 +72,6 @@ log = logging.getLogger("slamkit.loop")
 I64 = NDArray[np.int64]
 
 
-
 @dataclass(frozen=True)
 class AcceptedLoop:
     """A loop detection accepted: the loop keyframe, S_cw the current keyframe's corrected Sim3 pose (world to
@@ -387,6 +386,7 @@ class LoopCloser:
                 s1,
                 s2,
                 self.rng,
+                fix_scale=kf.features.bf > 0.0,
                 probability=cfg.sim3_ransac_probability,
                 min_inliers=cfg.sim3_ransac_min_inliers,
                 max_iterations=cfg.sim3_ransac_max_iterations,
@@ -408,6 +408,7 @@ class LoopCloser:
                 intrinsics2=intrinsics_of(cand.camera.K),
                 scale_factor=kf.features.scale_factor,
                 chi2=cfg.chi2.sim3,
+                fix_scale=kf.features.bf > 0.0,  # stereo/RGB-D: scale observable (ORB-SLAM2 mbFixScale)
             )
             opt = self.optimizer.optimize_sim3(problem)
             info["optimized_inliers"] = int(opt.inliers.sum())
@@ -422,9 +423,7 @@ class LoopCloser:
                 S_cw = S_12 @ sim3_of_pose(cand.T_c_w)
                 inlier_pids = loop_pids[opt.inliers]
                 alive = store.has_points(inlier_pids)
-                matches = {
-                    int(a): int(p) for a, p in zip(i1[opt.inliers][alive], inlier_pids[alive], strict=True)
-                }
+                matches = {int(a): int(p) for a, p in zip(i1[opt.inliers][alive], inlier_pids[alive], strict=True)}
                 window = loop_window(store, cand_id)
                 matches.update(self._search_loop_points(kf, S_cw, window, matches))
                 info["loop_matches"] = len(matches)
@@ -560,6 +559,7 @@ class LoopCloser:
             kf.features.level_sigma2()[i1],
             sigma2_2,
             self.rng,
+            fix_scale=kf.features.bf > 0.0,
             probability=cfg.sim3_ransac_probability,
             min_inliers=cfg.common_regions_ransac_min_inliers,
             max_iterations=cfg.sim3_ransac_max_iterations,
@@ -646,6 +646,7 @@ class LoopCloser:
             intrinsics2=intrinsics_of(matched.camera.K),
             scale_factor=kf.features.scale_factor,
             chi2=self.cfg.chi2.sim3,
+            fix_scale=kf.features.bf > 0.0,  # stereo/RGB-D: scale observable (ORB-SLAM2 mbFixScale)
         )
 
     # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------

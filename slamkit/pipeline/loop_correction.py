@@ -135,6 +135,8 @@ def essential_graph_problem(
         edge_i=np.array([row[i] for i, _ in pairs], np.int64),
         edge_j=np.array([row[j] for _, j in pairs], np.int64),
         S_ij=S_ij,
+        # stereo/RGB-D maps: SE3 (ORB-SLAM2 OptimizeEssentialGraph with bFixScale keeps every scale at 1)
+        use_sim3=not any(store.get_keyframe(k).features.bf > 0.0 for k in kf_ids),
     )
     return problem, kf_ids
 

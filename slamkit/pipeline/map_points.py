@@ -16,6 +16,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.geometry.se3 import invert_T
 from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.matching import row_distance
@@ -221,3 +222,52 @@ def predict_level(
     ratio = np.asarray(d_max_m, np.float64) / np.maximum(np.asarray(distance_m, np.float64), 1e-12)
     level = np.ceil(np.log(np.maximum(ratio, 1e-12)) / np.log(scale_factor)).astype(np.int64)
     return np.asarray(np.clip(level, 0, n_levels - 1))
+
+
+def create_depth_points(store: MapStore, kf: KeyFrame, min_points: int) -> list[int]:
+    """New map points from the depths of a stereo/RGB-D keyframe in the map (ORB-SLAM2 Tracking::CreateNewKeyFrame).
+
+    The keyframe's keypoints with a depth, nearest first: one without a map point gets a new point back-projected
+    at its depth (Frame::UnprojectStereo), observed by ``kf``; each keypoint visited counts, matched or new, and the
+    walk stops at the first far keypoint (depth >= th_depth_m) once more than ``min_points`` were counted: every
+    close keypoint gets a point, far ones only until ``min_points``. Called under the write lock; returns the ids of
+    the new points (descriptor, normal and depth range computed)."""
+    feats = kf.features
+    depth = feats.depth_m
+    idx = np.flatnonzero(np.isfinite(depth) & (depth > 0))
+    if idx.size == 0:
+        return []
+    order = idx[np.argsort(depth[idx], kind="stable")]
+    pids = np.asarray(kf.point_ids, np.int64)
+    has = np.zeros(pids.shape[0], np.bool_)
+    has[pids >= 0] = store.has_points(pids[pids >= 0])
+    create: list[int] = []
+    for counted, i in enumerate(order.tolist(), start=1):
+        if not has[i]:
+            create.append(i)
+        if depth[i] > feats.th_depth_m and counted > min_points:
+            break
+    if not create:
+        return []
+    sel = np.array(create, np.int64)
+    xyz = feats.unproject_stereo(sel, invert_T(kf.T_c_w), kf.camera.K)
+    created: list[int] = []
+    for m, i in enumerate(create):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[m].copy(), feats.descriptors[i].copy(), kf.id, kf.id))
+        store.add_observation(pid, kf.id, i)
+        created.append(pid)
+    refresh_points(store, created)
+    return created
+
+
+def orbslam_observation_counts(store: MapStore, point_ids: Iterable[int]) -> I64:
+    """(P,) ORB-SLAM's MapPoint::Observations() of each point: its observations, a stereo/RGB-D one (the keypoint has
+    a right coordinate) counting twice (MapPoint::AddObservation: nObs += 2 when mvuRight[idx] >= 0)."""
+    out = []
+    for pid in point_ids:
+        n = 0
+        for kf_id, idx in store.get_point(int(pid)).observations.items():
+            n += 2 if np.isfinite(store.get_keyframe(kf_id).features.u_right_px[idx]) else 1
+        out.append(n)
+    return np.array(out, np.int64)

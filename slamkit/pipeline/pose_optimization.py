@@ -17,7 +17,9 @@ damped solves per iteration until one lowers the cost. Residual r = projection -
 1 / scale_factor^(2 level), left perturbation T <- exp(xi) T with xi = [omega, v].
 ``optimize_pose`` takes and returns the optimizer interface's PoseOnlyProblem / PoseOnlyResult, so it can stand
 in for ``Optimizer.optimize_pose``. Camera models: the pinhole of the undistorted image and Kannala-Brandt (raw
-fisheye pixels, ``problem.distortion`` = k1..k4); only monocular observations are supported so far.
+fisheye pixels, ``problem.distortion`` = k1..k4). Stereo/RGB-D observations (finite ``u_right_px``, pinhole only)
+add the right-coordinate residual u - bf / z - u_right (3 dof, chi-square gate ``chi2_stereo`` = 7.815; ORB-SLAM2
+EdgeStereoSE3ProjectXYZOnlyPose) with the same information 1 / scale_factor^(2 level).
 """
 
 from __future__ import annotations
@@ -94,15 +96,38 @@ def _rho(chi2: float, delta: float, robust: bool) -> float:  # pragma: no cover 
     return 2.0 * delta * np.sqrt(chi2) - delta * delta
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _right_residual(x: float, z: float, cam: F64, ur: F64, bf: float, i: int) -> float:  # pragma: no cover - numba
+    """Residual of the right coordinate of stereo/RGB-D observation i at camera point (x, ., z) (ORB-SLAM
+    EdgeStereoSE3ProjectXYZOnlyPose): u_r = fx x / z + cx - bf / z, minus the observed u_right, px (pinhole only)."""
+    iz = 1.0 / z
+    return cam[0] * x * iz + cam[2] - bf * iz - ur[i]
+
+
 @numba.njit(cache=True, nogil=True)
 def _cost(
-    T: F64, X: F64, uv: F64, info: F64, delta: F64, use: NDArray[np.bool_], cam: F64, fisheye: bool, robust: bool
+    T: F64,
+    X: F64,
+    uv: F64,
+    info: F64,
+    delta: F64,
+    use: NDArray[np.bool_],
+    cam: F64,
+    fisheye: bool,
+    robust: bool,
+    stereo: NDArray[np.bool_],
+    ur: F64,
+    bf: float,
 ) -> float:  # pragma: no cover - numba
     f = 0.0
     for i in range(X.shape[0]):
         if use[i]:
-            _, _, _, ru, rv = _residual(T, X, uv, cam, fisheye, i)
-            f += _rho(info[i] * (ru * ru + rv * rv), delta[i], robust)
+            x, _, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
+            e2 = ru * ru + rv * rv
+            if stereo[i]:
+                rr = _right_residual(x, z, cam, ur, bf, i)
+                e2 += rr * rr
+            f += _rho(info[i] * e2, delta[i], robust)
     return f
 
 
@@ -121,9 +146,22 @@ def _kb_jacobian_rows(x: float, y: float, z: float, cam: F64, J: F64) -> None:  
 
 @numba.njit(cache=True, nogil=True)
 def _linearize(
-    T: F64, X: F64, uv: F64, info: F64, delta: F64, use: NDArray[np.bool_], cam: F64, fisheye: bool, robust: bool
+    T: F64,
+    X: F64,
+    uv: F64,
+    info: F64,
+    delta: F64,
+    use: NDArray[np.bool_],
+    cam: F64,
+    fisheye: bool,
+    robust: bool,
+    stereo: NDArray[np.bool_],
+    ur: F64,
+    bf: float,
 ) -> tuple[F64, F64, float]:  # pragma: no cover - numba
-    """H = sum J^T w J (6, 6), g = sum J^T w r (6,), robust cost; w = info * rho'(chi2) (IRLS)."""
+    """H = sum J^T w J (6, 6), g = sum J^T w r (6,), robust cost; w = info * rho'(chi2) (IRLS). A stereo
+    observation (``stereo[i]``) adds the right-coordinate row (u_r = fx x / z + cx - bf / z) with the same
+    information (ORB-SLAM: Info = I_3 / sigma2)."""
     fx, fy = cam[0], cam[1]
     H = np.zeros((6, 6))
     g = np.zeros(6)
@@ -133,7 +171,12 @@ def _linearize(
         if not use[i]:
             continue
         x, y, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
-        chi2 = info[i] * (ru * ru + rv * rv)
+        rr = 0.0
+        if stereo[i]:
+            rr = _right_residual(x, z, cam, ur, bf, i)
+            chi2 = info[i] * (ru * ru + rv * rv + rr * rr)
+        else:
+            chi2 = info[i] * (ru * ru + rv * rv)
         w = info[i]
         if robust and chi2 > delta[i] * delta[i]:
             w *= delta[i] / np.sqrt(max(chi2, 1e-300))
@@ -155,6 +198,15 @@ def _linearize(
             g[a] += ga
             for b in range(a, 6):
                 H[a, b] += w * (J[0, a] * J[0, b] + J[1, a] * J[1, b])
+        if stereo[i]:
+            # d u_r / d p_c = (fx/z, 0, -fx x/z^2 + bf/z^2) (ORB-SLAM EdgeStereoSE3ProjectXYZOnlyPose::linearizeOplus)
+            iz = 1.0 / z
+            a20, a22 = fx * iz, -fx * x * iz * iz + bf * iz * iz
+            Jr = (y * a22, z * a20 - x * a22, -y * a20, a20, 0.0, a22)
+            for a in range(6):
+                g[a] += w * Jr[a] * rr
+                for b in range(a, 6):
+                    H[a, b] += w * Jr[a] * Jr[b]
     for a in range(6):
         for b in range(a):
             H[a, b] = H[b, a]
@@ -202,6 +254,9 @@ def _levenberg_marquardt(
     cam: F64,
     fisheye: bool,
     robust: bool,
+    stereo: NDArray[np.bool_],
+    ur: F64,
+    bf: float,
     iterations: int,
     tau: float,
     max_trials: int,
@@ -217,7 +272,7 @@ def _levenberg_marquardt(
     f = 0.0
     for _ in range(iterations):
         if stale:
-            H, g, f = _linearize(T, X, uv, info, delta, use, cam, fisheye, robust)
+            H, g, f = _linearize(T, X, uv, info, delta, use, cam, fisheye, robust, stereo, ur, bf)
             stale = False
         if lam < 0.0:
             hmax = 0.0
@@ -238,7 +293,7 @@ def _levenberg_marquardt(
             if predicted <= rel_tol * f:
                 break  # the model promises less than the tolerance: converged
             T_new = _exp_times(h, T)
-            f_new = _cost(T_new, X, uv, info, delta, use, cam, fisheye, robust)
+            f_new = _cost(T_new, X, uv, info, delta, use, cam, fisheye, robust, stereo, ur, bf)
             rho = (f - f_new) / predicted if predicted > 0.0 else -1.0
             if rho > 0.0 and np.isfinite(f_new):
                 lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
@@ -265,6 +320,9 @@ def _optimize_pose_kernel(
     chi2_max: F64,
     cam: F64,
     fisheye: bool,
+    stereo: NDArray[np.bool_],
+    ur: F64,
+    bf: float,
     rounds: int,
     iterations: int,
     tau: float,
@@ -274,30 +332,49 @@ def _optimize_pose_kernel(
     n = X.shape[0]
     delta = np.sqrt(chi2_max)
     inlier = np.ones(n, np.bool_)
-    cost_initial = _cost(T0, X, uv, info, delta, inlier, cam, fisheye, True)
+    cost_initial = _cost(T0, X, uv, info, delta, inlier, cam, fisheye, True, stereo, ur, bf)
     T = T0.copy()
     total = 0
     for it in range(rounds):
         T, done = _levenberg_marquardt(
-            T0.copy(), X, uv, info, delta, inlier, cam, fisheye, it < 2, iterations, tau, max_trials, rel_tol
+            T0.copy(),
+            X,
+            uv,
+            info,
+            delta,
+            inlier,
+            cam,
+            fisheye,
+            it < 2,
+            stereo,
+            ur,
+            bf,
+            iterations,
+            tau,
+            max_trials,
+            rel_tol,
         )
         total += done
         any_in = False
         for i in range(n):
-            _, _, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
-            inlier[i] = (info[i] * (ru * ru + rv * rv) <= chi2_max[i]) and z > 0.0
+            x, _, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
+            if stereo[i]:
+                rr = _right_residual(x, z, cam, ur, bf, i)
+                inlier[i] = (info[i] * (ru * ru + rv * rv + rr * rr) <= chi2_max[i]) and z > 0.0
+            else:
+                inlier[i] = (info[i] * (ru * ru + rv * rv) <= chi2_max[i]) and z > 0.0
             any_in = any_in or inlier[i]
         if not any_in:
             break
-    cost_final = _cost(T, X, uv, info, delta, inlier, cam, fisheye, True)
+    cost_final = _cost(T, X, uv, info, delta, inlier, cam, fisheye, True, stereo, ur, bf)
     return T, inlier, total, cost_initial, cost_final
 
 
 def optimize_pose(problem: PoseOnlyProblem) -> PoseOnlyResult:
-    """Motion-only BA of a monocular PoseOnlyProblem (see the module docstring).
+    """Motion-only BA of a PoseOnlyProblem, monocular and stereo/RGB-D observations (see the module docstring).
 
-    Raises ValueError when the problem has stereo observations (u_right_px not all NaN), mismatched shapes or
-    non-finite inputs.
+    Raises ValueError on mismatched shapes, non-finite inputs, or stereo observations without a pinhole camera and
+    bf > 0.
     """
     X = np.ascontiguousarray(problem.xyz_w, np.float64)
     uv = np.ascontiguousarray(problem.uv_px, np.float64)
@@ -309,12 +386,20 @@ def optimize_pose(problem: PoseOnlyProblem) -> PoseOnlyResult:
             f"pose problem: expected xyz_w (N, 3), uv_px (N, 2), level (N,), T_c_w_init (4, 4); got "
             f"{X.shape}, {uv.shape}, {level.shape}, {T0.shape}"
         )
-    if np.any(np.isfinite(np.asarray(problem.u_right_px, np.float64))):
-        raise ValueError("pose problem: stereo observations (finite u_right_px) are not supported here")
+    ur = np.ascontiguousarray(problem.u_right_px, np.float64).reshape(-1)
+    if ur.shape != (n,):
+        raise ValueError(f"pose problem: expected u_right_px (N,) = ({n},); got {ur.shape}")
+    stereo = np.isfinite(ur)
+    bf = float(problem.bf)
+    if stereo.any() and (problem.camera_model != CAMERA_PINHOLE or not bf > 0.0):
+        raise ValueError(
+            f"pose problem: stereo observations (finite u_right_px) need a pinhole camera and bf > 0; got "
+            f"camera_model {problem.camera_model!r}, bf = {bf:g}"
+        )
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(uv)) and np.all(np.isfinite(T0))):
         raise ValueError("pose problem: xyz_w, uv_px and T_c_w_init must be finite")
     info = np.power(float(problem.scale_factor), -2.0 * level.astype(np.float64))
-    chi2_max = np.full(n, float(problem.chi2_mono))
+    chi2_max = np.where(stereo, float(problem.chi2_stereo), float(problem.chi2_mono))
     fisheye = problem.camera_model == CAMERA_KANNALA_BRANDT
     if problem.camera_model not in (CAMERA_PINHOLE, CAMERA_KANNALA_BRANDT):
         raise ValueError(f"pose problem: camera_model {problem.camera_model!r} is not supported here")
@@ -332,6 +417,9 @@ def optimize_pose(problem: PoseOnlyProblem) -> PoseOnlyResult:
         chi2_max,
         cam,
         fisheye,
+        stereo,
+        ur,
+        bf,
         int(problem.rounds),
         int(problem.iterations_per_round),
         LM_TAU,

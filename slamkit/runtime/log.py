@@ -61,6 +61,7 @@ def log_tracking_outcome(
     elif map_change == MapChange.NEW_MAP:
         log.new_maps += 1
     log.tracking.append(out)
-    if out.initialized_map and out.new_keyframes:
+    # a stereo/RGB-D map starts from the tracked frame itself (one keyframe): no other frame to record
+    if out.initialized_map and out.new_keyframes and out.new_keyframes[0].frame_index != out.frame_index:
         kf_ini = out.new_keyframes[0]
         recorder.record(kf_ini.frame_index, kf_ini.timestamp_s, kf_ini.T_c_w, kf_ini.id, kf_ini.T_c_w)

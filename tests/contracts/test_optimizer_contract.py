@@ -125,10 +125,11 @@ def test_pose_recovers_truth_and_flags_outliers(optimizer: Optimizer, stereo_rat
     check_pose(optimizer.optimize_pose, stereo_ratio)
 
 
-@pytest.mark.parametrize("stereo_ratio", [0.0, "fisheye"], ids=["mono", "fisheye"])
+@pytest.mark.parametrize("stereo_ratio", [0.0, 0.5, "fisheye"], ids=["mono", "stereo", "fisheye"])
 def test_trackings_compiled_pose_optimization_meets_the_same_contract(stereo_ratio: float | str) -> None:
     """Core's one motion-only BA (slamkit.pipeline.pose_optimization, ``pipeline.tracking.pose_optimization:
-    compiled``, monocular only) is held to the backends' motion-only contract; ``optimizer`` runs theirs."""
+    compiled``, monocular, stereo/RGB-D and fisheye) is held to the backends' motion-only contract; ``optimizer``
+    runs theirs."""
     check_pose(compiled_pose_optimization, stereo_ratio)
 
 
@@ -356,11 +357,11 @@ def _pairwise(results: list[np.ndarray], errors: Callable[..., tuple[Any, ...]])
 needs_two = pytest.mark.skipif(len(NAMES) < 2, reason=f"only one optimizer registered ({NAMES})")
 
 
-@pytest.mark.parametrize("fisheye", [False, True], ids=["mono", "fisheye"])
-def test_backends_agree_with_trackings_compiled_pose_optimization(
-    all_optimizers: list[Optimizer], fisheye: bool
-) -> None:
-    problem, truth = make_pose_problem(np.random.default_rng(67), n_points=300)
+@pytest.mark.parametrize("kind", ["mono", "fisheye", "stereo"])
+def test_backends_agree_with_trackings_compiled_pose_optimization(all_optimizers: list[Optimizer], kind: str) -> None:
+    fisheye = kind == "fisheye"
+    stereo_ratio = 0.6 if kind == "stereo" else 0.0
+    problem, truth = make_pose_problem(np.random.default_rng(67), n_points=300, stereo_ratio=stereo_ratio)
     if fisheye:
         problem = with_kannala_brandt(problem, truth)
     compiled = compiled_pose_optimization(problem).T_c_w
@@ -372,6 +373,14 @@ def test_backends_agree_with_trackings_compiled_pose_optimization(
 @needs_two
 def test_backends_agree_on_bundle(all_optimizers: list[Optimizer]) -> None:
     problem, _ = _small_bundle(61)
+    problem.iterations_first, problem.iterations_second = 10, 30  # run to convergence
+    _pairwise([opt.bundle_adjust(problem).T_c_w for opt in all_optimizers], pose_errors)
+
+
+@needs_two
+def test_backends_agree_on_stereo_bundle(all_optimizers: list[Optimizer]) -> None:
+    """The 3-dof stereo/RGB-D residual (u, v, u_right; chi2 7.815) in local BA: the backends find the same poses."""
+    problem, _ = _small_bundle(68, stereo_ratio=0.6)
     problem.iterations_first, problem.iterations_second = 10, 30  # run to convergence
     _pairwise([opt.bundle_adjust(problem).T_c_w for opt in all_optimizers], pose_errors)
 

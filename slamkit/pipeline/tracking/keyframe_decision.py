@@ -1,5 +1,7 @@
 """ORB-SLAM sec. V-E: the new-keyframe decision as ORB-SLAM2's released code (Tracking::NeedNewKeyFrame, monocular; the
-same in ORB-SLAM3), a pure function of a small record.
+same in ORB-SLAM3), a pure function of a small record. Stereo/RGB-D frames (``KeyFrameFacts.stereo``) follow the
+code's non-monocular branch: thRefRatio 0.75 (0.4 with one keyframe), c1c (fewer than 25% of the reference's points)
+and the close-point condition (fewer than 100 close points tracked, more than 70 untracked).
 
 The tracker gathers the numbers (:class:`KeyFrameFacts`, read from the map under its read lock) and
 :func:`decide_keyframe` applies the code's conditions to them, so each can be tested on its own. ``max_frames`` is
@@ -35,6 +37,8 @@ class KeyFrameFacts:
     the reference keyframe's points seen by at least ``keyframe_ref_min_observations`` keyframes (None: no
     reference keyframe in the map). keyframes_in_map: the map's size. mapping: local mapping's state. max_frames:
     ORB-SLAM's mMaxFrames (frames), the camera's frame rate unless ``keyframe_max_frames`` sets it.
+    stereo: the frame has depth (stereo or RGB-D sensor). close_tracked / close_untracked: its close keypoints
+    (depth below th_depth_m) with / without a tracked map point (ORB-SLAM2 nTrackedClose / nNonTrackedClose).
     """
 
     frame_index: int
@@ -45,6 +49,9 @@ class KeyFrameFacts:
     keyframes_in_map: int
     mapping: MappingState
     max_frames: int = 30
+    stereo: bool = False
+    close_tracked: int = 0
+    close_untracked: int = 0
 
 
 def decide_keyframe(facts: KeyFrameFacts, cfg: TrackingConfig) -> KeyFrameDecision:
@@ -59,6 +66,26 @@ def decide_keyframe(facts: KeyFrameFacts, cfg: TrackingConfig) -> KeyFrameDecisi
     c1a = facts.frame_index >= facts.last_keyframe_frame_index + max_frames
     c1b = facts.mapping.idle or facts.mapping.waits_for_idle
     ref = facts.reference_tracked_points
+    if facts.stereo:
+        # ORB-SLAM2 NeedNewKeyFrame, mSensor != MONOCULAR: thRefRatio 0.75 (0.4 with one keyframe), c1c, and the
+        # close-point condition bNeedToInsertClose
+        ratio = (
+            cfg.keyframe_max_ref_ratio_stereo_single
+            if facts.keyframes_in_map < 2
+            else cfg.keyframe_max_ref_ratio_stereo
+        )
+        need_close = (
+            facts.close_tracked < cfg.keyframe_close_tracked_max
+            and facts.close_untracked > cfg.keyframe_close_untracked_min
+        )
+        c1c = ref is None or facts.tracked_points < cfg.keyframe_c1c_ref_ratio_stereo * ref or need_close
+        few = ref is None or facts.tracked_points < ratio * ref or need_close
+        c2 = few and facts.tracked_points > cfg.keyframe_min_tracked_points
+        if not ((c1a or c1b or c1c) and c2):
+            return KeyFrameDecision.NOT_NEEDED
+        # ORB-SLAM2 inserts a stereo keyframe while local mapping is busy when fewer than 3 are queued; slamkit's
+        # runner interrupts local BA or waits for local mapping, then makes it (MAPPING_BUSY)
+        return KeyFrameDecision.INSERT if facts.mapping.idle else KeyFrameDecision.MAPPING_BUSY
     few_of_reference = ref is None or facts.tracked_points < cfg.keyframe_max_ref_ratio * ref
     c2 = few_of_reference and facts.tracked_points > cfg.keyframe_min_tracked_points
     if not ((c1a or c1b) and c2):

@@ -108,7 +108,12 @@ def search_local_points(frame: Frame, candidates: I64, store: MapStore, cfg: Tra
     v = np.flatnonzero(test.visible)
     visible = near[v]
     store.increase_visible(visible)
-    th = cfg.local_map_search_radius_relocalized_px if wide_search else cfg.local_map_search_radius_px
+    if wide_search:
+        th = cfg.local_map_search_radius_relocalized_px
+    elif feats.sensor == "rgbd":  # ORB-SLAM2 SearchLocalPoints: th = 3 for RGB-D
+        th = cfg.local_map_search_radius_rgbd_px
+    else:
+        th = cfg.local_map_search_radius_px
     level = test.predicted_level[v]
     radius = th * radius_by_viewing_cos(test.view_cos[v]) * np.power(feats.scale_factor, level)
     m = match_projected(

@@ -21,11 +21,19 @@ F64 = NDArray[np.float64]
 def update_last_frame(store: MapStore, last: Frame, T_l_r: F64 | None) -> None:
     """ORB-SLAM UpdateLastFrame: the last frame's pose follows its reference keyframe (T_l_r (4, 4): its pose
     relative to that keyframe when it was tracked), so corrections of the map (local BA, loop closing) reach the
-    motion model's starting point."""
-    if T_l_r is None or last.ref_kf_id is None:
+    motion model's starting point. A stereo/RGB-D last frame that became a keyframe takes that keyframe's points
+    (the ones local mapping made from its depths among them)."""
+    if last.ref_kf_id is None or not store.has_keyframe(last.ref_kf_id):
         return
-    if store.has_keyframe(last.ref_kf_id):
-        last.T_c_w = T_l_r @ store.get_keyframe(last.ref_kf_id).T_c_w
+    kf = store.get_keyframe(last.ref_kf_id)
+    if kf.features.bf > 0.0 and kf.frame_index == last.index:
+        # stereo/RGB-D: the last frame is that keyframe; it tracks the points made from its depths too (ORB-SLAM2
+        # CreateNewKeyFrame sets mCurrentFrame.mvpMapPoints[i] to each new point)
+        last.point_ids = np.array(kf.point_ids, np.int64)
+        last.outlier[:] = False
+    if T_l_r is None:
+        return
+    last.T_c_w = T_l_r @ kf.T_c_w
 
 
 def pose_relative_to_reference(store: MapStore, frame: Frame) -> F64 | None:
@@ -64,7 +72,23 @@ def track_with_motion_model(
     q = np.flatnonzero(inside)
     last_level = last.features.level[valid[q]].astype(np.int64)
     scale = np.power(frame.features.scale_factor, last_level)
-    for th in (cfg.motion_model_search_radius_px, 2.0 * cfg.motion_model_search_radius_px):
+    lo, hi = last_level - 1, last_level + 1
+    feats = frame.features
+    radius = cfg.motion_model_search_radius_stereo_px if feats.sensor == "stereo" else cfg.motion_model_search_radius_px
+    if feats.bf > 0.0:
+        # ORB-SLAM2 SearchByProjection(CurrentFrame, LastFrame), stereo/RGB-D: the current camera centre in the last
+        # camera (tlc); more than a baseline forward: points look bigger, searched at the last level or coarser;
+        # more than a baseline backward: at the last level or finer
+        centre = -T_pred[:3, :3].T @ T_pred[:3, 3]
+        z_cur = float(last.T_c_w[2, :3] @ centre + last.T_c_w[2, 3])
+        baseline = feats.bf / float(frame.camera.K[0, 0])
+        if z_cur > baseline:
+            hi = np.full_like(last_level, feats.n_levels - 1)
+            lo = last_level
+        elif -z_cur > baseline:
+            lo = np.zeros_like(last_level)
+            hi = last_level
+    for th in (radius, 2.0 * radius):
         frame.point_ids[:] = -1
         m = match_projected(
             frame.features,
@@ -73,8 +97,8 @@ def track_with_motion_model(
             uv[q],
             desc[q],
             th * scale,
-            last_level - 1,
-            last_level + 1,
+            lo,
+            hi,
             cfg.matcher.th_high,
             None,
             last.features.angle_deg[valid[q]].astype(np.float64),

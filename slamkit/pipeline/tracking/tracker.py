@@ -39,8 +39,14 @@ from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
-from slamkit.pipeline.initialization import MonocularInitialization, create_initial_map, new_keyframe
+from slamkit.pipeline.initialization import (
+    MonocularInitialization,
+    create_initial_map,
+    create_stereo_initial_map,
+    new_keyframe,
+)
 from slamkit.pipeline.lost import LostDecision, LostPolicy, LostRecord, decide_when_lost
+from slamkit.pipeline.map_points import orbslam_observation_counts
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
 from slamkit.pipeline.tracking.frame_pose import PoseRefiner
@@ -197,6 +203,8 @@ class Tracker:
     # ---- initialisation ------------------------------------------------------------------------
 
     def _initialize(self, frame: Frame) -> TrackingOutcome:
+        if frame.features.bf > 0.0:
+            return self._initialize_stereo(frame)
         attempt, matches = self.init.attempt(frame)
         outcome = TrackingOutcome(
             frame.index,
@@ -238,6 +246,38 @@ class Tracker:
         outcome.keyframe = KeyFrameDecision.INSERT
         outcome.reference_kf_id, outcome.T_ref_w = kf_cur.id, kf_cur.T_c_w
         outcome.message = f"initialised ({attempt.result.model}, {attempt.matches} matches)"
+        return outcome
+
+    def _initialize_stereo(self, frame: Frame) -> TrackingOutcome:
+        """ORB-SLAM2 Tracking::StereoInitialization (stereo and RGB-D): a frame with more than
+        ``stereo_init_min_features`` keypoints becomes the map's first keyframe at the origin, with a map point for
+        every keypoint that has a depth (close or far), back-projected at it; metric scale from the sensor."""
+        outcome = TrackingOutcome(
+            frame.index, frame.timestamp_s, TrackingState.NOT_INITIALIZED, None, len(frame.features), 0, "initialize"
+        )
+        n = len(frame.features)
+        if n <= self.cfg.stereo_init_min_features:
+            outcome.message = f"only {n} features (stereo initialisation needs > {self.cfg.stereo_init_min_features})"
+            return outcome
+        frame.T_c_w = np.eye(4)
+        kf = create_stereo_initial_map(self.store, frame)
+        frame.point_ids = kf.point_ids.copy()
+        frame.ref_kf_id = kf.id
+        self.reference_kf_id = kf.id
+        self.last_kf_frame_index = frame.index
+        self.last_frame = frame
+        self._last_T_l_r = None
+        self.velocity = None
+        self.state = TrackingState.OK
+        outcome.state = TrackingState.OK
+        outcome.T_c_w = frame.T_c_w.copy()
+        outcome.inliers = kf.n_tracked_points()
+        outcome.new_keyframes = [kf]
+        outcome.initialized_map = True
+        outcome.keyframe = KeyFrameDecision.INSERT
+        outcome.reference_kf_id, outcome.T_ref_w = kf.id, kf.T_c_w
+        outcome.message = f"initialised from one frame ({outcome.inliers} points with depth)"
+        log.info("map initialised from frame %d (stereo/RGB-D): %d points", frame.index, outcome.inliers)
         return outcome
 
     # ---- tracking --------------------------------------------------------------------------------
@@ -340,8 +380,19 @@ class Tracker:
             if self.reference_kf_id is not None and store.has_keyframe(self.reference_kf_id):
                 ref = store.get_keyframe(self.reference_kf_id)
                 ref_ids = ref.point_ids[store.has_points(ref.point_ids)]
-                n_obs = store.point_rows(ref_ids, "n_observations") if ref_ids.size else np.zeros(0, np.int64)
+                if frame.features.bf > 0.0:  # stereo/RGB-D: ORB-SLAM's count, a stereo observation counting twice
+                    n_obs = orbslam_observation_counts(store, ref_ids.tolist())
+                else:
+                    n_obs = store.point_rows(ref_ids, "n_observations") if ref_ids.size else np.zeros(0, np.int64)
                 n_ref = int(np.count_nonzero(n_obs >= reference_min_observations(n_kfs, self.cfg)))
+        feats = frame.features
+        stereo = feats.bf > 0.0
+        close_tracked = close_untracked = 0
+        if stereo:
+            close = feats.is_close()
+            tracked = frame.point_ids >= 0
+            close_tracked = int(np.count_nonzero(close & tracked))
+            close_untracked = int(np.count_nonzero(close & ~tracked))
         return KeyFrameFacts(
             frame.index,
             self.last_kf_frame_index,
@@ -351,6 +402,9 @@ class Tracker:
             n_kfs,
             mapping,
             self.max_frames,
+            stereo,
+            close_tracked,
+            close_untracked,
         )
 
     def _relocalize(self, frame: Frame) -> bool:

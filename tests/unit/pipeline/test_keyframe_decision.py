@@ -117,3 +117,44 @@ def test_reference_points_need_three_observations_or_two_in_a_map_of_two_keyfram
     assert reference_min_observations(2, CFG) == 2
     assert reference_min_observations(3, CFG) == 3
     assert reference_min_observations(3, dataclasses.replace(CFG, keyframe_ref_min_observations=4)) == 4
+
+
+# ---- stereo / RGB-D (ORB-SLAM2 NeedNewKeyFrame, mSensor != MONOCULAR) ---------------------------------------
+
+
+def stereo(**changes: object) -> KeyFrameFacts:
+    """A stereo frame tracking 180 of the reference's 200 points (90%: no keyframe by the 0.75 ratio), 150 of its
+    close points tracked, 20 untracked, mapping busy and 5 frames after the last keyframe (c1a, c1b fail)."""
+    base = facts(tracked_points=180, mapping=BUSY, stereo=True, close_tracked=150, close_untracked=20)
+    return dataclasses.replace(base, **changes)  # type: ignore[arg-type]
+
+
+def test_stereo_uses_the_075_ratio_and_04_with_a_single_keyframe() -> None:
+    idle = stereo(mapping=IDLE)
+    assert decide_keyframe(idle, CFG) == KeyFrameDecision.NOT_NEEDED  # 180 >= 0.75 * 200
+    assert decide_keyframe(dataclasses.replace(idle, tracked_points=149), CFG) == KeyFrameDecision.INSERT
+    # the monocular 0.9 would have asked for one at 170 tracked points; stereo does not
+    assert decide_keyframe(dataclasses.replace(idle, tracked_points=170), CFG) == KeyFrameDecision.NOT_NEEDED
+    assert decide_keyframe(dataclasses.replace(idle, tracked_points=170, stereo=False), CFG) == (
+        KeyFrameDecision.INSERT
+    )
+    one = dataclasses.replace(idle, keyframes_in_map=1, tracked_points=100)
+    assert decide_keyframe(one, CFG) == KeyFrameDecision.NOT_NEEDED  # 100 >= 0.4 * 200
+    assert decide_keyframe(dataclasses.replace(one, tracked_points=79), CFG) == KeyFrameDecision.INSERT
+
+
+def test_stereo_close_point_condition_asks_for_a_keyframe_while_mapping_is_busy() -> None:
+    """Fewer than 100 close points tracked and more than 70 untracked: c1c and c2 hold even with 90% of the reference
+    tracked and local mapping busy (the runner then interrupts local BA and makes it: MAPPING_BUSY)."""
+    assert decide_keyframe(stereo(), CFG) == KeyFrameDecision.NOT_NEEDED
+    need = stereo(close_tracked=99, close_untracked=71)
+    assert decide_keyframe(need, CFG) == KeyFrameDecision.MAPPING_BUSY
+    assert decide_keyframe(dataclasses.replace(need, mapping=IDLE), CFG) == KeyFrameDecision.INSERT
+    assert decide_keyframe(stereo(close_tracked=100, close_untracked=71), CFG) == KeyFrameDecision.NOT_NEEDED
+    assert decide_keyframe(stereo(close_tracked=99, close_untracked=70), CFG) == KeyFrameDecision.NOT_NEEDED
+    # c1c's other half: fewer than 25% of the reference's points
+    assert decide_keyframe(stereo(tracked_points=49), CFG) == KeyFrameDecision.MAPPING_BUSY
+    # at most 15 tracked points: never
+    assert decide_keyframe(stereo(tracked_points=15, close_tracked=0, close_untracked=300), CFG) == (
+        KeyFrameDecision.NOT_NEEDED
+    )

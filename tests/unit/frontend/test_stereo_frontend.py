@@ -1,0 +1,78 @@
+"""frontend=stereo (ORB-SLAM2 Frame::ComputeStereoMatches): on the synthetic room's rectified pair the matched depths
+are the rendered ones; on a real KITTI 01 pair the disparities agree with an independent dense matcher (OpenCV's
+semi-global block matching); bf comes from the dataset's pair and a frame without its right image is refused."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from slamkit.app import build_components
+from slamkit.config import compose_config
+from slamkit.errors import ConfigError, DatasetError
+from slamkit.frontend.stereo import StereoFrontEnd
+from slamkit.interfaces import FrontEnd
+from slamkit.plugins import ComponentRegistry
+
+KITTI = Path("/work/shared/datasets/kitti")
+
+
+def _built(*overrides: str, bind: bool = True) -> tuple[StereoFrontEnd, object]:
+    registry = ComponentRegistry.discover()
+    cfg = compose_config(["frontend=stereo", "dataset.max_frames=3", *overrides], registry=registry)
+    components = build_components(cfg, registry)
+    frontend = registry.instantiate("frontend", cfg.frontend, extractor=components["features"], init_extractor=None)
+    assert isinstance(frontend, StereoFrontEnd) and isinstance(frontend, FrontEnd)
+    if bind:
+        frontend.bind_dataset(components["dataset"])
+    return frontend, components["dataset"]
+
+
+def test_synthetic_pair_gives_the_rendered_depths() -> None:
+    frontend, dataset = _built("dataset.stereo=true")
+    assert frontend.bf == pytest.approx(0.12 * dataset.camera.K[0, 0])  # type: ignore[attr-defined]
+    data = dataset[0]  # type: ignore[index]
+    obs = frontend.observe(data, dataset.camera)  # type: ignore[attr-defined]
+    matched = np.isfinite(obs.depth_m)
+    assert matched.sum() > 0.4 * len(obs)
+    u, v = obs.uv_px[:, 0].astype(int), obs.uv_px[:, 1].astype(int)
+    truth = data.depth_m[v, u][matched]
+    rel = np.abs(obs.depth_m[matched] - truth) / truth
+    assert np.median(rel) < 0.03 and np.mean(rel < 0.05) > 0.85
+    np.testing.assert_allclose(
+        obs.u_right_px[matched], obs.uv_px[matched, 0] - frontend.bf / obs.depth_m[matched], atol=1e-3
+    )
+    assert obs.sensor == "stereo" and obs.th_depth_m == pytest.approx(frontend.bf * 35.0 / dataset.camera.K[0, 0])  # type: ignore[attr-defined]
+
+
+@pytest.mark.skipif(not (KITTI / "sequences" / "01").is_dir(), reason="KITTI 01 not in /work/shared")
+def test_kitti_pair_disparities_agree_with_semi_global_matching() -> None:
+    frontend, dataset = _built("dataset=kitti", f"dataset.root={KITTI}", "dataset.sequence=01", "dataset.stereo=true")
+    assert frontend.bf == pytest.approx(386.1448, rel=1e-4)  # P1 of calib.txt: baseline 0.537 m x fx
+    data = dataset[0]  # type: ignore[index]
+    obs = frontend.observe(data, dataset.camera)  # type: ignore[attr-defined]
+    matched = np.isfinite(obs.depth_m)
+    assert matched.sum() > 600
+    sgbm = cv2.StereoSGBM_create(0, 128, 5, P1=8 * 25, P2=32 * 25, uniquenessRatio=10)
+    dense = sgbm.compute(data.image, data.image_right).astype(np.float32) / 16.0
+    u, v = obs.uv_px[matched, 0].astype(int), obs.uv_px[matched, 1].ravel().astype(int)
+    ref = dense[v, u]
+    ours = (obs.uv_px[matched, 0] - obs.u_right_px[matched])[ref > 0]
+    ref = ref[ref > 0]
+    assert ref.size > 500
+    assert np.median(np.abs(ours - ref)) < 1.0 and np.mean(np.abs(ours - ref) < 1.0) > 0.6
+    assert np.median(ours / ref) == pytest.approx(1.0, abs=0.03)
+
+
+def test_missing_right_image_or_baseline_is_refused() -> None:
+    frontend, dataset = _built("dataset.stereo=true")
+    data = dataset[1]  # type: ignore[index]
+    with pytest.raises(DatasetError, match=r"frame 1 .*no right image"):
+        frontend.observe(dataclasses.replace(data, image_right=None), dataset.camera)  # type: ignore[attr-defined]
+    unbound, mono_dataset = _built(bind=False)  # the synthetic room without its right camera
+    with pytest.raises(ConfigError, match="no stereo pair"):
+        unbound.bind_dataset(mono_dataset)
