@@ -14,7 +14,7 @@ import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from typing import Protocol, runtime_checkable
+from typing import Protocol, cast
 
 from slamkit.errors import ConfigError, FrameReadError
 from slamkit.interfaces import Dataset
@@ -27,7 +27,6 @@ log = logging.getLogger("slamkit.io")
 BAD_FRAME_POLICIES = ("skip", "stop")
 
 
-@runtime_checkable
 class IndexedFrames(Protocol):
     """A dataset whose frames can be read one by one by number (every SequenceDataset of slamkit.io)."""
 
@@ -46,9 +45,11 @@ def readable_frames(
     as it is."""
     if policy not in BAD_FRAME_POLICIES:
         raise ConfigError(f"runner.bad_frames = {policy!r}: expected one of {', '.join(BAD_FRAME_POLICIES)}")
-    if policy == "stop" or not isinstance(dataset, IndexedFrames):
+    # looked up on the type, as ``dataset[i]`` does (a wrapper that delegates attributes is not subscriptable)
+    indexed = all(hasattr(type(dataset), name) for name in ("__getitem__", "__len__"))
+    if policy == "stop" or not indexed:
         return dataset
-    return _skipping_unreadable(dataset, on_skip)
+    return _skipping_unreadable(cast(IndexedFrames, dataset), on_skip)
 
 
 def _skipping_unreadable(dataset: IndexedFrames, on_skip: Callable[[int, str], None] | None) -> Iterator[FrameData]:
