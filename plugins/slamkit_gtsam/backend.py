@@ -6,8 +6,11 @@
   ORB-SLAM's rounds (4 x 10 iterations, each restarting from the initial pose) with chi-square classification
   between rounds (outliers of one round may come back).
 - Bundle adjustment: projection/stereo factors, Huber with sigma = scale_factor^level; iterations_first, then the
-  outlier pass (chi2 gate or negative depth, vectorised in numpy), then iterations_second without them. The abort
-  token is checked between LM iterations (we drive ``optimizer.iterate()`` ourselves).
+  outlier pass (chi2 gate or negative depth, vectorised in numpy), then iterations_second without them and, as
+  ORB-SLAM2, without the Huber kernel. The abort token is checked between LM iterations (we drive
+  ``optimizer.iterate()`` ourselves: one Python call per iteration of 10-100+ ms). Elimination: points first, then
+  poses (the Schur complement g2o forms), sequential Cholesky, damping never below ``ba_lambda_lower_bound``
+  (measured on recorded real local BAs: docs/BENCHMARKS.md "Optimizer backends").
 - Relative Sim3: one vectorised CustomFactor over all matches (slamkit_gtsam.sim3_factor).
 - Essential graph: BetweenFactorSimilarity3 (or BetweenFactorPose3 in the SE3 variant) on the inverse poses, whose
   error is exactly log(S_ij S_jw S_iw^-1).
