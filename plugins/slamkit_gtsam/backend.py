@@ -6,8 +6,11 @@
   ORB-SLAM's rounds (4 x 10 iterations, each restarting from the initial pose) with chi-square classification
   between rounds (outliers of one round may come back).
 - Bundle adjustment: projection/stereo factors, Huber with sigma = scale_factor^level; iterations_first, then the
-  outlier pass (chi2 gate or negative depth, vectorised in numpy), then iterations_second without them. The abort
-  token is checked between LM iterations (we drive ``optimizer.iterate()`` ourselves).
+  outlier pass (chi2 gate or negative depth, vectorised in numpy), then iterations_second without them and, as
+  ORB-SLAM2, without the Huber kernel. The abort token is checked between LM iterations (we drive
+  ``optimizer.iterate()`` ourselves: one Python call per iteration of 10-100+ ms). Elimination: points first, then
+  poses (the Schur complement g2o forms), sequential Cholesky, damping never below ``ba_lambda_lower_bound``
+  (measured on recorded real local BAs: docs/BENCHMARKS.md "Optimizer backends").
 - Relative Sim3: one vectorised CustomFactor over all matches (slamkit_gtsam.sim3_factor).
 - Essential graph: BetweenFactorSimilarity3 (or BetweenFactorPose3 in the SE3 variant) on the inverse poses, whose
   error is exactly log(S_ij S_jw S_iw^-1).
@@ -60,7 +63,9 @@ F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
 I64 = NDArray[np.int64]
 
-_ORDERINGS = ("COLAMD", "METIS", "NATURAL")
+_ORDERINGS = ("COLAMD", "METIS")
+_BA_ORDERINGS = ("SCHUR", "COLAMD", "METIS")
+_LINEAR_SOLVERS = ("MULTIFRONTAL_CHOLESKY", "SEQUENTIAL_CHOLESKY", "MULTIFRONTAL_QR", "SEQUENTIAL_QR")
 _MIN_POSE_EDGES = 10  # ORB-SLAM PoseOptimization stops its rounds when fewer edges remain
 
 
@@ -93,6 +98,12 @@ class GtsamOptimizer:
         absolute_error_tol: float = 0.0,
         fixed_sigma: float = 1e-8,
         ordering: str = "COLAMD",
+        linear_solver: str = "MULTIFRONTAL_CHOLESKY",
+        ba_ordering: str = "SCHUR",
+        ba_linear_solver: str = "SEQUENTIAL_CHOLESKY",
+        ba_robust_second_stage: bool = False,
+        use_fixed_lambda_factor: bool = True,
+        ba_lambda_lower_bound: float = 1e-5,
     ) -> None:
         for key, value in (
             ("lambda_initial", lambda_initial),
@@ -102,22 +113,45 @@ class GtsamOptimizer:
         ):
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"optimizer.{key} = {value!r}: expected a finite number > 0")
-        for key, value in (("relative_error_tol", relative_error_tol), ("absolute_error_tol", absolute_error_tol)):
+        for key, value in (
+            ("relative_error_tol", relative_error_tol),
+            ("absolute_error_tol", absolute_error_tol),
+            ("ba_lambda_lower_bound", ba_lambda_lower_bound),
+        ):
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ConfigError(f"optimizer.{key} = {value!r}: expected a finite number >= 0")
-        if ordering not in _ORDERINGS:
-            raise ConfigError(f"optimizer.ordering = {ordering!r}: expected one of {', '.join(_ORDERINGS)}")
+        for key, choice, allowed in (
+            ("ordering", ordering, _ORDERINGS),
+            ("ba_ordering", ba_ordering, _BA_ORDERINGS),
+            ("linear_solver", linear_solver, _LINEAR_SOLVERS),
+            ("ba_linear_solver", ba_linear_solver, _LINEAR_SOLVERS),
+        ):
+            if choice not in allowed:
+                raise ConfigError(f"optimizer.{key} = {choice!r}: expected one of {', '.join(allowed)}")
+        for key, flag in (
+            ("ba_robust_second_stage", ba_robust_second_stage),
+            ("use_fixed_lambda_factor", use_fixed_lambda_factor),
+        ):
+            if not isinstance(flag, bool):
+                raise ConfigError(f"optimizer.{key} = {flag!r}: expected true or false")
         self.lambda_initial = float(lambda_initial)
         self.lambda_factor = float(lambda_factor)
         self.lambda_upper_bound = float(lambda_upper_bound)
+        self.ba_lambda_lower_bound = float(ba_lambda_lower_bound)
         self.relative_error_tol = float(relative_error_tol)
         self.absolute_error_tol = float(absolute_error_tol)
         self.fixed_sigma = float(fixed_sigma)
         self.ordering = ordering
+        self.linear_solver = linear_solver
+        self.ba_ordering = ba_ordering
+        self.ba_linear_solver = ba_linear_solver
+        self.ba_robust_second_stage = ba_robust_second_stage
+        self.use_fixed_lambda_factor = use_fixed_lambda_factor
 
     # ---- LM driver ----------------------------------------------------------------------------------
 
     def _params(self) -> gtsam.LevenbergMarquardtParams:
+        """LM parameters of the config (ordering type and linear solver: the non-BA problems' settings)."""
         params = gtsam.LevenbergMarquardtParams()
         params.setlambdaInitial(self.lambda_initial)
         params.setlambdaFactor(self.lambda_factor)
@@ -125,16 +159,25 @@ class GtsamOptimizer:
         params.setRelativeErrorTol(self.relative_error_tol)
         params.setAbsoluteErrorTol(self.absolute_error_tol)
         params.setOrderingType(self.ordering)
+        params.setLinearSolverType(self.linear_solver)
+        params.setUseFixedLambdaFactor(self.use_fixed_lambda_factor)
         return params
 
     def _run(
-        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int, abort: AbortToken | None = None
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        iterations: int,
+        abort: AbortToken | None = None,
+        params: gtsam.LevenbergMarquardtParams | None = None,
     ) -> _LmRun:
         """Up to ``iterations`` LM iterations, checking ``abort`` before each and stopping at convergence
-        (GTSAM's own test: relative or absolute decrease below tolerance, or no decrease)."""
+        (GTSAM's own test: relative or absolute decrease below tolerance, or no decrease). ``params``: LM
+        parameters (default: ``_params()``)."""
         if iterations <= 0 or graph.size() == 0:
             return _LmRun(values, 0, bool(abort is not None and abort.is_set()))
-        params = self._params()
+        if params is None:
+            params = self._params()
         params.setMaxIterations(iterations)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         previous = opt.error()
@@ -324,7 +367,11 @@ class GtsamOptimizer:
     # ---- bundle adjustment --------------------------------------------------------------------------
 
     def bundle_adjust(self, problem: BundleProblem, abort: AbortToken | None = None) -> BundleResult:
-        """ORB-SLAM local/global BA: iterations_first, outlier pass, iterations_second; stops at ``abort``."""
+        """ORB-SLAM local/global BA: iterations_first, outlier pass, iterations_second; stops at ``abort``.
+
+        As ORB-SLAM2's LocalBundleAdjustment, the second stage runs without the Huber kernel
+        (``ba_robust_second_stage``, default false). Elimination: ``ba_ordering`` / ``ba_linear_solver``.
+        """
         validate_bundle_problem(problem, backend="gtsam")
         K, M = len(problem.T_c_w), len(problem.xyz_w)
         pose_key0 = M
@@ -342,7 +389,7 @@ class GtsamOptimizer:
         for pt in np.flatnonzero(problem.point_fixed):
             priors.add(gtsam.PriorFactorPoint3(int(pt), problem.xyz_w[pt], point_noise))
 
-        def graph_of(active: B) -> gtsam.NonlinearFactorGraph:
+        def graph_of(active: B, robust: bool) -> gtsam.NonlinearFactorGraph:
             g = self._reprojection_graph(
                 active,
                 problem.obs_pose,
@@ -356,7 +403,7 @@ class GtsamOptimizer:
                 problem.scale_factor,
                 problem.chi2_mono,
                 problem.chi2_stereo,
-                problem.robust,
+                robust,
                 None if problem.distortion is None else np.asarray(problem.distortion),
             )
             g.push_back(priors)
@@ -364,24 +411,36 @@ class GtsamOptimizer:
 
         E = len(problem.obs_pose)
         gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
-        run = self._run(graph_of(np.ones(E, dtype=bool)), values, problem.iterations_first, abort)
+        points_in = np.ones(M, dtype=bool)
+        run = self._run(
+            graph_of(np.ones(E, dtype=bool), problem.robust),
+            values,
+            problem.iterations_first,
+            abort,
+            self._ba_params(points_in, pose_key0, K),
+        )
         iterations = run.iterations
         T_c_w, xyz_w = self._extract(run.values)
         if not run.aborted and problem.iterations_second > 0:
             active = bundle_chi2(problem, T_c_w, xyz_w) <= gates
             # Points left without an active observation keep their estimate and leave the problem.
             observed = np.bincount(problem.obs_point[active], minlength=M) > 0
-            stage2 = gtsam.Values()
-            for pt in np.flatnonzero(observed | problem.point_fixed):
-                stage2.insert(int(pt), xyz_w[pt])
-            for k in range(K):
-                stage2.insert(pose_key0 + k, pose3_from_T(invert_rigid(T_c_w[k])))
+            points_in = observed | problem.point_fixed
+            stage2 = run.values
+            for pt in np.flatnonzero(~points_in):
+                stage2.erase(int(pt))
             active &= observed[problem.obs_point]
-            run = self._run(graph_of(active), stage2, problem.iterations_second, abort)
+            run = self._run(
+                graph_of(active, problem.robust and self.ba_robust_second_stage),
+                stage2,
+                problem.iterations_second,
+                abort,
+                self._ba_params(points_in, pose_key0, K),
+            )
             iterations += run.iterations
             T2, xyz2 = self._extract(run.values)
             T_c_w = T2
-            xyz_w[observed | problem.point_fixed] = xyz2
+            xyz_w[points_in] = xyz2
         # Fixed variables are returned exactly as given (the priors move them by ~fixed_sigma).
         T_c_w[problem.pose_fixed] = problem.T_c_w[problem.pose_fixed]
         xyz_w[problem.point_fixed] = problem.xyz_w[problem.point_fixed]
@@ -395,6 +454,23 @@ class GtsamOptimizer:
             iterations=iterations,
             aborted=run.aborted,
         )
+
+    def _ba_params(self, points_in: B, pose_key0: int, n_poses: int) -> gtsam.LevenbergMarquardtParams:
+        """LM parameters of a bundle adjustment: ``ba_linear_solver`` and ``ba_ordering``; "SCHUR" eliminates every
+        point present (keys where ``points_in``) before the poses (keys pose_key0..pose_key0+n_poses-1): each
+        point is eliminated onto the keyframes observing it and the poses are solved last, the reduced camera
+        system g2o's and Ceres' Schur solvers form (ORB-SLAM marks points marginalized in g2o the same way)."""
+        params = self._params()
+        params.setLinearSolverType(self.ba_linear_solver)
+        params.setlambdaLowerBound(self.ba_lambda_lower_bound)
+        if self.ba_ordering == "SCHUR":
+            ordering = gtsam.Ordering()
+            for key in itertools.chain(np.flatnonzero(points_in).tolist(), range(pose_key0, pose_key0 + n_poses)):
+                ordering.push_back(key)
+            params.setOrdering(ordering)
+        else:
+            params.setOrderingType(self.ba_ordering)
+        return params
 
     @staticmethod
     def _extract(values: gtsam.Values) -> tuple[F64, F64]:

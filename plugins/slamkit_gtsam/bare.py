@@ -3,8 +3,9 @@
 The straight script anyone would write: one factor per observation in a Python loop (projection or stereo
 factor, Huber, sigma = scale_factor^level), priors on fixed keyframes, ``LevenbergMarquardtOptimizer.optimize()``
 for iterations_first, drop observations failing the chi-square gate, optimize iterations_second more. Same
-factors, noise models and LM settings as slamkit_gtsam.backend with its defaults; none of its machinery
-(validation, grouped C++ insertion, abort checks, result costs).
+factors, noise models and LM settings as slamkit_gtsam.backend with its defaults (Huber in the first stage only,
+as ORB-SLAM2's LocalBundleAdjustment); none of its machinery (validation, grouped C++ insertion, abort checks,
+result costs, the Schur elimination ordering and sequential solver: GTSAM's default COLAMD multifrontal here).
 """
 
 from __future__ import annotations
@@ -41,21 +42,26 @@ def bare_bundle_adjust(problem: BundleProblem) -> tuple[F64, F64, int]:
         gtsam.noiseModel.Robust.Create(huber_s, gtsam.noiseModel.Isotropic.Sigma(3, problem.scale_factor**lv))
         for lv in range(levels)
     ]
+    # second stage: no robust kernel (ORB-SLAM2 sets it to 0 on every edge after the outlier pass)
+    mono_plain = [gtsam.noiseModel.Isotropic.Sigma(2, problem.scale_factor**lv) for lv in range(levels)]
+    stereo_plain = [gtsam.noiseModel.Isotropic.Sigma(3, problem.scale_factor**lv) for lv in range(levels)]
     cals = [gtsam.Cal3_S2(fx, fy, 0.0, cx, cy) for fx, fy, cx, cy in problem.intrinsics]
     cals_stereo = [
         gtsam.Cal3_S2Stereo(fx, fy, 0.0, cx, cy, bf / fx)
         for (fx, fy, cx, cy), bf in zip(problem.intrinsics, problem.bf, strict=True)
     ]
 
-    def build(active: NDArray[np.bool_]) -> gtsam.NonlinearFactorGraph:
+    def build(active: NDArray[np.bool_], robust: bool) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
+        mono = mono_models if robust else mono_plain
+        stereo_m = stereo_models if robust else stereo_plain
         for e in np.flatnonzero(active):
             k, j, lv = int(problem.obs_pose[e]), int(problem.obs_point[e]), int(problem.level[e])
             if stereo[e]:
                 meas = gtsam.StereoPoint2(problem.uv_px[e, 0], problem.u_right_px[e], problem.uv_px[e, 1])
-                graph.add(gtsam.GenericStereoFactor3D(meas, stereo_models[lv], M + k, j, cals_stereo[k]))
+                graph.add(gtsam.GenericStereoFactor3D(meas, stereo_m[lv], M + k, j, cals_stereo[k]))
             else:
-                graph.add(gtsam.GenericProjectionFactorCal3_S2(problem.uv_px[e], mono_models[lv], M + k, j, cals[k]))
+                graph.add(gtsam.GenericProjectionFactorCal3_S2(problem.uv_px[e], mono[lv], M + k, j, cals[k]))
         prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-8)
         for kf in np.flatnonzero(problem.pose_fixed):
             graph.add(gtsam.PriorFactorPose3(M + int(kf), gtsam.Pose3(np.linalg.inv(problem.T_c_w[kf])), prior))
@@ -75,7 +81,9 @@ def bare_bundle_adjust(problem: BundleProblem) -> tuple[F64, F64, int]:
         values.insert(M + k, gtsam.Pose3(np.linalg.inv(problem.T_c_w[k])))
     for j in range(M):
         values.insert(j, problem.xyz_w[j])
-    values, it1 = lm(build(np.ones(len(problem.obs_pose), dtype=bool)), values, problem.iterations_first)
+    values, it1 = lm(
+        build(np.ones(len(problem.obs_pose), dtype=bool), problem.robust), values, problem.iterations_first
+    )
 
     def current(vals: gtsam.Values) -> tuple[F64, F64]:
         T = np.stack([np.linalg.inv(vals.atPose3(M + k).matrix()) for k in range(K)])
@@ -100,7 +108,7 @@ def bare_bundle_adjust(problem: BundleProblem) -> tuple[F64, F64, int]:
         stage2.insert(M + k, values.atPose3(M + k))
     for pt in np.flatnonzero(observed):
         stage2.insert(int(pt), xyz[pt])
-    stage2, it2 = lm(build(active), stage2, problem.iterations_second)
+    stage2, it2 = lm(build(active, False), stage2, problem.iterations_second)
     T2 = np.stack([np.linalg.inv(stage2.atPose3(M + k).matrix()) for k in range(K)])
     xyz[observed] = np.asarray(gtsam.utilities.extractPoint3(stage2), dtype=np.float64).reshape(-1, 3)
     return T2, xyz, it1 + it2

@@ -22,10 +22,20 @@ def slamkit_components() -> list[ComponentSpec]:
                 "lambda_initial": 1e-5,  # LM initial damping (GTSAM default; g2o/ORB-SLAM start lower, 1e-16 in EG)
                 "lambda_factor": 10.0,  # LM damping multiplier on a rejected step (GTSAM default)
                 "lambda_upper_bound": 1e5,  # LM gives up an iteration beyond this damping (GTSAM default)
+                "use_fixed_lambda_factor": True,  # GTSAM's x10 / /10 damping rule (false: g2o's Nielsen rule)
                 "relative_error_tol": 1e-5,  # stop early when the cost decreases less than this, relatively (GTSAM)
                 "absolute_error_tol": 0.0,  # ... or absolutely (0: pose-graph costs are tiny; GTSAM uses 1e-5)
                 "fixed_sigma": 1e-8,  # prior sigma holding fixed variables (their output is the exact input)
-                "ordering": "COLAMD",  # elimination ordering: COLAMD | METIS | NATURAL
+                "ordering": "COLAMD",  # elimination ordering of pose, Sim3 and pose-graph problems: COLAMD | METIS
+                "linear_solver": "MULTIFRONTAL_CHOLESKY",  # their linear solver (GTSAM's LM default)
+                # Bundle adjustment (docs/BENCHMARKS.md "Optimizer backends", real local BAs of the room):
+                "ba_ordering": "SCHUR",  # points first, then poses (g2o's/ORB-SLAM's marginalized points) | COLAMD | METIS
+                "ba_linear_solver": "SEQUENTIAL_CHOLESKY",  # measured faster than multifrontal with SCHUR
+                # ORB-SLAM2 LocalBundleAdjustment: setRobustKernel(0) on every edge after the outlier pass
+                "ba_robust_second_stage": False,
+                # BA's LM never damps below this (GTSAM's default 0): a monocular local BA with one fixed keyframe
+                # leaves the scale gauge free; at lambda ~1e-7 its Cholesky fails and the try is wasted
+                "ba_lambda_lower_bound": 1e-5,
             },
             description="GTSAM 4 (projection/stereo factors, Similarity3 pose graph, Levenberg-Marquardt)",
         )

@@ -8,6 +8,11 @@ slamkit.optim.costs (the same definition for every backend: Huber cost of the ob
 or the pose-graph cost), so backends compare on equal terms. A backend offering ``reference_bundle_adjust``
 (GTSAM: a bare script with the same factors and iterations) adds a ``<name>_bare`` row.
 
+Real problems (``--problems DIR``): the BundleProblems a run recorded (benchmarks/capture_ba_problems.py pickles
+every local/global BA of a ``slamkit run``); up to ``--max-problems`` of them, evenly spaced, each solved by every
+backend ``--rounds`` times round-robin (so load hits all backends alike); per backend the median over problems of
+its per-problem median wall time, and the median over problems of its per-problem time ratio to ``scipy``.
+
 The GIL benchmark measures a pure-Python counting loop in the main thread while a local BA runs (a) inline in a
 thread and (b) in the worker process, relative to the same loop on an idle interpreter.
 """
@@ -40,6 +45,7 @@ __all__ = [
     "run_bench_optimizer",
     "run_gil_bench",
     "run_optimizer_bench",
+    "run_real_ba_bench",
 ]
 
 
@@ -101,6 +107,61 @@ def _ba_row(problem: BundleProblem, wall: float, result: BundleResult) -> dict[s
         "iterations": int(result.iterations),
         "outliers": int(result.outlier.sum()),
     }
+
+
+def run_real_ba_bench(
+    problems_dir: Path, max_problems: int = 20, rounds: int = 3, registry: ComponentRegistry | None = None
+) -> dict[str, Any]:
+    """Time every backend's bundle_adjust on recorded problems (``ba_*.pkl`` in ``problems_dir``; trusted pickles
+    written by benchmarks/capture_ba_problems.py). Returns per-backend medians, per-problem ratios to ``scipy``
+    and the largest keyframe-position difference to ``scipy`` (m)."""
+    import pickle
+
+    paths = sorted(problems_dir.glob("ba_*.pkl"))
+    if not paths:
+        raise FileNotFoundError(f"no ba_*.pkl in {problems_dir}")
+    step = max(1, len(paths) // max(1, max_problems))
+    paths = paths[::step][:max_problems]
+    optimizers = _optimizers(registry if registry is not None else ComponentRegistry.discover())
+    problems: list[BundleProblem] = [pickle.loads(p.read_bytes()) for p in paths]
+    for opt in optimizers.values():  # warm-up (numba compilation, imports)
+        opt.bundle_adjust(problems[0])
+    walls: dict[str, list[float]] = {name: [] for name in optimizers}
+    diffs: dict[str, list[float]] = {name: [] for name in optimizers}
+    iterations: dict[str, list[int]] = {name: [] for name in optimizers}
+    for problem in problems:
+        per: dict[str, list[float]] = {name: [] for name in optimizers}
+        results: dict[str, BundleResult] = {}
+        for _ in range(rounds):
+            for name, opt in optimizers.items():
+                t0 = time.perf_counter()
+                results[name] = opt.bundle_adjust(problem)
+                per[name].append(time.perf_counter() - t0)
+        reference = results.get("scipy", next(iter(results.values())))
+        for name in optimizers:
+            walls[name].append(statistics.median(per[name]))
+            iterations[name].append(int(results[name].iterations))
+            diffs[name].append(float(np.abs(results[name].T_c_w[:, :3, 3] - reference.T_c_w[:, :3, 3]).max()))
+    out: dict[str, Any] = {
+        "dir": str(problems_dir),
+        "problems": len(problems),
+        "rounds": rounds,
+        "observations_median": int(statistics.median(len(p.obs_pose) for p in problems)),
+        "backends": {},
+    }
+    base = walls.get("scipy")
+    for name in optimizers:
+        row: dict[str, Any] = {
+            "wall_ms_median": round(1e3 * statistics.median(walls[name]), 1),
+            "iterations_median": statistics.median(iterations[name]),
+            "max_position_diff_to_scipy_m": max(diffs[name]),
+        }
+        if base is not None:
+            row["time_ratio_to_scipy_median"] = round(
+                statistics.median(w / b for w, b in zip(walls[name], base, strict=True)), 3
+            )
+        out["backends"][name] = row
+    return out
 
 
 def run_optimizer_bench(json_path: Path | None, quick: bool, gil: bool = True) -> dict[str, Any]:
@@ -253,10 +314,41 @@ def add_bench_optimizer_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, default=None, metavar="FILE", help="write the results as JSON here")
     parser.add_argument("--quick", action="store_true", help="small problems, one repeat (smoke run)")
     parser.add_argument("--no-gil", action="store_true", help="skip the GIL (inline thread vs worker) benchmark")
+    parser.add_argument(
+        "--problems",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="only time recorded local BAs (ba_*.pkl from benchmarks/capture_ba_problems.py; trusted files)",
+    )
+    parser.add_argument(
+        "--max-problems", type=int, default=20, help="with --problems: at most this many, evenly spaced"
+    )
+    parser.add_argument("--rounds", type=int, default=3, help="with --problems: solves per backend and problem")
 
 
 def run_bench_optimizer(args: argparse.Namespace) -> int:
     """Run the benchmark from parsed arguments, print a summary; exit code 0."""
+    if args.problems is not None:
+        real = {
+            "machine": machine_info(),
+            "real_local_ba": run_real_ba_bench(args.problems, args.max_problems, args.rounds),
+        }
+        if args.json is not None:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(real, indent=2) + "\n")
+        r = real["real_local_ba"]
+        print(
+            f"real local BAs: {r['problems']} problems from {r['dir']} ({r['rounds']} rounds, median {r['observations_median']} observations)"
+        )
+        for name, row in r["backends"].items():
+            ratio = row.get("time_ratio_to_scipy_median")
+            print(
+                f"  {name:12s} median {row['wall_ms_median']:8.1f} ms  iterations {row['iterations_median']}"
+                + (f"  time / scipy (per-problem median) {ratio:.2f}" if ratio is not None else "")
+                + f"  max position diff to scipy {row['max_position_diff_to_scipy_m']:.2e} m"
+            )
+        return 0
     report = run_optimizer_bench(args.json, bool(args.quick), gil=not args.no_gil)
     for section in ("local_ba", "essential_graph"):
         print(f"{section}:")

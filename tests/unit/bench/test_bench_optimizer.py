@@ -47,3 +47,28 @@ def test_gil_bench_worker_keeps_more_throughput_than_inline() -> None:
     report = run_optimizer_bench(None, quick=True, gil=True)
     gil = report["gil"]
     assert gil["worker_process_ratio"] > gil["inline_thread_ratio"]
+
+
+@pytest.mark.skipif("scipy" not in NAMES or len(NAMES) < 2, reason="needs scipy and another backend")
+def test_real_problem_bench_compares_backends_on_recorded_problems(tmp_path: Path) -> None:
+    import pickle
+
+    import numpy as np
+
+    from slamkit.bench.optimizer import run_real_ba_bench
+    from slamkit.optim.synthetic import make_bundle_problem
+
+    for i in range(3):
+        problem = make_bundle_problem(np.random.default_rng(i), n_free=3, n_fixed=2, n_points=120, n_obs=480)[0]
+        (tmp_path / f"ba_{i:04d}.pkl").write_bytes(pickle.dumps(problem))
+    out = run_real_ba_bench(tmp_path, max_problems=2, rounds=1)
+    assert out["problems"] == 2
+    assert out["backends"]["scipy"]["time_ratio_to_scipy_median"] == 1.0
+    for row in out["backends"].values():
+        assert row["wall_ms_median"] > 0
+        # every backend reaches the same keyframe positions (within the contract's 1 mm)
+        assert row["max_position_diff_to_scipy_m"] < 1e-3
+    args = argparse.ArgumentParser()
+    add_bench_optimizer_arguments(args)
+    parsed = args.parse_args(["--problems", str(tmp_path), "--max-problems", "1", "--rounds", "1"])
+    assert run_bench_optimizer(parsed) == 0

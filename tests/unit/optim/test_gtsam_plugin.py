@@ -40,6 +40,10 @@ def test_essential_graph_cost_is_orb_slams_edge_error() -> None:
         ({"lambda_initial": 0.0}, r"optimizer\.lambda_initial = 0\.0"),
         ({"relative_error_tol": -1.0}, r"optimizer\.relative_error_tol = -1\.0"),
         ({"ordering": "AMD"}, r"optimizer\.ordering = 'AMD'"),
+        ({"ba_ordering": "NATURAL"}, r"optimizer\.ba_ordering = 'NATURAL'"),
+        ({"ba_linear_solver": "CHOLMOD"}, r"optimizer\.ba_linear_solver = 'CHOLMOD'"),
+        ({"ba_robust_second_stage": "no"}, r"optimizer\.ba_robust_second_stage = 'no'"),
+        ({"ba_lambda_lower_bound": -1.0}, r"optimizer\.ba_lambda_lower_bound = -1\.0"),
     ],
 )
 def test_bad_config_is_rejected(kwargs: dict[str, Any], message: str) -> None:
@@ -55,3 +59,16 @@ def test_backend_matches_the_bare_script() -> None:
     assert ours.iterations == bare.iterations
     assert ours.cost_final == pytest.approx(bare.cost_final, rel=1e-6)
     assert np.allclose(ours.T_c_w, bare.T_c_w, atol=1e-6)
+
+
+def test_ba_speed_settings_leave_the_solution_unchanged() -> None:
+    """The Schur ordering, the sequential solver and the damping floor change how fast LM gets there, not where:
+    the same poses, points and outlier flags as GTSAM's defaults (COLAMD, multifrontal, no floor)."""
+    problem, _ = make_bundle_problem(np.random.default_rng(5), n_free=5, n_fixed=1, n_points=400, n_obs=2000)
+    fast = GtsamOptimizer().bundle_adjust(problem)
+    plain = GtsamOptimizer(
+        ba_ordering="COLAMD", ba_linear_solver="MULTIFRONTAL_CHOLESKY", ba_lambda_lower_bound=0.0
+    ).bundle_adjust(problem)
+    assert np.allclose(fast.T_c_w, plain.T_c_w, atol=1e-6)
+    assert np.allclose(fast.xyz_w, plain.xyz_w, atol=1e-5)
+    assert np.array_equal(fast.outlier, plain.outlier)
