@@ -4,6 +4,7 @@ lost, relocalizes within 5 frames and continues, with relocalized poses close to
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from slamkit.app import build_runner
 from slamkit.config import compose_config
@@ -37,6 +38,7 @@ def test_kidnapped_camera_relocalizes_within_five_frames() -> None:
     assert relocated.max() < 0.02 * scene_scale
 
 
+@pytest.mark.slow  # a 310-frame run; the default suite keeps the kidnapping test above (issue: suite under 10 min)
 def test_relocalization_thresholds_are_read_from_the_config() -> None:
     """The same jump with V-C's BoW-match threshold swept out of reach: no candidate is tried, tracking stays lost
     (with the default 15 it relocalizes within 5 frames, above)."""
