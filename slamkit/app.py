@@ -31,7 +31,6 @@ from slamkit.plugins import ComponentRegistry
 from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
 from slamkit.runtime.events import EventDispatcher
 from slamkit.runtime.sequential import SequentialRunner
-from slamkit.runtime.source import BAD_FRAME_POLICIES
 from slamkit.runtime.threaded import ThreadedRunner
 
 log = logging.getLogger("slamkit")
@@ -169,9 +168,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     if place is not None:
         loop_closer = LoopCloser(pipeline.loop_closing, atlas, background_optimizer, place, rng, pins)
     progress = bool(cfg.runner.get("progress", True))
-    bad_frames = str(cfg.runner.get("bad_frames", "skip"))
-    if bad_frames not in BAD_FRAME_POLICIES:
-        raise ConfigError(f"runner.bad_frames = {bad_frames!r}: expected one of {', '.join(BAD_FRAME_POLICIES)}")
+    bad_frames = str(cfg.runner.get("bad_frames", "skip"))  # checked by the runner
     events = EventDispatcher(registry.hook, critical={OUTPUTS_PLUGIN})
     runner: Runner
     if kind == "threaded":

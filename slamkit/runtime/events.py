@@ -216,7 +216,7 @@ class RunEvents:
         self.dispatcher.emit("slamkit_run_started", event)
 
     def frame_skipped(self, frame_index: int, reason: str) -> None:
-        """A frame the dataset could not read was left out (slamkit.io.base.readable_frames)."""
+        """A frame the dataset could not read was left out (slamkit.runtime.source.readable_frames)."""
         if self.dispatcher.wants("slamkit_frame_skipped"):
             self.dispatcher.emit("slamkit_frame_skipped", FrameSkipped(self.run_id, frame_index, reason))
 

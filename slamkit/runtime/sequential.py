@@ -22,7 +22,7 @@ from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
-from slamkit.runtime.source import readable_frames
+from slamkit.runtime.source import check_bad_frames_policy, readable_frames
 from slamkit.runtime.workers import raised_by_ctrl_c
 from slamkit.sensors import FrameData
 
@@ -43,14 +43,14 @@ class SequentialRunner:
         bad_frames: str = "skip",
     ) -> None:
         """events: fires the plugins' lifecycle hooks (None: nobody listens). bad_frames: what to do with a frame
-        the dataset cannot read, "skip" (logged and reported) or "stop" (slamkit.io.base.readable_frames)."""
+        the dataset cannot read, "skip" (logged and reported) or "stop" (slamkit.runtime.source.readable_frames)."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
         self.atlas = atlas
         self.recorder = TrajectoryRecorder()
         self.progress = progress
-        self.bad_frames = bad_frames
+        self.bad_frames = check_bad_frames_policy(bad_frames)
         self.log = RunLog()
         self.events = events
         self._run_events = RunEvents(None, "sequential", atlas)

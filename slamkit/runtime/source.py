@@ -27,6 +27,13 @@ log = logging.getLogger("slamkit.io")
 BAD_FRAME_POLICIES = ("skip", "stop")
 
 
+def check_bad_frames_policy(policy: str) -> str:
+    """``policy`` if it is one of BAD_FRAME_POLICIES, else a ConfigError naming ``runner.bad_frames``."""
+    if policy not in BAD_FRAME_POLICIES:
+        raise ConfigError(f"runner.bad_frames = {policy!r}: expected one of {', '.join(BAD_FRAME_POLICIES)}")
+    return policy
+
+
 class IndexedFrames(Protocol):
     """A dataset whose frames can be read one by one by number (every SequenceDataset of slamkit.io)."""
 
@@ -43,8 +50,7 @@ def readable_frames(
     out, and the sequence goes on; with "stop" the error ends the iteration. The frames after a skipped one keep
     their numbers (a gap, as a dropped camera frame leaves). A dataset that cannot be read by number is iterated
     as it is."""
-    if policy not in BAD_FRAME_POLICIES:
-        raise ConfigError(f"runner.bad_frames = {policy!r}: expected one of {', '.join(BAD_FRAME_POLICIES)}")
+    check_bad_frames_policy(policy)
     # looked up on the type, as ``dataset[i]`` does (a wrapper that delegates attributes is not subscriptable)
     indexed = all(hasattr(type(dataset), name) for name in ("__getitem__", "__len__"))
     if policy == "stop" or not indexed:

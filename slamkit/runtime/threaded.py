@@ -53,7 +53,7 @@ from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
-from slamkit.runtime.source import END, FrameSource, readable_frames
+from slamkit.runtime.source import END, FrameSource, check_bad_frames_policy, readable_frames
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault, raised_by_ctrl_c
 from slamkit.sensors import FrameData
 
@@ -94,7 +94,7 @@ class ThreadedRunner:
         bad_frames: str = "skip",
     ) -> None:
         """bad_frames: what to do with a frame the dataset cannot read, "skip" (logged and reported) or "stop"
-        (slamkit.io.base.readable_frames)."""
+        (slamkit.runtime.source.readable_frames)."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -106,7 +106,7 @@ class ThreadedRunner:
         self.preload = preload
         self.background_niceness = background_niceness
         self.gil_switch_interval_s = gil_switch_interval_s
-        self.bad_frames = bad_frames
+        self.bad_frames = check_bad_frames_policy(bad_frames)
         self.log = RunLog(runner="threaded")
         self.events = events
         self._run_events = RunEvents(None, "threaded", atlas)

@@ -121,6 +121,7 @@ def _bad_calibration_root(tmp_path: Path) -> Path:
         ("calibration", "calib.txt"),
         ("unknown_key", "pipeline.tracking.no_such_key"),
         ("unknown_option", "dataset/no_such_dataset"),
+        ("bad_value", "runner.bad_frames = 'ignore'"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, case: str, expected: str) -> None:
@@ -131,6 +132,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, case: str, expected: s
         "calibration": ["dataset=kitti", f"dataset.root={_bad_calibration_root(tmp_path)}", "dataset.sequence=00"],
         "unknown_key": ["pipeline.tracking.no_such_key=3"],
         "unknown_option": ["dataset=no_such_dataset"],
+        "bad_value": ["runner.bad_frames=ignore"],
     }[case]
     result = slamkit_run(tmp_path, *overrides, f"hydra.run.dir={tmp_path / 'run'}")
     assert result.returncode == 2, result.stderr
