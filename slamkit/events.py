@@ -24,7 +24,9 @@ from slamkit.interfaces import MapStore
 from slamkit.sensors import Trajectory
 
 F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
 I64 = NDArray[np.int64]
+Bool = NDArray[np.bool_]
 
 
 @dataclass(frozen=True)
@@ -35,6 +37,7 @@ class RunStarted:
     dataset will deliver. run_dir: the run's output directory (None: the caller wants no files, e.g. a test or a
     notebook driving the runner). config: the run's composed config, resolved, as plain containers (empty when
     the caller gave none). ground_truth: the dataset's ground-truth trajectory (T_w_c per timestamp), if any.
+    K: (3, 3) the (left) camera's pinhole intrinsics, px, and image_size (width, height) px — None when unknown.
     """
 
     run_id: int
@@ -44,6 +47,8 @@ class RunStarted:
     run_dir: Path | None = None
     config: Mapping[str, Any] = field(default_factory=dict)
     ground_truth: Trajectory | None = None
+    K: F64 | None = None
+    image_size: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -57,6 +62,10 @@ class FrameTracked:
     keyframe move the frame too); None when the frame has no pose to record. map_reset: tracking reset the map
     at this frame (the trajectory so far lived in a map that no longer exists). timings_ms: per stage (``track_ms``
     the whole frame, ``extract_ms``, ...).
+
+    For a viewer (None when the runner has none to give): image, the frame's (left) image as read, (H, W) or
+    (H, W, 3) uint8, not copied; uv_px, its keypoints in that image, (N, 2) float32 px; tracked, (N,) bool, the
+    keypoints matched to a map point.
     """
 
     run_id: int
@@ -73,6 +82,9 @@ class FrameTracked:
     map_reset: bool
     timings_ms: Mapping[str, float]
     message: str = ""
+    image: NDArray[np.uint8] | None = None
+    uv_px: F32 | None = None
+    tracked: Bool | None = None
 
 
 @dataclass(frozen=True)
@@ -120,7 +132,9 @@ class KeyFrameInserted:
 
     points_created: new points triangulated with its neighbours; points_fused: duplicates merged;
     ba_outliers: observations the local BA rejected; ba_aborted: the local BA was stopped early by a newer
-    keyframe. timings_ms: per stage of local mapping (``local_ba_ms``, ...).
+    keyframe. timings_ms: per stage of local mapping (``local_ba_ms``, ...). T_c_w: (4, 4) its pose after local
+    mapping; point_ids (M,) / points_w (M, 3) m: the map points it observes then, in the world frame (None when the
+    keyframe was gone by then).
     """
 
     run_id: int
@@ -131,6 +145,9 @@ class KeyFrameInserted:
     ba_outliers: int
     ba_aborted: bool
     timings_ms: Mapping[str, float]
+    T_c_w: F64 | None = None
+    point_ids: I64 | None = None
+    points_w: F64 | None = None
 
 
 @dataclass(frozen=True)
@@ -220,10 +237,10 @@ class MapsMerged:
 
 @dataclass(frozen=True)
 class MapSnapshot:
-    """The map at the end of a run: its keyframes (time order not guaranteed: in id order) and point count.
+    """The map at the end of a run: its keyframes (time order not guaranteed: in id order) and its points.
 
     keyframe_ids: (K,) int64. keyframe_timestamps_s: (K,) s. T_c_w: (K, 4, 4) the keyframes' final poses;
-    T_w_c: (K, 4, 4) their inverses.
+    T_w_c: (K, 4, 4) their inverses. point_ids: (P,) int64 in id order; points_w: (P, 3) m, world frame.
     """
 
     map_id: int
@@ -232,11 +249,14 @@ class MapSnapshot:
     T_c_w: F64
     T_w_c: F64
     n_points: int
+    point_ids: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
+    points_w: F64 = field(default_factory=lambda: np.zeros((0, 3)))
 
     @classmethod
     def of_store(cls, store: MapStore, map_id: int) -> MapSnapshot:
-        """The store's keyframes (in id order) with their current poses, and its point count."""
+        """The store's keyframes (in id order) with their current poses, and its points."""
         kfs = [store.get_keyframe(k) for k in store.keyframe_ids()]
+        point_ids = np.array(sorted(store.point_ids()), dtype=np.int64)
         return cls(
             map_id=map_id,
             keyframe_ids=np.array([kf.id for kf in kfs], dtype=np.int64),
@@ -244,6 +264,8 @@ class MapSnapshot:
             T_c_w=np.stack([kf.T_c_w for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
             T_w_c=np.stack([kf.T_w_c for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
             n_points=store.n_points(),
+            point_ids=point_ids,
+            points_w=store.point_rows(point_ids, "xyz_w").astype(np.float64) if point_ids.size else np.zeros((0, 3)),
         )
 
     @property

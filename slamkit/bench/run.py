@@ -173,8 +173,14 @@ def bench_one(overrides: Sequence[str], progress: bool = True) -> dict[str, Any]
     sampler = RssSampler()
     sampler.start()
     status, error = "ok", None
+    from omegaconf import OmegaConf
+
+    config = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(config, dict)
     try:
-        runner.run(dataset, dataset.camera)
+        # the composed config goes to the lifecycle hooks as in `slamkit run` (a listener such as the viewer reads
+        # its settings there); no run directory: a bench writes no run outputs
+        runner.run(dataset, dataset.camera, config={str(k): v for k, v in config.items()})
     except Exception as exc:  # a failed run still reports what it measured
         status, error = "failed", f"{type(exc).__name__}: {exc}"
     finally:

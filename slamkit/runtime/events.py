@@ -51,6 +51,7 @@ from slamkit.events import (
 from slamkit.geometry.se3 import invert_T
 from slamkit.interfaces import Dataset
 from slamkit.map.atlas import Atlas
+from slamkit.pipeline.frame import Frame
 from slamkit.pipeline.outcomes import LoopOutcome, MappingOutcome, TrackingOutcome
 from slamkit.runtime.log import RunLog
 
@@ -203,6 +204,8 @@ class RunEvents:
         return self.atlas.active_id
 
     def started(self, dataset: Dataset, run_dir: Path | None, config: Mapping[str, Any] | None, threaded: bool) -> None:
+        camera = getattr(dataset, "camera", None)
+        K = getattr(camera, "K", None)
         event = RunStarted(
             run_id=self.run_id,
             runner=self.runner,
@@ -211,6 +214,8 @@ class RunEvents:
             run_dir=run_dir,
             config=dict(config or {}),
             ground_truth=getattr(dataset, "ground_truth", None),
+            K=None if K is None else np.array(K, dtype=np.float64),
+            image_size=None if K is None else (int(camera.width), int(camera.height)),  # type: ignore[union-attr]
         )
         self.dispatcher.start(threaded)
         self.dispatcher.emit("slamkit_run_started", event)
@@ -240,13 +245,21 @@ class RunEvents:
             )
 
     def frame_tracked(
-        self, out: TrackingOutcome, map_reset: bool, reference_kf_id: int | None, T_ref_w: np.ndarray | None
+        self,
+        out: TrackingOutcome,
+        map_reset: bool,
+        reference_kf_id: int | None,
+        T_ref_w: np.ndarray | None,
+        image: np.ndarray | None = None,
+        frame: Frame | None = None,
     ) -> None:
         """Fire frame_tracked. reference_kf_id / T_ref_w: the keyframe the frame's pose is recorded against and
-        its pose (4, 4) T_c_w at the moment the runner records it (None: no pose to record)."""
+        its pose (4, 4) T_c_w at the moment the runner records it (None: no pose to record). image / frame: the
+        frame's image and the tracker's Frame of it (keypoints and their map points), passed on for a viewer."""
         if not self.dispatcher.wants("slamkit_frame_tracked"):
             return
         posed = out.T_c_w is not None and T_ref_w is not None and reference_kf_id is not None
+        seen = frame is not None and frame.index == out.frame_index
         self.dispatcher.emit(
             "slamkit_frame_tracked",
             FrameTracked(
@@ -265,12 +278,27 @@ class RunEvents:
                 map_reset=map_reset,
                 timings_ms=dict(out.timings_ms),
                 message=out.message,
+                image=image,
+                uv_px=frame.features.uv_px if seen else None,  # type: ignore[union-attr]
+                tracked=(frame.point_ids >= 0) if seen else None,  # type: ignore[union-attr]
             ),
         )
 
     def keyframe_mapped(self, outcome: MappingOutcome) -> None:
-        """After local mapping processed a keyframe: inserted, then what its culling removed."""
+        """After local mapping processed a keyframe: inserted (with its pose and points as local mapping left them),
+        then what its culling removed."""
         emit = self.dispatcher.emit
+        store = self.atlas.active
+        T_c_w = point_ids = points_w = None
+        with store.read():
+            if store.has_keyframe(outcome.kf_id):
+                kf = store.get_keyframe(outcome.kf_id)
+                T_c_w = kf.T_c_w.copy()
+                ids = kf.point_ids[kf.point_ids >= 0]
+                point_ids = ids[store.has_points(ids)] if ids.size else ids
+                points_w = (
+                    store.point_rows(point_ids, "xyz_w").astype(np.float64) if point_ids.size else np.zeros((0, 3))
+                )
         emit(
             "slamkit_keyframe_inserted",
             KeyFrameInserted(
@@ -282,6 +310,9 @@ class RunEvents:
                 ba_outliers=outcome.ba_outliers,
                 ba_aborted=outcome.ba_aborted,
                 timings_ms=dict(outcome.timings_ms),
+                T_c_w=T_c_w,
+                point_ids=point_ids,
+                points_w=points_w,
             ),
         )
         if outcome.points_culled:

@@ -142,4 +142,4 @@ class SequentialRunner:
                 T_ref_w = self.store.get_keyframe(ref).T_c_w
                 self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref, T_ref_w)
         # after the frame's keyframes were mapped: its pose is recorded against its reference keyframe as it is now
-        self._run_events.frame_tracked(out, map_was_reset, ref, T_ref_w)
+        self._run_events.frame_tracked(out, map_was_reset, ref, T_ref_w, data.image, self.tracker.current_frame)

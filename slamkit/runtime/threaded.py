@@ -274,7 +274,7 @@ class ThreadedRunner:
             ref_id, T_ref_w = out.reference_kf_id, out.T_ref_w
             assert ref_id is not None
             self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref_id, T_ref_w)
-        self._run_events.frame_tracked(out, map_was_reset, ref_id, T_ref_w)
+        self._run_events.frame_tracked(out, map_was_reset, ref_id, T_ref_w, data.image, self.tracker.current_frame)
         return out
 
     def run(

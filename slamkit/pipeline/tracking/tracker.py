@@ -111,6 +111,9 @@ class Tracker:
         self.init = MonocularInitialization(cfg, initializer, rng)
         self.rng = rng  # the initializer's RANSAC and the relocalization's PnP RANSAC
         self.last_frame: Frame | None = None
+        # the frame of the last step (its keypoints and the map points they were matched to), for listeners such as
+        # a viewer: read it after ``step`` returns, in the tracking thread
+        self.current_frame: Frame | None = None
         self.velocity: F64 | None = None  # T_cur_last of the last two tracked frames
         self.reference_kf_id: int | None = None
         self.last_kf_frame_index = -(10**9)
@@ -143,6 +146,7 @@ class Tracker:
         features = self.frontend.observe(data, camera, initializing or self._in_init_extractor_window(data.index))
         t1 = time.perf_counter()
         frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
+        self.current_frame = frame
         timings = {"extract_ms": (t1 - t0) * 1e3}
         outcome = self._initialize(frame) if initializing else self._track(frame, timings, mapping)
         timings["track_ms"] = (time.perf_counter() - t0) * 1e3

@@ -1,0 +1,225 @@
+"""One run streamed to rerun: the camera with its image and tracked features, the trajectory, keyframes, map
+points coloured by age, loop closures and merges on the timeline.
+
+Entity paths (world frame = the map's frame, metres; camera axes right-down-forward as slamkit's):
+- ``world/camera`` the current camera (Transform3D T_w_c, Pinhole), ``world/camera/image`` its image (JPEG) and
+  ``world/camera/image/features`` its keypoints (green: matched to a map point, red: not);
+- ``world/trajectory`` the tracked camera centres so far (a line strip, re-logged at each keyframe and at the end);
+- ``world/map_<id>/keyframes`` keyframe centres (labels: keyframe ids) and ``world/map_<id>/points`` map points,
+  coloured by age (old blue, new yellow); the final map at the end of the run;
+- ``world/loops/<n>`` a line between the two keyframes of each closed loop; ``events`` a text log of initialisations,
+  lost tracking, loops and merges; ``plots/*`` tracking time and inliers per frame.
+Timelines: ``frame`` (the frame index) and ``time`` (the frame's timestamp, s).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from slamkit.events import (
+    FrameTracked,
+    KeyFrameCulled,
+    KeyFrameInserted,
+    LoopClosed,
+    MapCreated,
+    MapsMerged,
+    RunFinished,
+    RunStarted,
+)
+from slamkit_rerun.settings import ViewerSettings
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+TRACKED_RGB = (40, 200, 60)
+UNTRACKED_RGB = (220, 50, 40)
+KEYFRAME_RGB = (80, 140, 255)
+TRAJECTORY_RGB = (255, 255, 255)
+LOOP_RGB = (255, 0, 255)
+
+
+def age_colours(point_ids: NDArray[np.int64]) -> NDArray[np.uint8]:
+    """(P,) point ids (monotonic: a larger id is a younger point) -> (P, 3) uint8 colours, oldest blue to youngest
+    yellow, by rank."""
+    n = point_ids.shape[0]
+    if n == 0:
+        return np.zeros((0, 3), np.uint8)
+    rank = np.empty(n, np.float64)
+    rank[np.argsort(point_ids, kind="stable")] = np.linspace(0.0, 1.0, n)
+    blue, yellow = np.array([40.0, 90.0, 255.0]), np.array([255.0, 220.0, 40.0])
+    return (blue + rank[:, None] * (yellow - blue)).astype(np.uint8)
+
+
+def camera_centre(T_c_w: F64) -> F64:
+    """(4, 4) T_c_w -> (3,) the camera centre in the world frame, m."""
+    R, t = T_c_w[:3, :3], T_c_w[:3, 3]
+    return np.asarray(-R.T @ t, dtype=np.float64)
+
+
+class RerunViewer:
+    """Logs one run's events to a rerun recording (the plugin makes one per run).
+
+    rr: the ``rerun`` module (imported by the plugin only when a run asks for the viewer)."""
+
+    def __init__(self, rr: Any, settings: ViewerSettings, started: RunStarted) -> None:
+        self.rr = rr
+        self.settings = settings
+        self.rec = rr.RecordingStream("slamkit", recording_id=f"slamkit-run-{started.run_id}")
+        if settings.save is not None:
+            settings.save.parent.mkdir(parents=True, exist_ok=True)
+            self.rec.save(str(settings.save))
+        elif settings.connect is not None:
+            self.rec.connect_grpc(settings.connect)
+        else:
+            self.rec.spawn()
+        self._centres: list[F64] = []  # tracked camera centres, in frame order
+        self._keyframes: dict[int, dict[int, F64]] = {}  # map id -> keyframe id -> centre
+        self._points: dict[int, dict[int, F64]] = {}  # map id -> point id -> position (as local mapping left it)
+        self._loops = 0
+        self._frame_index = -1
+        rec = self.rec
+        rec.log("world", rr.ViewCoordinates.RDF, static=True)  # slamkit's camera axes: x right, y down, z forward
+        if started.K is not None and started.image_size is not None:
+            rec.log(
+                "world/camera/image",
+                rr.Pinhole(image_from_camera=started.K, resolution=list(started.image_size)),
+                static=True,
+            )
+        rec.log(
+            "events",
+            rr.TextLog(f"run started: {started.dataset}, {started.n_frames} frames, {started.runner} runner"),
+            static=True,
+        )
+
+    # ---- the timeline --------------------------------------------------------------------------------
+
+    def _at_frame(self, frame_index: int, timestamp_s: float | None = None) -> None:
+        self.rec.set_time("frame", sequence=int(frame_index))
+        if timestamp_s is not None:
+            self.rec.set_time("time", duration=float(timestamp_s))
+
+    def _at_last_frame(self) -> None:
+        """Events of local mapping and loop closing carry no frame: they are placed at the last frame tracked."""
+        self.rec.set_time("frame", sequence=max(self._frame_index, 0))
+
+    # ---- events --------------------------------------------------------------------------------------
+
+    def frame_tracked(self, event: FrameTracked) -> None:
+        rr, rec = self.rr, self.rec
+        self._frame_index = event.frame_index
+        self._at_frame(event.frame_index, event.timestamp_s)
+        rec.log("plots/track_ms", rr.Scalars(float(event.timings_ms.get("track_ms", np.nan))))
+        rec.log("plots/inliers", rr.Scalars(float(event.inliers)))
+        if event.T_c_w is not None:
+            T_w_c = np.linalg.inv(event.T_c_w)
+            rec.log("world/camera", rr.Transform3D(translation=T_w_c[:3, 3], mat3x3=T_w_c[:3, :3]))
+            self._centres.append(np.array(T_w_c[:3, 3], dtype=np.float64))
+        elif event.state == "lost":
+            rec.log("events", rr.TextLog(f"frame {event.frame_index}: lost ({event.message})", level="WARN"))
+        if event.image is not None and event.frame_index % self.settings.image_every == 0:
+            ok, jpeg = cv2.imencode(".jpg", event.image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
+            if ok:
+                rec.log("world/camera/image", rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+        if event.uv_px is not None and event.tracked is not None:
+            colours = np.where(event.tracked[:, None], TRACKED_RGB, UNTRACKED_RGB).astype(np.uint8)
+            rec.log("world/camera/image/features", rr.Points2D(event.uv_px, colors=colours, radii=2.0))
+
+    def map_created(self, event: MapCreated) -> None:
+        self._at_frame(event.frame_index, event.timestamp_s)
+        self.rec.log(
+            "events",
+            self.rr.TextLog(f"map {event.map_id} initialised at frame {event.frame_index}: {event.n_points} points"),
+        )
+
+    def keyframe_inserted(self, event: KeyFrameInserted) -> None:
+        if event.T_c_w is None or event.point_ids is None or event.points_w is None:
+            return
+        self._at_last_frame()
+        keyframes = self._keyframes.setdefault(event.map_id, {})
+        keyframes[event.kf_id] = camera_centre(event.T_c_w)
+        points = self._points.setdefault(event.map_id, {})
+        points.update(zip(event.point_ids.tolist(), event.points_w, strict=True))
+        self._log_map(event.map_id)
+        self._log_trajectory()
+
+    def keyframe_culled(self, event: KeyFrameCulled) -> None:
+        self._keyframes.get(event.map_id, {}).pop(event.kf_id, None)
+
+    def loop_closed(self, event: LoopClosed) -> None:
+        self._at_last_frame()
+        keyframes = self._keyframes.get(event.map_id, {})
+        self.rec.log(
+            "events",
+            self.rr.TextLog(
+                f"loop closed: keyframe {event.kf_id} <-> {event.loop_kf_id} ({event.matches} matches, "
+                f"scale {event.scale:.3f})"
+            ),
+        )
+        if event.kf_id in keyframes and event.loop_kf_id in keyframes:
+            strip = np.stack([keyframes[event.kf_id], keyframes[event.loop_kf_id]])
+            self.rec.log(f"world/loops/{self._loops}", self.rr.LineStrips3D([strip], colors=[LOOP_RGB]))
+        self._loops += 1
+
+    def maps_merged(self, event: MapsMerged) -> None:
+        self._at_last_frame()
+        self.rec.log(
+            "events",
+            self.rr.TextLog(
+                f"map {event.merged_map_id} merged into map {event.into_map_id} "
+                f"(keyframe {event.kf_id} matched {event.matched_kf_id})"
+            ),
+        )
+
+    def run_finished(self, event: RunFinished) -> None:
+        """The final maps (every keyframe at its final pose, every point), then the recording is closed."""
+        self._at_last_frame()
+        for snapshot in event.maps:
+            self._keyframes[snapshot.map_id] = {
+                int(k): T_w_c[:3, 3].copy() for k, T_w_c in zip(snapshot.keyframe_ids, snapshot.T_w_c, strict=True)
+            }
+            self._points[snapshot.map_id] = dict(zip(snapshot.point_ids.tolist(), snapshot.points_w, strict=True))
+            self._log_map(snapshot.map_id)
+        self._log_trajectory()
+        level = "INFO" if event.status == "ok" else "ERROR"
+        self.rec.log(
+            "events", self.rr.TextLog(f"run {event.status}" + (f": {event.error}" if event.error else ""), level=level)
+        )
+        self.close()
+
+    def close(self) -> None:
+        """Flush and close the recording (the .rrd file is complete after this)."""
+        self.rec.flush()
+        self.rec.disconnect()
+
+    # ---- drawing -------------------------------------------------------------------------------------
+
+    def _log_map(self, map_id: int) -> None:
+        rr = self.rr
+        keyframes = self._keyframes.get(map_id, {})
+        if keyframes:
+            kf_ids = sorted(keyframes)
+            self.rec.log(
+                f"world/map_{map_id}/keyframes",
+                rr.Points3D(
+                    np.stack([keyframes[k] for k in kf_ids]),
+                    colors=[KEYFRAME_RGB],
+                    radii=0.03,
+                    labels=[str(k) for k in kf_ids],
+                    show_labels=False,
+                ),
+            )
+        points = self._points.get(map_id, {})
+        if points:
+            ids = np.fromiter(points.keys(), np.int64, len(points))
+            xyz = np.stack(list(points.values()))
+            self.rec.log(f"world/map_{map_id}/points", rr.Points3D(xyz, colors=age_colours(ids), radii=0.01))
+
+    def _log_trajectory(self) -> None:
+        if len(self._centres) >= 2:
+            self.rec.log("world/trajectory", self.rr.LineStrips3D([np.stack(self._centres)], colors=[TRAJECTORY_RGB]))
