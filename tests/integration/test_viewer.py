@@ -20,7 +20,7 @@ from slamkit.errors import ConfigError
 rerun_chunk = pytest.importorskip("rerun.chunk", reason="rerun-sdk is not installed (pip install 'slamkit[viewer]')")
 
 from slamkit_rerun.settings import ViewerSettings  # noqa: E402
-from slamkit_rerun.viewer import RerunViewer, age_colours  # noqa: E402
+from slamkit_rerun.viewer import PointCloud, RerunViewer, age_colours  # noqa: E402
 
 
 def read_rrd(path: Path) -> dict[str, list[dict[str, Any]]]:
@@ -70,6 +70,7 @@ def test_a_recorded_run_holds_every_keyframe_the_final_points_and_each_frames_fe
     rows = check_final_map(rrd, runner)
     frames = len(runner.log.tracking)
     assert len(rows["/world/camera/image/features"]) == frames
+    assert len(rows["/plots/track_ms"]) == len(rows["/plots/inliers"]) == frames  # sent in columns, every frame
     assert len(rows["/world/camera/image"]) >= frames // 10  # JPEG every 10th frame (+ the static pinhole)
     tracked = sum(1 for o in runner.log.tracking if o.T_c_w is not None)
     assert len([r for r in rows["/world/camera"] if r.get("Transform3D:translation") is not None]) == tracked
@@ -140,3 +141,11 @@ def test_no_viewer_group_means_no_viewer_and_points_are_coloured_old_to_new() ->
     assert ViewerSettings.from_config({}) is None and ViewerSettings.from_config({"viewer": {"kind": "x"}}) is None
     colours = age_colours(np.array([7, 3, 11], dtype=np.int64))
     assert tuple(colours[1]) == (40, 90, 255) and tuple(colours[2]) == (255, 220, 40)  # oldest blue, youngest yellow
+
+
+def test_the_point_cloud_keeps_each_points_latest_position_in_id_order() -> None:
+    cloud = PointCloud()
+    cloud.update(np.array([5, 2], np.int64), np.array([[5.0, 0, 0], [2.0, 0, 0]]))
+    cloud.update(np.array([5, 3000], np.int64), np.array([[5.5, 0, 0], [30.0, 0, 0]]))  # moved, and a new one
+    ids, xyz = cloud.points()
+    assert ids.tolist() == [2, 5, 3000] and xyz[:, 0].tolist() == [2.0, 5.5, 30.0] and len(cloud) == 3
