@@ -283,10 +283,14 @@ class System:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        if self._ended is None and self._started and exc is not None:
-            self._end(exc)  # the block failed: the run did too (stopped at once, the run directory says so)
-        else:
+        if self._ended is not None:
+            return
+        if exc is None:
             self.close()
+            return
+        if not self._started:
+            self._begin()
+        self._end(exc)  # the block failed: the run did too (stopped at once; the run directory says so)
 
     @property
     def closed(self) -> bool:
