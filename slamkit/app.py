@@ -262,13 +262,15 @@ def _written_metrics(out_dir: Path) -> dict[str, Any]:
 
 
 def run_job(cfg: DictConfig) -> dict[str, Any]:
-    """Hydra task function of ``slamkit run``. A failing job writes metrics.json with ``status: failed`` and
+    """Hydra task function of ``slamkit run``: ``System(cfg).run_dataset()`` of the Python API (slamkit/api.py)
+    writing into Hydra's output directory. A failing job writes metrics.json with ``status: failed`` and
     ``error``; in a multirun it then returns (logged as an error) so the other jobs of the sweep go on, in a
     single run it raises."""
+    from slamkit.api import System  # the Python API; this job is its user (slamkit.api imports this module)
+
     out_dir = _output_dir()
     try:
-        runner, dataset = build_runner(cfg)
-        config = OmegaConf.to_container(cfg, resolve=True)
+        system = System(cfg, output_dir=out_dir)
     except Exception as exc:
         error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
         metrics = write_failed_job(out_dir, cfg, error, "build")
@@ -276,12 +278,12 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
             raise
         log.error("job failed while building its components: %s", error)
         return metrics
+    dataset = system.dataset
     log.info("dataset %s: %d frames -> %s", getattr(dataset, "name", "?"), len(dataset), out_dir)
     start = time.perf_counter()
-    assert isinstance(config, dict)
     try:
         # the outputs plugin writes the run directory when the run finishes, also when it fails
-        runner.run(dataset, dataset.camera, run_dir=out_dir, config={str(k): v for k, v in config.items()})
+        system.run_dataset()
     except BaseException as exc:
         error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
         if not isinstance(exc, Exception) or not _is_multirun():

@@ -54,6 +54,8 @@ class SequentialRunner:
         self.log = RunLog()
         self.events = events
         self._run_events = RunEvents(None, "sequential", atlas)
+        self._first_t: float | None = None  # timestamp of the run's first frame, s
+        self._start = time.perf_counter()  # wall clock at the run's start (perf_counter), s
 
     @property
     def store(self) -> MapStore:
@@ -72,19 +74,15 @@ class SequentialRunner:
 
         run_dir / config: where the run's files go and its resolved config, handed to the lifecycle hooks
         (``slamkit_run_started``; the built-in outputs plugin writes the run directory from its events).
+        The same as ``begin``, ``step`` on each readable frame, then ``end`` (what slamkit.api.System does with
+        frames a program hands it).
         """
-        self._run_events = RunEvents(self.events, "sequential", self.atlas)
-        self._run_events.started(dataset, run_dir, config, threaded=False)
-        start = time.perf_counter()
+        self.begin(dataset, camera, run_dir, config)
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
-        first_t: float | None = None
         ended_by: BaseException | None = None
         try:
             for data in readable_frames(dataset, self.bad_frames, self._frame_skipped):
-                first_t = data.timestamp_s if first_t is None else first_t
-                self.log.sequence_s = data.timestamp_s - first_t
-                self.step(data, camera)
-                out = self.log.tracking[-1]
+                out = self.step(data, camera)
                 if on_frame is not None:
                     on_frame(out)
                 bar.update(1)
@@ -100,20 +98,43 @@ class SequentialRunner:
             raise
         finally:
             bar.close()
-            self.log.wall_s = time.perf_counter() - start
-            self._run_events.finished(self.log, ended_by)
+            self.end(ended_by)
+        return self.log
+
+    def begin(
+        self, dataset: Dataset, camera: Camera, run_dir: Path | None = None, config: Mapping[str, Any] | None = None
+    ) -> None:
+        """Start a run: fire ``slamkit_run_started`` (dataset: its name, length and ground truth for the
+        listeners; run_dir / config as in ``run``) and start the wall clock. Then ``step`` each frame, then
+        ``end``. camera: the frames' camera (unused here; the threaded runner's ``begin`` warms up the front end
+        with it)."""
+        del camera
+        self._run_events = RunEvents(self.events, "sequential", self.atlas)
+        self._run_events.started(dataset, run_dir, config, threaded=False)
+        self._first_t = None
+        self._start = time.perf_counter()
+
+    def end(self, ended_by: BaseException | None = None) -> RunLog:
+        """End the run ``begin`` started (ended_by: the exception that ended it, None when it completed): record
+        its wall time and fire ``slamkit_run_finished`` (the outputs plugin writes the run directory)."""
+        self.log.wall_s = time.perf_counter() - self._start
+        self._run_events.finished(self.log, ended_by)
         return self.log
 
     def _frame_skipped(self, frame_index: int, reason: str) -> None:
         self.log.frames_skipped += 1
         self._run_events.frame_skipped(frame_index, reason)
 
-    def step(self, data: FrameData, camera: Camera) -> None:
-        """Track one frame, then map the keyframes it produced (and look for a loop at each), then record its pose.
+    def step(self, data: FrameData, camera: Camera) -> TrackingOutcome:
+        """Track one frame, then map the keyframes it produced (and look for a loop at each), then record its pose;
+        returns what tracking did with it (also appended to ``self.log.tracking``). The one per-frame step of
+        ``run`` and of slamkit.api.System.track.
 
         Local mapping is always idle when a frame is tracked here (it runs to completion in between), so every
         keyframe tracking wants is made. A map reset or a new map tracking asks for is carried out right after the
         frame."""
+        self._first_t = data.timestamp_s if self._first_t is None else self._first_t
+        self.log.sequence_s = data.timestamp_s - self._first_t
         map_before = self.atlas.active_id
         out = self.tracker.step(data, camera, MappingState(idle=True, accepting_keyframes=True))
         if out.lost_decision == LostDecision.RESET_MAP:
@@ -143,3 +164,4 @@ class SequentialRunner:
                 self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref, T_ref_w)
         # after the frame's keyframes were mapped: its pose is recorded against its reference keyframe as it is now
         self._run_events.frame_tracked(out, map_was_reset, ref, T_ref_w, data.image, self.tracker.current_frame)
+        return out

@@ -116,6 +116,11 @@ class ThreadedRunner:
         self._mapping: PipelineWorker[KeyFrame] | None = None
         self._closing: PipelineWorker[KeyFrame] | None = None
         self.mapping_parks_for_loops = 0  # times loop closing parked local mapping (once per loop correction)
+        # a run whose frames the caller hands in (begin / step / end)
+        self._live_stack = contextlib.ExitStack()
+        self._live_workers: list[PipelineWorker[KeyFrame]] = []
+        self._live_start = time.perf_counter()
+        self._live_first_t: float | None = None
 
     @property
     def store(self) -> MapStore:
@@ -310,18 +315,8 @@ class ThreadedRunner:
         frames: Iterable[FrameData] = self._preloaded(readable, len(dataset)) if self.preload else readable
         start = time.perf_counter()
         self._source = FrameSource(frames, self.realtime, self._on_fault, self.speed)
-        # Only against a clock: playing as fast as possible, tracking is always runnable and would starve the
-        # lower-priority local mapping, tracking on ahead of a map whose new points are not triangulated yet (the
-        # room was lost at frame ~146 that way); with real-time playback tracking leaves time each frame period.
-        nice = self.background_niceness if self.realtime else 0
-        self._mapping = PipelineWorker("local-mapping", self._map_keyframe, self._on_fault, nice)
-        if self.loop_closer is not None:
-            self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault, nice)
-            # the global BA after a loop runs in its own thread, parking local mapping to write its result
-            self.loop_closer.park_mapping = lambda: self._parked(self._mapping, finish_queue=True)
-        self._lower_optimizer_process_priority()
+        workers = self._make_workers()
         bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
-        workers = [w for w in (self._mapping, self._closing) if w is not None]
         for thread in (self._source, *workers):
             thread.start()
         finished = False
@@ -342,6 +337,89 @@ class ThreadedRunner:
             self.log.wall_s = time.perf_counter() - start
         if self._fault is not None:
             raise self._fault.as_error()
+
+    def _make_workers(self) -> list[PipelineWorker[KeyFrame]]:
+        """Local mapping's and loop closing's workers (not started yet)."""
+        # Only against a clock: playing as fast as possible, tracking is always runnable and would starve the
+        # lower-priority local mapping, tracking on ahead of a map whose new points are not triangulated yet (the
+        # room was lost at frame ~146 that way); with real-time playback tracking leaves time each frame period.
+        nice = self.background_niceness if self.realtime else 0
+        self._mapping = PipelineWorker("local-mapping", self._map_keyframe, self._on_fault, nice)
+        if self.loop_closer is not None:
+            self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault, nice)
+            # the global BA after a loop runs in its own thread, parking local mapping to write its result
+            self.loop_closer.park_mapping = lambda: self._parked(self._mapping, finish_queue=True)
+        self._lower_optimizer_process_priority()
+        return [w for w in (self._mapping, self._closing) if w is not None]
+
+    # ---- frames handed in one by one (slamkit.api.System) -----------------------------------------------
+
+    def begin(
+        self, dataset: Dataset, camera: Camera, run_dir: Path | None = None, config: Mapping[str, Any] | None = None
+    ) -> None:
+        """Start a run whose frames the caller hands to ``step`` one by one (the caller's thread is the tracking
+        thread; no frame source): fire ``slamkit_run_started`` (dataset: its name, length and ground truth for
+        the listeners), load the compiled kernels, start local mapping and loop closing. Then ``end``."""
+        self._run_events = RunEvents(self.events, "threaded", self.atlas)
+        self._run_events.started(dataset, run_dir, config, threaded=True)
+        self._live_stack = contextlib.ExitStack()
+        self._live_first_t = None
+        try:
+            self.tracker.warm_up(camera)
+            self._live_start = time.perf_counter()
+            self._live_workers = self._make_workers()
+            for worker in self._live_workers:
+                worker.start()
+            self._live_stack.enter_context(gil_switch_interval(self.gil_switch_interval_s))
+        except BaseException as exc:
+            self.end(exc)
+            raise
+
+    def step(self, data: FrameData, camera: Camera) -> TrackingOutcome:
+        """Track one frame handed in by the caller (after ``begin``) and queue its keyframes for local mapping;
+        returns what tracking did with it. Raises PipelineThreadError when local mapping or loop closing failed
+        (the caller then ends the run with ``end``)."""
+        if self._fault is not None:
+            raise self._fault.as_error()
+        t_track = time.perf_counter()
+        try:
+            out = self._track(data, camera)
+        except Exception as exc:  # recorded like the run loop's tracking failure (failed_thread: tracking)
+            if raised_by_ctrl_c(exc):
+                raise KeyboardInterrupt from exc
+            self._on_fault(ThreadFault("tracking", exc, traceback.format_exc()))
+            raise
+        self.log.tracking_wall_s.append((t_track, time.perf_counter()))
+        first = self._live_first_t
+        self._live_first_t = data.timestamp_s if first is None else first
+        self.log.sequence_s = data.timestamp_s - self._live_first_t
+        return out
+
+    def end(self, ended_by: BaseException | None = None) -> RunLog:
+        """End the run ``begin`` started (ended_by: the exception that ended it, None when the caller has no more
+        frames): let local mapping and loop closing finish their queues (stop them at once after a failure), then
+        fire ``slamkit_run_finished``. Raises PipelineThreadError when a pipeline thread failed."""
+        workers, self._live_workers = self._live_workers, []
+        try:
+            self._live_stack.close()
+            finished = False
+            try:
+                if ended_by is None and self._fault is None:
+                    self._drain(workers)
+                    finished = True
+            finally:
+                if not finished or self._fault is not None:
+                    self._stop_all(workers)
+                self.log.wall_s = time.perf_counter() - self._live_start
+            if self._fault is not None and ended_by is None:
+                ended_by = self._fault.as_error()
+                raise ended_by
+        except BaseException as exc:
+            ended_by = ended_by or exc
+            raise
+        finally:
+            self._run_events.finished(self.log, ended_by)
+        return self.log
 
     def _track_frames(self, camera: Camera, bar: tqdm[Any], on_frame: Callable[[TrackingOutcome], None] | None) -> None:
         """The tracking loop: take frames from the source until the end, a fault or a stop."""
