@@ -86,6 +86,10 @@ class PointTable:
         self._arrays["n_observations"][point_id] = 0
         self._arrays["state"][point_id] = PRESENT
 
+    def is_empty(self) -> bool:
+        """True when no point was ever put in the table."""
+        return not np.any(self._arrays["state"])
+
     def erase(self, point_id: int) -> None:
         """Mark a point's row erased (it stays allocated; the id is never used again)."""
         self._arrays["state"][point_id] = ERASED
