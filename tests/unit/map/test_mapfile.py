@@ -204,3 +204,22 @@ def test_manifest_is_json(saved: Path) -> None:
         manifest = json.loads(zf.read("manifest.json"))
     assert manifest["format"] == "slamkit-map"
     assert {m["id"] for m in manifest["maps"]} == {0, 1}
+
+
+def test_map_info_command(saved: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from slamkit.cli import main
+
+    assert main(["map", "info", str(saved)]) == 0
+    out = capsys.readouterr().out
+    info = map_file_info(saved)
+    assert f"schema version  {mapfile.SCHEMA_VERSION}" in out
+    assert f"{info.n_keyframes} keyframes, {info.n_points} points" in out
+    assert f"{info.size_bytes} bytes" in out
+    assert "(active)" in out
+    assert main(["map", "info", "--json", str(saved)]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["maps"] == [{"id": m, "keyframes": k, "points": p} for m, k, p in info.maps]
+    saved.write_bytes(saved.read_bytes()[:-3])
+    assert main(["map", "info", str(saved)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("slamkit map: map file ") and str(saved) in err and "truncated" in err
