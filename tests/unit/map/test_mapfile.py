@@ -223,3 +223,48 @@ def test_map_info_command(saved: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert main(["map", "info", str(saved)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("slamkit map: map file ") and str(saved) in err and "truncated" in err
+
+
+# ---- map.save / map.load in a run (slamkit/map/mapfile_run.py) ------------------------------------------------
+
+
+def test_map_save_keys_and_store_node(tmp_path: Path) -> None:
+    from slamkit.map import mapfile_run
+
+    node = {"_target_": "slamkit.map.store.InMemoryMapStore", "covisibility_min_shared": 15, "save": None, "load": None}
+    assert mapfile_run.store_node(node) == {
+        "_target_": "slamkit.map.store.InMemoryMapStore",
+        "covisibility_min_shared": 15,
+    }
+    assert mapfile_run.save_path(node, tmp_path) is None
+    assert mapfile_run.save_path({"save": True}, tmp_path) == tmp_path / "map.slamkit"
+    assert mapfile_run.save_path({"save": "x/m.slamkit"}, tmp_path) == Path("x/m.slamkit")
+
+
+def test_a_run_that_fails_late_saves_its_map_and_one_that_fails_early_leaves_the_file(
+    tmp_path: Path, place: DbowPlaceRecognizer
+) -> None:
+    from slamkit.map import mapfile_run
+
+    target = tmp_path / "m.slamkit"
+    atlas = build_atlas(place)
+    with (
+        pytest.raises(RuntimeError, match="late"),
+        mapfile_run.saving_map({"save": str(target)}, atlas, tmp_path, None),
+    ):
+        raise RuntimeError("failed late")
+    assert map_file_info(target).n_keyframes == sum(s.n_keyframes() for _, s in atlas.items())
+    before = target.read_bytes()
+    empty = Atlas(new_store, None)
+    with (
+        pytest.raises(RuntimeError, match="early"),
+        mapfile_run.saving_map({"save": str(target)}, empty, tmp_path, None),
+    ):
+        raise RuntimeError("failed early")
+    assert target.read_bytes() == before
+    # a run that ends normally with an unwritable map.save: the save's error is the run's
+    with (
+        pytest.raises(MapFileError, match="cannot be written"),
+        mapfile_run.saving_map({"save": str(target / "sub" / "m.slamkit")}, atlas, tmp_path, None),
+    ):
+        pass
