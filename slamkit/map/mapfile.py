@@ -45,7 +45,7 @@ import zipfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,11 +53,11 @@ from numpy.typing import NDArray
 from slamkit.errors import MapFileError
 from slamkit.features import Observations
 from slamkit.geometry.camera import camera_from_config
-from slamkit.interfaces import BowDescription, Camera, PlaceRecognizer
+from slamkit.interfaces import BowDescription, Camera, MapStore, PlaceRecognizer
 from slamkit.map.atlas import Atlas, StoreFactory
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.ids import IdAllocator
-from slamkit.map.mapfile_contents import MapContents, read_map_contents
+from slamkit.map.mapfile_contents import MapContents
 
 #: The layout this code writes and the only one it reads (a change to the members or their meaning bumps it).
 SCHEMA_VERSION = 1
@@ -112,10 +112,9 @@ def save_atlas(atlas: Atlas, path: str | os.PathLike[str], config: Mapping[str, 
     maps_meta: list[dict[str, Any]] = []
     members: list[tuple[str, NDArray[Any]]] = []
     for map_id, store in atlas.items():
-        with store.read():
-            contents = read_map_contents(store)
         try:
-            arrays, meta = _map_arrays(contents, lambda cam: _camera_id(cam, cameras, camera_index, target))
+            with store.read():  # the arrays are copies: the map may change again once they are made
+                arrays, meta = _map_arrays(store, lambda cam: _camera_id(cam, cameras, camera_index, target))
         except ValueError as exc:
             raise MapFileError(f"map file {target}: map {map_id} cannot be saved ({exc})") from None
         maps_meta.append({"id": map_id, **meta})
@@ -242,23 +241,25 @@ def _jsonable(config: Mapping[str, Any] | None) -> Any:
     return json.loads(json.dumps(config, default=str))
 
 
-def _offsets(counts: Iterable[int]) -> NDArray[np.int64]:
-    return np.asarray(list(counts), np.int64)
+def _counts(counts: Iterable[int]) -> NDArray[np.int64]:
+    return np.fromiter(counts, np.int64)
 
 
-def _map_arrays(
-    contents: MapContents, camera_id: Callable[[Camera], int]
-) -> tuple[dict[str, NDArray[Any]], dict[str, Any]]:
-    """The members of one map and its manifest entry."""
-    kfs = contents.keyframes
+def _map_arrays(store: MapStore, camera_id: Callable[[Camera], int]) -> tuple[dict[str, NDArray[Any]], dict[str, Any]]:
+    """The members of one map and its manifest entry, read through the MapStore protocol (the caller holds the read
+    lock) straight into arrays: no copy of the entities, no Python list per element (memory while saving stays
+    close to the file's size; benchmarks/map_save_load.py). The same state ``read_map_contents`` describes."""
+    kf_ids = store.keyframe_ids()
+    kfs = [store.get_keyframe(k) for k in kf_ids]
     feats = [kf.features for kf in kfs]
+    K = len(kfs)
     a: dict[str, NDArray[Any]] = {
-        "kf_id": np.array([kf.id for kf in kfs], np.int64),
+        "kf_id": np.array(kf_ids, np.int64),
         "kf_frame_index": np.array([kf.frame_index for kf in kfs], np.int64),
         "kf_timestamp_s": np.array([kf.timestamp_s for kf in kfs], np.float64),
-        "kf_T_c_w": np.array([kf.T_c_w for kf in kfs], np.float64).reshape(len(kfs), 4, 4),
+        "kf_T_c_w": np.array([kf.T_c_w for kf in kfs], np.float64).reshape(K, 4, 4),
         "kf_camera": np.array([camera_id(kf.camera) for kf in kfs], np.int64),
-        "kf_n_features": _offsets(len(f) for f in feats),
+        "kf_n_features": _counts(len(f) for f in feats),
         "kf_scale_factor": np.array([f.scale_factor for f in feats], np.float64),
         "kf_n_levels": np.array([f.n_levels for f in feats], np.int64),
         "kf_bf": np.array([f.bf for f in feats], np.float64),
@@ -279,109 +280,147 @@ def _map_arrays(
         ("u_right_px", np.float32, ()),
         ("depth_m", np.float32, ()),
     )
+    n_features = int(a["kf_n_features"].sum())
     for name, dtype, tail in columns:
-        parts: list[NDArray[Any]] = [np.asarray(getattr(f, name), dtype).reshape(len(f), *tail) for f in feats]
-        a[f"feat_{name}"] = np.concatenate(parts) if parts else np.zeros((0, *tail), dtype)
+        column: NDArray[Any] = np.empty((n_features, *tail), dtype)
+        at = 0
+        for f in feats:
+            column[at : at + len(f)] = np.asarray(getattr(f, name)).reshape(len(f), *tail)
+            at += len(f)
+        a[f"feat_{name}"] = column
     a["feat_point_id"] = np.concatenate([kf.point_ids for kf in kfs]) if kfs else np.zeros(0, np.int64)
     # bags of words, in the dicts' own orders (scores sum in that order: bit-for-bit the same results)
     bows = [kf.bow for kf in kfs]
-    a["kf_has_bow"] = np.array([b is not None for b in bows], np.bool_)
     words = [b.words if b is not None else {} for b in bows]
     direct = [b.direct_index if b is not None else {} for b in bows]
-    a["bow_n_words"] = _offsets(len(w) for w in words)
-    a["bow_word"] = np.array([k for w in words for k in w], np.int64)
-    a["bow_weight"] = np.array([v for w in words for v in w.values()], np.float64)
-    a["di_n_nodes"] = _offsets(len(d) for d in direct)
-    a["di_node"] = np.array([k for d in direct for k in d], np.int64)
+    a["kf_has_bow"] = np.array([b is not None for b in bows], np.bool_)
+    a["bow_n_words"] = _counts(len(w) for w in words)
+    n_words = int(a["bow_n_words"].sum())
+    a["bow_word"] = np.fromiter((k for w in words for k in w), np.int64, n_words)
+    a["bow_weight"] = np.fromiter((v for w in words for v in w.values()), np.float64, n_words)
+    a["di_n_nodes"] = _counts(len(d) for d in direct)
+    a["di_node"] = np.fromiter((k for d in direct for k in d), np.int64, int(a["di_n_nodes"].sum()))
+    a["di_n_features"] = _counts(len(g) for d in direct for g in d.values())
     groups = [np.asarray(g, np.int64).reshape(-1) for d in direct for g in d.values()]
-    a["di_n_features"] = _offsets(len(g) for g in groups)
     a["di_feature"] = np.concatenate(groups) if groups else np.zeros(0, np.int64)
-    pts = contents.points
-    a.update(
-        {
-            "pt_id": np.array([p.id for p in pts], np.int64),
-            "pt_xyz_w": np.array([p.xyz_w for p in pts], np.float64).reshape(len(pts), 3),
-            "pt_normal_w": np.array([p.normal_w for p in pts], np.float64).reshape(len(pts), 3),
-            "pt_d_min_m": np.array([p.d_min_m for p in pts], np.float64),
-            "pt_d_max_m": np.array([p.d_max_m for p in pts], np.float64),
-            "pt_descriptor": np.array([p.descriptor for p in pts], np.uint8).reshape(len(pts), -1 if pts else width),
-            "pt_ref_kf": np.array([p.ref_kf_id for p in pts], np.int64),
-            "pt_first_kf": np.array([p.first_kf_id for p in pts], np.int64),
-            "pt_n_visible": np.asarray(contents.n_visible, np.int64),
-            "pt_n_found": np.asarray(contents.n_found, np.int64),
-            "pt_n_obs": _offsets(len(p.observations) for p in pts),
-            "obs_kf": np.array([k for p in pts for k in p.observations], np.int64),
-            "obs_feature": np.array([i for p in pts for i in p.observations.values()], np.int64),
-            "cov_edges": np.asarray(contents.covisibility, np.int64).reshape(-1, 3),
-            "tree": np.array([(k, -1 if p is None else p) for k, p in contents.tree.items()], np.int64).reshape(-1, 2),
-            "loop_edges": np.array(contents.loop_edges, np.int64).reshape(-1, 2),
-        }
-    )
+    pids = np.array(store.point_ids(), np.int64)
+    pts = store.get_points(pids.tolist())
+    P = len(pts)
+
+    def rows(attribute: str, dtype: type, tail: tuple[int, ...]) -> NDArray[Any]:
+        if not P:
+            return np.zeros((0, *tail), dtype)
+        return np.asarray(store.point_rows(pids, attribute), dtype).reshape(P, *tail)
+
+    a["pt_id"] = pids
+    a["pt_xyz_w"] = rows("xyz_w", np.float64, (3,))
+    a["pt_normal_w"] = rows("normal_w", np.float64, (3,))
+    a["pt_d_min_m"] = rows("d_min_m", np.float64, ())
+    a["pt_d_max_m"] = rows("d_max_m", np.float64, ())
+    a["pt_descriptor"] = rows("descriptor", np.uint8, (pts[0].descriptor.shape[0] if P else width,))
+    a["pt_ref_kf"] = np.fromiter((p.ref_kf_id for p in pts), np.int64, P)
+    a["pt_first_kf"] = np.fromiter((p.first_kf_id for p in pts), np.int64, P)
+    a["pt_n_visible"] = rows("n_visible", np.int64, ())
+    a["pt_n_found"] = rows("n_found", np.int64, ())
+    a["pt_n_obs"] = _counts(len(p.observations) for p in pts)
+    n_obs = int(a["pt_n_obs"].sum())
+    a["obs_kf"] = np.fromiter((k for p in pts for k in p.observations), np.int64, n_obs)
+    a["obs_feature"] = np.fromiter((i for p in pts for i in p.observations.values()), np.int64, n_obs)
+    edges = store.covisibility.edges()
+    a["cov_edges"] = np.array(edges, np.int64).reshape(len(edges), 3)
+    tree = store.spanning_tree
+    a["tree"] = np.array([(k, _parent_or_root(tree.parent(k))) for k in kf_ids if k in tree], np.int64).reshape(-1, 2)
+    a["loop_edges"] = np.array(store.loop_edges(), np.int64).reshape(-1, 2)
     meta = {
-        "keyframes": len(kfs),
-        "points": len(pts),
-        "features": int(a["feat_point_id"].shape[0]),
-        "descriptor_bytes": int(width),
-        "first_keyframe_id": contents.first_keyframe_id,
-        "epoch": contents.epoch,
+        "keyframes": K,
+        "points": P,
+        "features": n_features,
+        "descriptor_bytes": int(a["pt_descriptor"].shape[1]) if P else int(width),
+        "first_keyframe_id": kf_ids[0] if kf_ids else None,
+        "epoch": int(store.epoch),
     }
+    if P and K and a["pt_descriptor"].shape[1] != a["feat_descriptors"].shape[1]:
+        raise ValueError("the map points' descriptors and the keyframes' differ in width")
     return a, meta
+
+
+def _parent_or_root(parent: int | None) -> int:
+    return -1 if parent is None else int(parent)
 
 
 # ---- reading ------------------------------------------------------------------------------------------------------
 
 
-def _verified_bytes(path: Path) -> tuple[bytes, int, str]:
-    """The file's bytes after the trailer, schema version and checksum checks; (data, schema version, sha256)."""
+def _open_verified(path: Path) -> tuple[BinaryIO, int, str]:
+    """The open file after the trailer, schema version and checksum checks (read in chunks: the file is never held
+    in memory whole): (file, size in bytes, sha256). The caller reads the zip from this same open file, so what
+    was checked is what is parsed (a writer replaces the file by os.replace: a new file, not this one)."""
     try:
-        data = path.read_bytes()
+        f = path.open("rb")
     except FileNotFoundError:
         raise MapFileError(f"map file {path}: no such file") from None
     except OSError as exc:
         raise MapFileError(f"map file {path}: cannot be read ({exc.strerror or exc})") from exc
-    trailer = data[-_TRAILER_LEN:]
-    if len(data) < _TRAILER_LEN or not trailer.startswith(_TRAILER_PREFIX):
-        raise MapFileError(
-            f"map file {path}: truncated or not a slamkit map file (no '{_TRAILER_PREFIX.decode()}' trailer at its end)"
-        )
     try:
-        version = int(trailer[len(_TRAILER_PREFIX) : len(_TRAILER_PREFIX) + 4].decode("ascii"))
-        expected = trailer[-_HEX:].decode("ascii")
-    except (ValueError, UnicodeDecodeError):
-        raise MapFileError(f"map file {path}: corrupted (unreadable trailer)") from None
-    if trailer[len(_TRAILER_PREFIX) + 4 : -_HEX] != b" sha256=":
-        raise MapFileError(f"map file {path}: corrupted (unreadable trailer)")
-    if version != SCHEMA_VERSION:
-        raise MapFileError(
-            f"map file {path}: schema version {version}, this slamkit ({_slamkit_version()}) reads schema version "
-            f"{SCHEMA_VERSION} only"
-        )
-    actual = hashlib.sha256(memoryview(data)[: len(data) - _HEX]).hexdigest()
-    if actual != expected:
-        raise MapFileError(
-            f"map file {path}: checksum mismatch (sha256 {actual[:12]}..., the file says {expected[:12]}...): the file "
-            "is corrupted or incomplete"
-        )
-    return data, version, actual
+        size = f.seek(0, io.SEEK_END)
+        f.seek(max(size - _TRAILER_LEN, 0))
+        trailer = f.read(_TRAILER_LEN)
+        if size < _TRAILER_LEN or not trailer.startswith(_TRAILER_PREFIX):
+            raise MapFileError(
+                f"map file {path}: truncated or not a slamkit map file (no '{_TRAILER_PREFIX.decode()}' trailer at "
+                "its end)"
+            )
+        try:
+            version = int(trailer[len(_TRAILER_PREFIX) : len(_TRAILER_PREFIX) + 4].decode("ascii"))
+            expected = trailer[-_HEX:].decode("ascii")
+        except (ValueError, UnicodeDecodeError):
+            raise MapFileError(f"map file {path}: corrupted (unreadable trailer)") from None
+        if trailer[len(_TRAILER_PREFIX) + 4 : -_HEX] != b" sha256=":
+            raise MapFileError(f"map file {path}: corrupted (unreadable trailer)")
+        if version != SCHEMA_VERSION:
+            raise MapFileError(
+                f"map file {path}: schema version {version}, this slamkit ({_slamkit_version()}) reads schema "
+                f"version {SCHEMA_VERSION} only"
+            )
+        actual = _sha256_of(f, size - _HEX)
+        if actual != expected:
+            raise MapFileError(
+                f"map file {path}: checksum mismatch (sha256 {actual[:12]}..., the file says {expected[:12]}...): the "
+                "file is corrupted or incomplete"
+            )
+    except BaseException:
+        f.close()
+        raise
+    return f, size, actual
 
 
 class _Reader:
-    """The verified zip: the manifest and the arrays of each map, checked for dtype and shape as they are read."""
+    """The verified zip: the manifest and the arrays of each map, checked for dtype and shape as they are read.
+    A context manager (closes the file)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        data, _, self.sha256 = _verified_bytes(path)
-        self.size = len(data)
+        self.file, self.size, self.sha256 = _open_verified(path)
         try:
-            self.zip = zipfile.ZipFile(io.BytesIO(data))
+            self.zip = zipfile.ZipFile(self.file)
             manifest = json.loads(self.zip.read(_MANIFEST))
         except (zipfile.BadZipFile, KeyError, ValueError, OSError) as exc:
+            self.file.close()
             raise self.error(f"unreadable container or manifest ({exc})") from None
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+            self.file.close()
             raise self.error(f"not a {FORMAT} manifest")
         if manifest.get("schema_version") != SCHEMA_VERSION:
+            self.file.close()
             raise self.error(f"manifest schema version {manifest.get('schema_version')!r}, expected {SCHEMA_VERSION}")
         self.manifest: dict[str, Any] = manifest
+
+    def __enter__(self) -> _Reader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.zip.close()
+        self.file.close()
 
     def error(self, what: str) -> MapFileError:
         return MapFileError(f"map file {self.path}: {what}")
@@ -585,8 +624,11 @@ def load_atlas(
     component), its keyframes added to the keyframe database ``place`` (which must use the vocabulary the file was
     written with). ``cameras``: the run's cameras; a saved camera with the same parameters is that object.
     MapFileError naming the file and the fault; nothing is added to ``place`` then."""
-    target = Path(path)
-    reader = _Reader(target)
+    with _Reader(Path(path)) as reader:
+        return _load(reader, new_store, place, cameras)
+
+
+def _load(reader: _Reader, new_store: StoreFactory, place: PlaceRecognizer | None, cameras: Sequence[Camera]) -> Atlas:
     _check_vocabulary(reader, place)
     manifest = reader.manifest
     try:
@@ -605,13 +647,14 @@ def load_atlas(
 
 def read_manifest(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The manifest of a verified map file (trailer, schema version, checksum checked)."""
-    return dict(_Reader(Path(path)).manifest)
+    with _Reader(Path(path)) as reader:
+        return dict(reader.manifest)
 
 
 def map_file_info(path: str | os.PathLike[str]) -> MapFileInfo:
     """What the file holds (after the same checks a load makes of the container: trailer, schema, checksum)."""
-    reader = _Reader(Path(path))
-    return _info(reader.path, reader.size, reader.sha256, reader.manifest)
+    with _Reader(Path(path)) as reader:
+        return _info(reader.path, reader.size, reader.sha256, reader.manifest)
 
 
 def _info(path: Path, size: int, sha256: str, manifest: Mapping[str, Any]) -> MapFileInfo:

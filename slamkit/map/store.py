@@ -344,22 +344,23 @@ class InMemoryMapStore:
             self._keyframes[kf.id] = restored
             self._kf_point_ids[kf.id] = own
             self._covisibility.add_node(kf.id)
-        for point, n_visible, n_found in zip(
-            contents.points, contents.n_visible.tolist(), contents.n_found.tolist(), strict=True
-        ):
+        for point in contents.points:
             pid = point.id
-            entity = MapPoint(
+            restored_point = MapPoint(
                 pid, point.xyz_w, point.descriptor, point.ref_kf_id, point.first_kf_id, point.normal_w,
                 point.d_min_m, point.d_max_m,
             )  # fmt: skip
-            self._table.put(pid, {name: getattr(entity, name) for name, _, _ in SYNCED_ATTRIBUTES})
             obs = dict(point.observations)
-            replace_fields(entity, observations=MappingProxyType(obs))
+            replace_fields(restored_point, observations=MappingProxyType(obs))
             self._observations[pid] = obs
-            self._points[pid] = entity
-            self._table.set(pid, "n_visible", n_visible)
-            self._table.set(pid, "n_found", n_found)
-            self._table.set(pid, "n_observations", len(obs))
+            self._points[pid] = restored_point
+        if contents.points:
+            pts = contents.points
+            rows = {name: np.array([getattr(p, name) for p in pts]) for name, _, _ in SYNCED_ATTRIBUTES}
+            rows["n_visible"] = contents.n_visible
+            rows["n_found"] = contents.n_found
+            rows["n_observations"] = np.array([len(p.observations) for p in pts], np.int64)
+            self._table.put_many(np.array([p.id for p in pts], np.int64), rows)
         for a, b, w in contents.covisibility.tolist():
             self._covisibility.set_edge(a, b, w)
         for kf_id, parent in contents.tree.items():
