@@ -645,6 +645,23 @@ def _load(reader: _Reader, new_store: StoreFactory, place: PlaceRecognizer | Non
         raise reader.error(f"inconsistent contents ({type(exc).__name__}: {exc})") from None
 
 
+def read_atlas(path: str | os.PathLike[str], place: PlaceRecognizer | None = None) -> Atlas:
+    """The Atlas saved in ``path`` in in-memory stores (``map=memory``, with the saved config's
+    ``map.covisibility_min_shared``), for tools that read a map outside a run (exporters, notebooks): no keyframe
+    database unless ``place`` is given. The same checks and MapFileError as ``load_atlas``."""
+    from slamkit.map.store import InMemoryMapStore
+
+    with _Reader(Path(path)) as reader:
+        config = reader.manifest.get("config") or {}
+        node = config.get("map") if isinstance(config, dict) else None
+        min_shared = node.get("covisibility_min_shared", 15) if isinstance(node, dict) else 15
+        try:
+            min_shared = int(min_shared)
+        except (TypeError, ValueError):
+            min_shared = 15
+        return _load(reader, lambda ids: InMemoryMapStore(max(min_shared, 1), ids=ids), place, ())
+
+
 def read_manifest(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The manifest of a verified map file (trailer, schema version, checksum checked)."""
     with _Reader(Path(path)) as reader:
@@ -681,6 +698,7 @@ __all__ = [
     "MapFileInfo",
     "load_atlas",
     "map_file_info",
+    "read_atlas",
     "read_manifest",
     "save_atlas",
 ]

@@ -61,6 +61,12 @@ def test_round_trip_is_exact(tmp_path: Path, place: DbowPlaceRecognizer) -> None
     assert mapfile.read_manifest(path)["config"] == {"seed": 0, "pipeline": {"x": 1.5}}
 
 
+def test_read_atlas_for_tools(tmp_path: Path, place: DbowPlaceRecognizer) -> None:
+    atlas = build_atlas(place)
+    save_atlas(atlas, tmp_path / "m.slamkit", config={"map": {"covisibility_min_shared": 15}})
+    assert_same_atlas(atlas, mapfile.read_atlas(tmp_path / "m.slamkit"))
+
+
 def test_run_cameras_are_reused_on_load(tmp_path: Path, place: DbowPlaceRecognizer) -> None:
     atlas = build_atlas(place)
     save_atlas(atlas, tmp_path / "m.slamkit")
