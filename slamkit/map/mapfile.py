@@ -150,6 +150,7 @@ def _write(
         raise MapFileError(f"map file {target}: cannot be written ({exc.strerror or exc})") from exc
     tmp = Path(tmp_name)
     try:
+        os.fchmod(fd, _file_mode(target))  # mkstemp makes the file 0600; a map file gets the usual mode
         with os.fdopen(fd, "w+b") as f:
             with zipfile.ZipFile(f, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
                 zf.comment = _trailer(schema_version, "0" * _HEX)
@@ -172,6 +173,16 @@ def _write(
         raise
     _fsync_directory(directory)
     return _info(target, size, digest, manifest)
+
+
+def _file_mode(target: Path) -> int:
+    """The mode of the file being replaced, else 0666 less the umask (what open() would give a new file)."""
+    try:
+        return target.stat().st_mode & 0o7777
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 def _trailer(schema_version: int, hex_digest: str) -> bytes:

@@ -44,6 +44,9 @@ def test_round_trip_is_exact(tmp_path: Path, place: DbowPlaceRecognizer) -> None
     path = tmp_path / "room.slamkit"
     info = save_atlas(atlas, path, config={"seed": 0, "pipeline": {"x": 1.5}})
     assert info.size_bytes == path.stat().st_size
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask, "the usual mode of a new file, not mkstemp's 0600"
     assert info.maps == tuple((m, s.n_keyframes(), s.n_points()) for m, s in atlas.items())
     fresh = DbowPlaceRecognizer()
     loaded = load_atlas(path, new_store, fresh)
