@@ -656,6 +656,12 @@ def _load(reader: _Reader, new_store: StoreFactory, place: PlaceRecognizer | Non
         raise reader.error(f"inconsistent contents ({type(exc).__name__}: {exc})") from None
 
 
+def resolve_map_path(path: str | os.PathLike[str]) -> Path:
+    """A map file given as itself or as the run directory holding it (``map.save=true`` writes ``map.slamkit`` there)."""
+    p = Path(path).expanduser()
+    return p / RUN_DIR_FILE_NAME if p.is_dir() else p
+
+
 def read_atlas(path: str | os.PathLike[str], place: PlaceRecognizer | None = None) -> Atlas:
     """The Atlas saved in ``path`` in in-memory stores (``map=memory``, with the saved config's
     ``map.covisibility_min_shared``), for tools that read a map outside a run (exporters, notebooks): no keyframe
@@ -711,5 +717,6 @@ __all__ = [
     "map_file_info",
     "read_atlas",
     "read_manifest",
+    "resolve_map_path",
     "save_atlas",
 ]

@@ -7,7 +7,7 @@ import argparse
 import json
 from typing import Any
 
-from slamkit.map.mapfile import map_file_info
+from slamkit.map.mapfile import map_file_info, resolve_map_path
 
 
 def add_map_parser(sub: Any) -> None:
@@ -15,13 +15,13 @@ def add_map_parser(sub: Any) -> None:
     parser = sub.add_parser("map", help="saved maps: `slamkit map info FILE` (maps, keyframes, points, size, schema)")
     map_sub = parser.add_subparsers(dest="map_command", required=True)
     info = map_sub.add_parser("info", help="what a map file (map.save=FILE) holds, after checking its checksum")
-    info.add_argument("file", help="a map file written by `slamkit run map.save=FILE`")
+    info.add_argument("file", help="a map file written by `slamkit run map.save=FILE`, or a run directory holding one")
     info.add_argument("--json", action="store_true", help="print JSON instead of text")
     info.set_defaults(func=_info_command)
 
 
 def _info_command(args: argparse.Namespace) -> int:
-    info = map_file_info(args.file)
+    info = map_file_info(resolve_map_path(args.file))
     vocabulary = info.vocabulary or {}
     if args.json:
         out: dict[str, Any] = {

@@ -228,6 +228,10 @@ def test_map_info_command(saved: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert main(["map", "info", "--json", str(saved)]) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["maps"] == [{"id": m, "keyframes": k, "points": p} for m, k, p in info.maps]
+    run_dir = saved.parent / "run"
+    run_dir.mkdir()
+    (run_dir / "map.slamkit").write_bytes(saved.read_bytes())
+    assert main(["map", "info", str(run_dir)]) == 0 and str(run_dir / "map.slamkit") in capsys.readouterr().out
     saved.write_bytes(saved.read_bytes()[:-3])
     assert main(["map", "info", str(saved)]) == 2
     err = capsys.readouterr().err
