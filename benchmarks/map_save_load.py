@@ -11,7 +11,7 @@ is timed too (loaded, then saved again and loaded back).
 
 Per map: the file size; save time (``save_atlas``: read the maps under their read locks, write, checksum, fsync,
 rename) and load time (``load_atlas``: read, checksum, parse, ``MapStore.restore``, keyframe database), the median
-of ``--repeats``; and the peak of memory allocated during a save and during a load (tracemalloc: numpy's buffers
+of ``--repeats`` (wall and process CPU time: on a loaded machine the CPU time is the cost); and the peak of memory allocated during a save and during a load (tracemalloc: numpy's buffers
 included) divided by the file size (issue 17: memory while saving at most 2x the map's size).
 """
 
@@ -118,15 +118,17 @@ def measure(fn: Callable[[], Any]) -> tuple[float, int]:
 
 def bench_atlas(name: str, atlas: Atlas, repeats: int, directory: Path) -> dict[str, Any]:
     path = directory / f"{name}.slamkit"
-    save_s, load_s = [], []
+    save_s, load_s, save_cpu, load_cpu = [], [], [], []
     save_peak = load_peak = 0
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         info = save_atlas(atlas, path)
         save_s.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
+        save_cpu.append(time.process_time() - c0)
+        t0, c0 = time.perf_counter(), time.process_time()
         load_atlas(path, new_store, DbowPlaceRecognizer())
         load_s.append(time.perf_counter() - t0)
+        load_cpu.append(time.process_time() - c0)
     _, save_peak = measure(lambda: save_atlas(atlas, path))
     _, load_peak = measure(lambda: load_atlas(path, new_store, DbowPlaceRecognizer()))
     size = info.size_bytes
@@ -137,12 +139,15 @@ def bench_atlas(name: str, atlas: Atlas, repeats: int, directory: Path) -> dict[
         "size_mib": size / 2**20,
         "save_s": statistics.median(save_s),
         "load_s": statistics.median(load_s),
+        "save_cpu_s": statistics.median(save_cpu),
+        "load_cpu_s": statistics.median(load_cpu),
         "save_peak_x_size": save_peak / size,
         "load_peak_x_size": load_peak / size,
     }
     print(
         f"{name:>14} {row['keyframes']:>5} KF {row['points']:>7} pts {row['size_mib']:8.2f} MiB  save "
-        f"{row['save_s']:6.3f} s  load {row['load_s']:6.3f} s  peak save {row['save_peak_x_size']:.2f}x  "
+        f"{row['save_s']:6.3f} s (cpu {row['save_cpu_s']:.3f})  load {row['load_s']:6.3f} s (cpu {row['load_cpu_s']:.3f})  "
+        f"peak save {row['save_peak_x_size']:.2f}x  "
         f"load {row['load_peak_x_size']:.2f}x",
         flush=True,
     )
