@@ -22,6 +22,7 @@ runner. Then
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,7 @@ from slamkit.frontend.stereo import StereoFrontEnd
 from slamkit.geometry.se3 import invert_T
 from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.map.atlas import Atlas
+from slamkit.map.mapfile import MapFileInfo, save_atlas
 from slamkit.pipeline.outcomes import TrackingOutcome, TrackingState
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.plugins import ComponentRegistry
@@ -328,6 +330,13 @@ class System:
         store = self.atlas.active
         with store.read():
             return TrajectoryRecorder.keyframes(store)
+
+    def save_map(self, path: str | os.PathLike[str]) -> MapFileInfo:
+        """Write every map of the Atlas to ``path`` (slamkit's map file: docs/atlas.md, "Saved maps"), atomically,
+        with this run's config; ``slamkit run map.load=PATH`` (or ``open_system(["map.load=PATH"])``) reads it back.
+        Works during the run (each map is read under its read lock) and after ``close``. Returns what was written;
+        MapFileError naming the file when it cannot be written."""
+        return save_atlas(self.atlas, path, self.config)
 
     # ---- internals --------------------------------------------------------------------------------
 

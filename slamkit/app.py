@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf, read_write
 from slamkit.errors import ConfigError
 from slamkit.eval.outputs import PLUGIN_NAME as OUTPUTS_PLUGIN
 from slamkit.interfaces import Dataset, Optimizer
-from slamkit.map.atlas import Atlas
+from slamkit.map import mapfile_run
 from slamkit.pipeline.config import PipelineConfig
 from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.local_mapping import LocalMapper
@@ -129,8 +129,12 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     map_node = cfg.get("map")
     if map_node is None or "_target_" not in map_node:
         raise ConfigError("map: missing; expected a map store (map=memory)")
-    # every map of the Atlas is a store of the configured kind sharing the Atlas's ids; one keyframe database
-    atlas = Atlas(lambda ids: registry.instantiate("map", map_node, ids=ids), place)
+    # every map of the Atlas is a store of the configured kind sharing the Atlas's ids; one keyframe database;
+    # map.load=FILE: the Atlas saved there (slamkit/map/mapfile_run.py), tracking then starts by relocalizing in it
+    store_node = mapfile_run.store_node(map_node)
+    atlas = mapfile_run.run_atlas(
+        map_node, lambda ids: registry.instantiate("map", store_node, ids=ids), place, [dataset.camera]
+    )
     init_extractor = None
     factor = pipeline.tracking.init_feature_factor
     if factor != 1 and "n_features" in cfg.features:
@@ -282,8 +286,10 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
     log.info("dataset %s: %d frames -> %s", getattr(dataset, "name", "?"), len(dataset), out_dir)
     start = time.perf_counter()
     try:
-        # the outputs plugin writes the run directory when the run finishes, also when it fails
-        system.run_dataset()
+        # the outputs plugin writes the run directory when the run finishes, also when it fails; map.save=FILE
+        # writes the Atlas then too (slamkit/map/mapfile_run.py)
+        with mapfile_run.saving_map(cfg.map, system.atlas, out_dir, system.config):
+            system.run_dataset()
     except BaseException as exc:
         error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
         if not isinstance(exc, Exception) or not _is_multirun():

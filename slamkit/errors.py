@@ -34,3 +34,8 @@ class ProblemError(SlamkitError):
 
 class EvaluationError(SlamkitError):
     """Trajectories that cannot be compared (too few poses matched in time, degenerate alignment, ...)."""
+
+
+class MapFileError(SlamkitError):
+    """A map file that cannot be written or read: an unwritable path, a truncated or corrupted file (checksum), another
+    schema version, a vocabulary unlike the run's. The message names the file and what is wrong; nothing was loaded."""

@@ -24,6 +24,10 @@ from slamkit.errors import PluginError, SlamkitError
 from slamkit.hookspecs import ComponentSpec
 from slamkit.interfaces import KIND_PROTOCOLS
 
+#: Keys of a component group's composed node that configure the run, not the component: taken out before it is
+#: built (``map.save`` / ``map.load``: saved maps, read by slamkit/map/mapfile_run.py).
+RUN_KEYS: dict[str, tuple[str, ...]] = {"map": ("save", "load")}
+
 
 @dataclass(frozen=True)
 class RegisteredComponent:
@@ -239,6 +243,9 @@ class ComponentRegistry:
         comp = self.by_target(target)
         origin = f"plugin '{comp.plugin}' ({comp.distribution})" if comp else "an unregistered target"
         label = comp.key if comp else f"{kind} target {target}"
+        run_keys = [key for key in RUN_KEYS.get(kind, ()) if key in node]
+        if run_keys:
+            node = {str(k): v for k, v in node.items() if k not in run_keys}
         try:
             obj = instantiate(node, _convert_="all", **kwargs)
         except InstantiationException as exc:

@@ -70,6 +70,7 @@ class DbowPlaceRecognizer:
         vocabulary_object: Vocabulary | None = None,
     ) -> None:
         self.vocabulary = vocabulary_object if vocabulary_object is not None else get_vocabulary(vocabulary)
+        self.vocabulary_name = str(vocabulary) if vocabulary_object is None else "object"
         self.direct_index_level = _int_param(direct_index_level, "direct_index_level", 0)
         if self.direct_index_level > self.vocabulary.L:
             raise ConfigError(
@@ -103,6 +104,11 @@ class DbowPlaceRecognizer:
         """Every keyframe sharing a word with ``bow`` (not in ``exclude``) and its score, best first."""
         with self._lock:
             return self.database.query(bow, exclude)
+
+    def vocabulary_identity(self) -> dict[str, object]:
+        """The vocabulary's identity (sha256 and sizes, ``Vocabulary.identity``): a saved map's bags of words are
+        only valid with the vocabulary that made them (slamkit/map/mapfile.py checks it on load)."""
+        return {"name": self.vocabulary_name, **self.vocabulary.identity()}
 
     # ---- ORB-SLAM's candidate searches -----------------------------------------------------------
 

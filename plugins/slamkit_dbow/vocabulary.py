@@ -12,6 +12,7 @@ DBoW2's ``transform(features, v, fv, levelsup)``; ``score`` is DBoW2's L1 score.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import IntEnum
@@ -169,6 +170,21 @@ class Vocabulary:
             and np.array_equal(self.weights, other.weights)
             and np.array_equal(self.is_leaf, other.is_leaf)
         )
+
+    def identity(self) -> dict[str, Any]:
+        """What a saved map records of the vocabulary its bags of words come from (slamkit/map/mapfile.py): sha256
+        over exactly what ``same_as`` compares (k, L, scoring, weighting, parents, centres, weights, leaf flags), and
+        its sizes. Two vocabularies have the same identity iff ``same_as`` (up to a hash collision). Cached."""
+        cached: dict[str, Any] | None = getattr(self, "_identity", None)
+        if cached is None:
+            h = hashlib.sha256()
+            h.update(f"dbow2 k={self.k} L={self.L} {self.scoring.name} {self.weighting.name};".encode())
+            for array in (self.parent, self.descriptors, self.weights, self.is_leaf):
+                h.update(f"{array.dtype.str}{array.shape};".encode())
+                h.update(np.ascontiguousarray(array).tobytes())
+            cached = {"kind": "dbow2", "sha256": h.hexdigest(), "words": self.n_words, "nodes": self.n_nodes}
+            self._identity = cached
+        return dict(cached)
 
     # ---- transform ------------------------------------------------------------------------------
 

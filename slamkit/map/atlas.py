@@ -21,12 +21,16 @@ other than the active one are not changed by anyone, so reading them needs no lo
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
 from slamkit.errors import ConfigError, SlamkitError
 from slamkit.interfaces import MapStore, PlaceRecognizer
 from slamkit.map.ids import IdAllocator
+
+if TYPE_CHECKING:
+    from slamkit.map.mapfile_contents import MapContents
 
 #: Builds one empty map whose ids come from the given allocator (the app: the configured ``map=`` component).
 StoreFactory = Callable[[IdAllocator], MapStore]
@@ -68,6 +72,47 @@ class Atlas:
         """An Atlas of one given map that cannot start another (tests, notebooks)."""
         return cls(None, place, first=store)
 
+    @classmethod
+    def restore(
+        cls,
+        new_store: StoreFactory,
+        place: PlaceRecognizer | None,
+        ids: IdAllocator,
+        maps: Sequence[tuple[int, MapContents]],
+        active_id: int,
+        next_map_id: int,
+    ) -> Atlas:
+        """The Atlas of a saved map file (slamkit/map/mapfile.py): each (map id, contents) restored into a new store
+        built by ``new_store`` with ``ids`` (the saved allocator's state), under its saved map id; ``active_id`` the
+        active map; ``next_map_id`` the id the next new map gets. Then every keyframe with a bag of words goes into
+        the keyframe database ``place``, map by map in ascending keyframe ids. ValueError (nothing added to
+        ``place``) when the maps do not fit together: no map, an unknown active map, a map id at or above
+        ``next_map_id``, or contents a store refuses (MapStore.restore)."""
+        if not maps:
+            raise ValueError("an Atlas needs at least one map")
+        map_ids = [m for m, _ in maps]
+        if len(set(map_ids)) != len(map_ids) or min(map_ids) < 0 or max(map_ids) >= next_map_id:
+            raise ValueError(f"map ids {map_ids} are not distinct ids below the next map id {next_map_id}")
+        if active_id not in map_ids:
+            raise ValueError(f"the active map {active_id} is not one of the maps {map_ids}")
+        atlas = cls.__new__(cls)
+        atlas._new_store = new_store
+        atlas.ids = ids
+        atlas.place = place
+        atlas._maps = {}
+        for map_id, contents in maps:
+            store = atlas._build()
+            store.restore(contents)
+            atlas._maps[map_id] = store
+        atlas._next_map_id = next_map_id
+        atlas._active_id = active_id
+        if place is not None:
+            for _, contents in sorted(maps, key=lambda mc: mc[0]):
+                for kf in contents.keyframes:
+                    if kf.bow is not None:
+                        place.add(kf.id, kf.bow)
+        return atlas
+
     # ---- the maps ----------------------------------------------------------------------------------
 
     @property
@@ -78,6 +123,11 @@ class Atlas:
     @property
     def active_id(self) -> int:
         return self._active_id
+
+    @property
+    def next_map_id(self) -> int:
+        """The id the next new map gets (map ids are never reused)."""
+        return self._next_map_id
 
     def map_ids(self) -> list[int]:
         """Every map's id, ascending (creation order)."""

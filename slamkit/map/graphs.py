@@ -41,6 +41,11 @@ class CovisibilityGraph:
         for other, c in kept.items():
             self._w.setdefault(other, {})[kf_id] = c
 
+    def set_edge(self, a: int, b: int, weight: int) -> None:
+        """The edge a-b with ``weight`` shared points, as it was saved (a store restoring a map, MapStore.restore)."""
+        self._w.setdefault(a, {})[b] = int(weight)
+        self._w.setdefault(b, {})[a] = int(weight)
+
     def remove(self, kf_id: int) -> None:
         for other in self._w.pop(kf_id, {}):
             self._w.get(other, {}).pop(kf_id, None)

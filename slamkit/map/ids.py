@@ -11,12 +11,20 @@ import threading
 
 
 class IdAllocator:
-    """Thread-safe monotonic counters of keyframe ids and map point ids, starting at 0."""
+    """Thread-safe monotonic counters of keyframe ids and map point ids, starting at 0 (or where a saved map's
+    allocator stopped: ``next_keyframe`` / ``next_point``, the next ids it hands out; slamkit/map/mapfile.py)."""
 
-    def __init__(self) -> None:
+    def __init__(self, next_keyframe: int = 0, next_point: int = 0) -> None:
+        if next_keyframe < 0 or next_point < 0:
+            raise ValueError(f"IdAllocator: next ids must be >= 0, got {next_keyframe}, {next_point}")
         self._lock = threading.Lock()
-        self._next_keyframe = 0
-        self._next_point = 0
+        self._next_keyframe = int(next_keyframe)
+        self._next_point = int(next_point)
+
+    def next_ids(self) -> tuple[int, int]:
+        """(next keyframe id, next map point id) it will hand out: the state a saved map records."""
+        with self._lock:
+            return self._next_keyframe, self._next_point
 
     def new_keyframe_id(self) -> int:
         with self._lock:

@@ -86,6 +86,26 @@ class PointTable:
         self._arrays["n_observations"][point_id] = 0
         self._arrays["state"][point_id] = PRESENT
 
+    def put_many(self, point_ids: NDArray[np.int64], values: dict[str, NDArray[Any]]) -> None:
+        """Write the rows of new points ``point_ids`` (K,) at once: values maps every synced attribute name and every
+        counter to a (K, ...) array (a saved map's points, MapStore.restore)."""
+        ids = np.asarray(point_ids, np.int64)
+        if not ids.size:
+            return
+        descriptors = np.asarray(values["descriptor"])
+        if self._descriptor_bytes is None:
+            self._allocate(int(descriptors.shape[-1]))
+        elif descriptors.shape[1:] != (self._descriptor_bytes,):
+            raise ValueError(f"descriptors of shape {descriptors.shape[1:]}, the map holds ({self._descriptor_bytes},)")
+        self._ensure_row(int(ids.max()))
+        for name, value in values.items():
+            self._arrays[name][ids] = value
+        self._arrays["state"][ids] = PRESENT
+
+    def is_empty(self) -> bool:
+        """True when no point was ever put in the table."""
+        return not np.any(self._arrays["state"])
+
     def erase(self, point_id: int) -> None:
         """Mark a point's row erased (it stays allocated; the id is never used again)."""
         self._arrays["state"][point_id] = ERASED

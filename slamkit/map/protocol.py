@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from slamkit.interfaces import BowDescription
     from slamkit.map.entities import KeyFrame, MapPoint
     from slamkit.map.ids import IdAllocator
+    from slamkit.map.mapfile_contents import MapContents
 
 I64 = NDArray[np.int64]
 
@@ -241,10 +242,24 @@ class MapStore(Protocol):
     def update_connections(self, keyframe_id: int) -> None:
         """Recompute a keyframe's covisibility edges from its shared points (at least ``covisibility_min_shared``,
         else the single best so it is never isolated); a keyframe entering the spanning tree gets as parent the
-        keyframe it shares most points with, except the map's first keyframe (the first added), the tree's root
+        keyframe it shares most points with, except the map's first keyframe (the one added to the empty map: after
+        a reset, the next one), the tree's root
         (ORB-SLAM KeyFrame::UpdateConnections, ``mnId != InitKFid``): the tree never has a cycle."""
         ...
 
     def add_loop_edge(self, a: int, b: int) -> None:
         """Record a loop-closure edge between keyframes a and b."""
+        ...
+
+    # ---- restoring a saved map ----------------------------------------------------------------------------
+
+    def restore(self, contents: MapContents) -> None:
+        """Fill this *empty* store with a saved map (slamkit.map.mapfile_contents.MapContents, e.g. read back from a
+        map file), entities keeping their ids: the keyframes with their point_ids and bags of words, the points with
+        their observations (in the saved order) and visible/found counters, the covisibility edges with their saved
+        weights, the spanning-tree parents, the loop edges, the first keyframe (the root) and the epoch. Afterwards
+        every read above answers as it did on the saved map (``read_map_contents`` gives the same contents) and the
+        mutations go on from there. The store's ``ids`` must already have issued every id of ``contents`` (the
+        caller builds the allocator from the saved one). ValueError, before anything changes, when the store is not
+        empty or ``contents`` is inconsistent (``mapfile_contents.check_contents``)."""
         ...

@@ -22,6 +22,7 @@ from slamkit.map.graphs import (
 )
 from slamkit.map.ids import IdAllocator
 from slamkit.map.lock import ReadWriteLock
+from slamkit.map.mapfile_contents import MapContents, check_contents
 from slamkit.map.point_table import COUNTERS, PRESENT, SYNCED_ATTRIBUTES, PointTable
 from slamkit.map.protocol import MapStore
 
@@ -174,13 +175,15 @@ class InMemoryMapStore:
             raise ValueError(f"keyframe {kf_id} is already in the map or was erased from it (ids are not reused)")
         if not self._ids.issued_keyframe(kf_id):
             raise ValueError(f"keyframe {kf_id}: its id was not issued by this map's id allocator")
+        if not self._keyframes:
+            # the first keyframe of the (possibly reset) map: the spanning tree's root (ORB-SLAM3 Map::AddKeyFrame sets
+            # mnInitKFid when the map is empty; a map emptied by Atlas.reset_active starts again from its next one)
+            self._first_keyframe = kf_id
         own = np.array(keyframe.point_ids, np.int64)
         replace_fields(keyframe, point_ids=frozen_view(own))
         self._kf_point_ids[kf_id] = own
         self._keyframes[kf_id] = keyframe
         self._covisibility.add_node(kf_id)
-        if self._first_keyframe is None:
-            self._first_keyframe = kf_id
         if self._origin is not None and kf_id < self._origin:
             self._origin = kf_id
         for idx in np.flatnonzero(own >= 0).tolist():
@@ -327,6 +330,44 @@ class InMemoryMapStore:
 
     def add_loop_edge(self, a: int, b: int) -> None:
         self._loop_edges.add((min(a, b), max(a, b)))
+
+    # ---- restoring a saved map -------------------------------------------------------------------------
+
+    def restore(self, contents: MapContents) -> None:
+        if self._keyframes or self._points or self._erased_keyframes or not self._table.is_empty():
+            raise ValueError("restore: the map is not empty (a saved map is restored into a new store)")
+        check_contents(contents, self._ids)
+        for kf in contents.keyframes:
+            own = np.array(kf.point_ids, np.int64)
+            restored = KeyFrame(kf.id, kf.frame_index, kf.timestamp_s, kf.T_c_w, kf.camera, kf.features, own, kf.bow)
+            replace_fields(restored, point_ids=frozen_view(own))
+            self._keyframes[kf.id] = restored
+            self._kf_point_ids[kf.id] = own
+            self._covisibility.add_node(kf.id)
+        for point in contents.points:
+            pid = point.id
+            restored_point = MapPoint(
+                pid, point.xyz_w, point.descriptor, point.ref_kf_id, point.first_kf_id, point.normal_w,
+                point.d_min_m, point.d_max_m,
+            )  # fmt: skip
+            obs = dict(point.observations)
+            replace_fields(restored_point, observations=MappingProxyType(obs))
+            self._observations[pid] = obs
+            self._points[pid] = restored_point
+        if contents.points:
+            pts = contents.points
+            rows = {name: np.array([getattr(p, name) for p in pts]) for name, _, _ in SYNCED_ATTRIBUTES}
+            rows["n_visible"] = contents.n_visible
+            rows["n_found"] = contents.n_found
+            rows["n_observations"] = np.array([len(p.observations) for p in pts], np.int64)
+            self._table.put_many(np.array([p.id for p in pts], np.int64), rows)
+        for a, b, w in contents.covisibility.tolist():
+            self._covisibility.set_edge(a, b, w)
+        for kf_id, parent in contents.tree.items():
+            self._tree.add(kf_id, parent)
+        self._loop_edges = {(min(a, b), max(a, b)) for a, b in contents.loop_edges}
+        self._first_keyframe = contents.first_keyframe_id
+        self._epoch = int(contents.epoch)
 
 
 if TYPE_CHECKING:  # mypy checks that the class implements the protocol

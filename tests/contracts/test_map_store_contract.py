@@ -9,6 +9,7 @@ documented in slamkit/map/protocol.py, on small maps whose right answer the test
 from __future__ import annotations
 
 import copy
+import dataclasses
 import pickle
 import threading
 import time
@@ -25,6 +26,7 @@ from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import BowDescription, MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.ids import IdAllocator
+from slamkit.map.mapfile_contents import differences, read_map_contents
 from slamkit.plugins import ComponentRegistry
 
 NAMES = sorted({c.spec.name for c in ComponentRegistry.discover().components("map")} | {"dict"})
@@ -321,6 +323,113 @@ def test_the_first_keyframe_of_a_map_is_the_root_of_its_spanning_tree(
     store.remove_keyframe(k[2])  # culling re-parents k[3] without a cycle
     assert tree.parent(k[0]) is None and tree.parent(k[3]) in (k[0], k[1])
     assert_tree_has_no_cycle(store)
+
+
+def test_a_map_emptied_and_initialised_again_gets_a_new_root(store: MapStore) -> None:
+    """Atlas.reset_active erases every keyframe and the map starts again: its next first keyframe is the root (ORB-SLAM3
+    Map::AddKeyFrame sets mnInitKFid on an empty map); were the erased first keyframe still the root, the two
+    keyframes of the new initialization would be each other's parent."""
+    free = FreeFeatures()
+    old = [add_keyframe(store), add_keyframe(store, 0.1)]
+    shared(store, old, 30, free)
+    for kf in old:
+        store.update_connections(kf)
+    for kf in old:
+        store.remove_keyframe(kf)
+    new = [add_keyframe(store), add_keyframe(store, 0.1)]
+    shared(store, new, 30, free, seed=7)
+    for kf in new:
+        store.update_connections(kf)
+    assert store.spanning_tree.parent(new[0]) is None and store.spanning_tree.parent(new[1]) == new[0]
+    assert_tree_has_no_cycle(store)
+
+
+# ---- restore (a saved map, slamkit/map/mapfile.py) ------------------------------------------------------------
+
+
+def busy_map(store: MapStore) -> list[int]:
+    """A map with every kind of state: graphs, a culled keyframe (re-parenting), culled and replaced points, counters,
+    bags of words, a loop edge and a bumped epoch. Returns its keyframe ids (culled one included)."""
+    free = FreeFeatures()
+    k = [add_keyframe(store, 0.1 * i) for i in range(2)]
+    shared(store, k, 40, free)
+    for kf in k:
+        store.update_connections(kf)
+    for i in range(2, 6):
+        k.append(add_keyframe(store, 0.1 * i))
+        shared(store, [k[-2], k[-1]], 30, free, seed=10 * i)
+        shared(store, [k[0], k[-1]], 16, free, seed=10 * i + 5)
+        store.update_connections(k[-1])
+    pids = np.array(store.point_ids(), np.int64)
+    store.increase_visible(pids[::2], 4)
+    store.increase_found(pids[::3], 2)
+    store.replace_point(int(pids[1]), int(pids[0]))
+    store.remove_point(int(pids[2]))
+    store.set_keyframe_bow(k[1], BowDescription({3: 0.25, 1: 0.75}, {5: np.array([0, 2], np.int64)}))
+    store.add_loop_edge(k[5], k[0])
+    store.remove_keyframe(k[2])
+    store.bump_epoch()
+    return k
+
+
+def test_restore_gives_back_every_read_and_goes_on_the_same(make_store: StoreFactory) -> None:
+    """MapStore.restore of a map's contents into a new store (ids from an allocator at the saved state): every read
+    answers as on the original, and the same mutations afterwards give the same map."""
+    original = make_store()
+    busy_map(original)
+    contents = read_map_contents(original)
+    restored = make_store(ids=IdAllocator(*original.ids.next_ids()))
+    restored.restore(contents)
+    assert not differences(contents, read_map_contents(restored))
+    assert_consistent(restored)
+    assert restored.origin_keyframe_id() == original.origin_keyframe_id()
+    for kf in original.keyframe_ids():
+        assert restored.covisibility.neighbors(kf) == original.covisibility.neighbors(kf)
+        assert restored.spanning_tree.children(kf) == original.spanning_tree.children(kf)
+    # the restored map goes on as the original does
+    for store in (original, restored):
+        free = FreeFeatures()
+        free.next = {k: N_FEATS - 30 for k in store.keyframe_ids()}
+        kf = add_keyframe(store, 0.9)
+        shared(store, [store.keyframe_ids()[-2], kf], 25, free, seed=99)
+        store.update_connections(kf)
+        store.remove_keyframe(store.keyframe_ids()[1])
+    assert not differences(read_map_contents(original), read_map_contents(restored))
+    assert_tree_has_no_cycle(restored)
+
+
+def test_restore_refuses_a_map_that_is_not_empty_or_contents_that_do_not_fit(make_store: StoreFactory) -> None:
+    original = make_store()
+    busy_map(original)
+    contents = read_map_contents(original)
+    busy = make_store(ids=IdAllocator(*original.ids.next_ids()))
+    add_keyframe(busy)
+    with pytest.raises(ValueError, match="not empty"):
+        busy.restore(contents)
+    behind = make_store()  # an allocator that never issued the saved ids
+    with pytest.raises(ValueError, match="not issued"):
+        behind.restore(contents)
+    assert behind.n_keyframes() == 0 and behind.n_points() == 0
+    point = contents.points[0]
+    kf_id, feat = next(iter(point.observations.items()))
+    wrong = dataclasses.replace(
+        contents,
+        points=(
+            MapPoint(
+                point.id,
+                point.xyz_w,
+                point.descriptor,
+                point.ref_kf_id,
+                point.first_kf_id,
+                observations={kf_id: feat + 1},
+            ),
+            *contents.points[1:],
+        ),
+    )
+    fresh = make_store(ids=IdAllocator(*original.ids.next_ids()))
+    with pytest.raises(ValueError, match="observation"):
+        fresh.restore(wrong)
+    assert fresh.n_keyframes() == 0 and fresh.n_points() == 0
 
 
 def test_the_min_shared_threshold_is_the_configured_one(make_store: StoreFactory) -> None:

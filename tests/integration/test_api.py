@@ -235,3 +235,22 @@ def test_the_api_is_reexported_from_slamkit_and_imported_on_first_use() -> None:
     code = "import sys, slamkit; assert 'slamkit.api' not in sys.modules; slamkit.open_system; print('ok')"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.stdout.strip() == "ok", result.stderr
+
+
+def test_a_system_saves_its_map_and_a_new_system_relocalizes_in_it(tmp_path: Path) -> None:
+    """System.save_map writes slamkit's map file; a system opened with map.load relocalizes in it at once."""
+    from slamkit.map.mapfile import read_atlas
+
+    path = tmp_path / "room.slamkit"
+    with open_system(["runner=sequential", "dataset.max_frames=60"]) as system:
+        system.run_dataset()
+        info = system.save_map(path)
+        kept = {map_id: store.keyframe_ids() for map_id, store in system.atlas.items()}
+    assert info.n_keyframes == sum(len(k) for k in kept.values()) > 5
+    assert {map_id: store.keyframe_ids() for map_id, store in read_atlas(path).items()} == kept
+    with open_system(
+        ["runner=sequential", "dataset.max_frames=20", "dataset.skip=[0,49]", f"map.load={path}"]
+    ) as again:
+        frame = again.dataset[0]  # frame 50 of the room: ground the saved map covers
+        first = again.track(frame.image, frame.timestamp_s)
+        assert first.method == "relocalization" and first.state.value == "ok", first.message

@@ -107,7 +107,8 @@ class Tracker:
         self.place = place  # bag of words: reference-keyframe matching and relocalization (ORB-SLAM V-B, V-C)
         self.refiner = PoseRefiner(cfg, self.store, self.optimize_pose)
         self.relocalizations = 0
-        self.state = TrackingState.NOT_INITIALIZED
+        # an Atlas whose active map already has keyframes (a saved map, map.load=FILE): relocalize in it first
+        self.state = TrackingState.LOST if self.store.n_keyframes() else TrackingState.NOT_INITIALIZED
         self.init = MonocularInitialization(cfg, initializer, rng)
         self.rng = rng  # the initializer's RANSAC and the relocalization's PnP RANSAC
         self.last_frame: Frame | None = None

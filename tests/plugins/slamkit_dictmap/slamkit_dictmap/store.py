@@ -22,6 +22,7 @@ from slamkit.interfaces import BowDescription
 from slamkit.map.entities import KeyFrame, MapPoint, frozen_copy, frozen_view, replace_fields
 from slamkit.map.graphs import CovisibilityGraph, CovisibilityView, SpanningTree, SpanningTreeView
 from slamkit.map.ids import IdAllocator
+from slamkit.map.mapfile_contents import MapContents, check_contents
 
 I64 = NDArray[np.int64]
 
@@ -159,13 +160,13 @@ class DictMapStore:
         if k in self._used_kf_ids or not self._ids.issued_keyframe(k):
             raise ValueError(f"keyframe {k}: id already used or not issued by this map's allocator")
         self._used_kf_ids.add(k)
+        if not self._kfs:  # the (possibly reset) map's first keyframe: the spanning tree's root
+            self._first = k
         matches = np.array(keyframe.point_ids, np.int64)
         replace_fields(keyframe, point_ids=frozen_view(matches))
         self._kfs[k] = keyframe
         self._matches[k] = matches
         self._graph.add_node(k)
-        if self._first is None:
-            self._first = k
         for idx, pid in enumerate(matches.tolist()):
             if pid < 0:
                 continue
@@ -291,3 +292,32 @@ class DictMapStore:
 
     def add_loop_edge(self, a: int, b: int) -> None:
         self._loops.add((min(a, b), max(a, b)))
+
+    def restore(self, contents: MapContents) -> None:
+        """Fill the empty store with a saved map (MapStore.restore): entities rebuilt, then the saved graphs."""
+        if self._used_kf_ids or self._used_point_ids:
+            raise ValueError("restore: the map is not empty")
+        check_contents(contents, self._ids)
+        for kf in contents.keyframes:
+            matches = np.array(kf.point_ids, np.int64)
+            entity = KeyFrame(kf.id, kf.frame_index, kf.timestamp_s, kf.T_c_w, kf.camera, kf.features, matches, kf.bow)
+            replace_fields(entity, point_ids=frozen_view(matches))
+            self._used_kf_ids.add(kf.id)
+            self._kfs[kf.id] = entity
+            self._matches[kf.id] = matches
+            self._graph.add_node(kf.id)
+        for p, n_visible, n_found in zip(contents.points, contents.n_visible, contents.n_found, strict=True):
+            obs = dict(p.observations)
+            entity = MapPoint(p.id, p.xyz_w, p.descriptor, p.ref_kf_id, p.first_kf_id, p.normal_w, p.d_min_m, p.d_max_m)
+            replace_fields(entity, observations=MappingProxyType(obs))
+            self._used_point_ids.add(p.id)
+            self._pts[p.id] = entity
+            self._obs[p.id] = obs
+            self._counts[p.id] = [int(n_visible), int(n_found)]
+        for a, b, w in contents.covisibility.tolist():
+            self._graph.set_edge(a, b, w)
+        for k, parent in contents.tree.items():
+            self._tree.add(k, parent)
+        self._loops = {(min(a, b), max(a, b)) for a, b in contents.loop_edges}
+        self._first = contents.first_keyframe_id
+        self._epoch = int(contents.epoch)

@@ -1,0 +1,127 @@
+"""A small hand-built Atlas of two maps with every kind of map state, for the map-file tests (tests/unit/map)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from slamkit_dbow.recognizer import DbowPlaceRecognizer
+
+from slamkit.features import Features, Observations
+from slamkit.geometry.camera import KannalaBrandtCamera, PinholeCamera
+from slamkit.interfaces import MapStore
+from slamkit.map.atlas import Atlas
+from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.ids import IdAllocator
+from slamkit.map.store import InMemoryMapStore
+
+CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0, dist=(0.01, -0.002, 0.0, 0.0, 0.0))
+FISHEYE = KannalaBrandtCamera(640, 480, 300.0, 300.0, 320.0, 240.0, k=(0.01, 0.0, 0.0, 0.0))
+N_FEATS = 80
+
+
+def new_store(ids: IdAllocator) -> MapStore:
+    return InMemoryMapStore(ids=ids)
+
+
+def observations(rng: np.random.Generator, camera: Any, stereo: bool) -> Observations:
+    uv = rng.uniform(0, 480, (N_FEATS, 2)).astype(np.float32)
+    feats = Features(
+        uv,
+        (uv + 0.25).astype(np.float32),
+        rng.integers(0, 8, N_FEATS).astype(np.int32),
+        rng.uniform(0, 360, N_FEATS).astype(np.float32),
+        rng.uniform(0, 1, N_FEATS).astype(np.float32),
+        rng.integers(0, 256, (N_FEATS, 32), dtype=np.uint8),
+        1.2,
+        8,
+    )
+    obs = Observations.monocular(feats, camera.unproject_image(feats.uv_undist_px.astype(np.float64)))
+    if not stereo:
+        return obs
+    depth = rng.uniform(1, 5, N_FEATS).astype(np.float32)
+    depth[::7] = np.nan
+    return Observations(
+        **{name: getattr(obs, name) for name in Features.__dataclass_fields__},
+        bearing=obs.bearing,
+        u_right_px=(uv[:, 0] - 40.0 / depth).astype(np.float32),
+        depth_m=depth,
+        bf=40.0,
+        th_depth_m=3.2,
+        sensor="rgbd",
+    )
+
+
+def fill_map(atlas: Atlas, rng: np.random.Generator, n_kfs: int, camera: Any, stereo: bool = False) -> None:
+    """Keyframes along x with bags of words, points seen by 2-4 of them, graphs, counters, a loop edge, a culled
+    keyframe and culled points: every part of a map's state."""
+    store, place = atlas.active, atlas.place
+    assert place is not None
+    kf_ids: list[int] = []
+    free: dict[int, int] = {}
+    for i in range(n_kfs):
+        kf_id = store.new_keyframe_id()
+        T = np.eye(4)
+        T[0, 3] = -0.1 * i
+        feats = observations(rng, camera, stereo)
+        store.add_keyframe(KeyFrame(kf_id, 3 * i, 0.1 * i, T, camera, feats, np.full(N_FEATS, -1, np.int64)))
+        bow = place.transform(feats.descriptors)
+        store.set_keyframe_bow(kf_id, bow)
+        place.add(kf_id, bow)
+        kf_ids.append(kf_id)
+        free[kf_id] = 0
+        if i == 0:
+            continue
+        for j in range(25):  # points seen by this keyframe and up to 3 before it (as local mapping makes them)
+            observers = kf_ids[max(0, i - int(rng.integers(1, 4))) :]
+            pid = store.new_point_id()
+            point = MapPoint(
+                pid,
+                rng.uniform([-1, -1, 3], [1, 1, 6]),
+                rng.integers(0, 256, 32).astype(np.uint8),
+                observers[0],
+                observers[0],
+                rng.normal(size=3),
+                0.5 + j * 1e-3,
+                7.0,
+            )
+            store.add_point(point)
+            for k in observers:
+                if free[k] < N_FEATS:
+                    store.add_observation(pid, k, free[k])
+                    free[k] += 1
+        if i == 1:
+            store.update_connections(kf_ids[0])
+        store.update_connections(kf_id)
+    pids = np.array(store.point_ids(), np.int64)
+    store.increase_visible(pids[::2], 3)
+    store.increase_found(pids[::3], 2)
+    store.add_loop_edge(kf_ids[0], kf_ids[-1])
+    store.remove_keyframe(kf_ids[2])
+    place.remove(kf_ids[2])
+    for pid in store.point_ids()[:5]:
+        store.remove_point(pid)
+    store.bump_epoch()
+
+
+def build_atlas(place: DbowPlaceRecognizer, seed: int = 0) -> Atlas:
+    """Two maps: map 0 monocular pinhole, map 1 (active) RGB-D-like keyframes on a fisheye camera."""
+    place.database.clear()
+    atlas = Atlas(new_store, place)
+    rng = np.random.default_rng(seed)
+    fill_map(atlas, rng, 8, CAMERA)
+    atlas.create_map()
+    fill_map(atlas, rng, 6, FISHEYE, stereo=True)
+    return atlas
+
+
+class RecordingPlace(DbowPlaceRecognizer):
+    """A keyframe database that counts what is added to it (nothing may be, when a load fails)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.added = 0
+
+    def add(self, keyframe_id: int, bow: Any) -> None:
+        self.added += 1
+        super().add(keyframe_id, bow)
