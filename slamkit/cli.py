@@ -1,4 +1,4 @@
-"""Command line: ``slamkit run | eval | plugins``.
+"""Command line: ``slamkit run | eval | report | export | plugins | bench``.
 
 ``slamkit run [OVERRIDES...]`` is a Hydra application (all of Hydra's flags work: ``-m`` for multirun,
 ``--cfg job`` to print the config, ``+backend=gtsam``, ...). The other subcommands are plain argparse.
@@ -167,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     from slamkit.report.cli import add_report_parser
 
     add_report_parser(sub)
+    from slamkit.export.cli import add_export_parser
+
+    add_export_parser(sub)
     bench = sub.add_parser(
         "bench",
         help="benchmarks: `slamkit bench [--json FILE] [--runners threaded,sequential] [OVERRIDES...]` runs a "
