@@ -12,6 +12,7 @@ Reading the map file itself is :func:`read_map_file`, the one function to wire t
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -40,12 +41,20 @@ class ExportSource:
 
 
 def read_map_file(path: Path) -> tuple[Atlas, Mapping[str, Any] | None]:
-    """(the Atlas, the config that built it) of a map file. To be wired to slamkit/map/mapfile*.py (issue 17.3),
-    loaded with no place recognizer: the export needs no vocabulary."""
-    raise ExportError(
-        f"{path}: reading slamkit map files is not available in this version yet (issue 17.3); "
-        "export a map in Python with slamkit.export.export_map(atlas, ...)"
-    )
+    """(the Atlas, the config that built it) of a map file, through the map file format of issue 17.3
+    (``slamkit.map.mapfile``: ``read_atlas`` builds in-memory stores and no keyframe database, the export needs no
+    vocabulary; ``read_manifest`` holds the run's config). Its MapFileError names the file and the fault. Until that
+    module is part of slamkit, ExportError."""
+    try:
+        mapfile = importlib.import_module("slamkit.map.mapfile")
+    except ImportError:
+        raise ExportError(
+            f"{path}: reading slamkit map files is not available in this version yet (issue 17.3); "
+            "export a map in Python with slamkit.export.export_map(atlas, ...)"
+        ) from None
+    atlas: Atlas = mapfile.read_atlas(path)
+    config = mapfile.read_manifest(path).get("config")
+    return atlas, config if isinstance(config, Mapping) else None
 
 
 def _run_config(run_dir: Path) -> Mapping[str, Any] | None:

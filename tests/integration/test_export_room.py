@@ -106,3 +106,15 @@ def test_slamkit_export_of_the_run_directory(
 def test_whole_room_export_after_its_loop(tmp_path: Path) -> None:
     atlas, config = run_room(tmp_path / "run", [])
     check_export(atlas, config, tmp_path / "run", tmp_path / "out")
+
+
+def test_slamkit_export_of_a_saved_map_file(short_room: tuple[Atlas, dict[str, Any], Path], tmp_path: Path) -> None:
+    """With the map file format of issue 17.3: the run's Atlas saved, then exported from the file by the command."""
+    mapfile = pytest.importorskip("slamkit.map.mapfile", reason="map files (issue 17.3) are not in this version")
+    atlas, config, _ = short_room
+    path = tmp_path / "room.slamkit"
+    mapfile.save_atlas(atlas, path, config)
+    assert main(["export", str(path), "--format", "ply", "--out", str(tmp_path / "map.ply")]) == 0
+    v = plyfile.PlyData.read(str(tmp_path / "map.ply"))["vertex"]
+    assert np.array_equal(np.asarray(v["point_id"]), np.array(atlas.active.point_ids()))
+    assert not any((r, g, b) == NO_COLOUR_RGB for r, g, b in zip(v["red"], v["green"], v["blue"], strict=True))

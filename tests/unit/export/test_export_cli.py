@@ -59,8 +59,10 @@ def test_errors_are_one_line_and_exit_2(
     assert not (tmp_path / "x.ply").exists()
 
 
-def test_until_map_files_are_wired_a_map_file_is_a_clear_error(tmp_path: Path) -> None:
+def test_a_map_file_that_is_not_one_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "map.slamkit"
     path.write_bytes(b"")
-    with pytest.raises(export_cli.ExportError, match=r"map\.slamkit: reading slamkit map files"):
-        export_cli.load_export_source(path)
+    assert main(["export", str(tmp_path), "--format", "ply", "--out", str(tmp_path / "x.ply")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("slamkit export: ") and str(path) in err and err.count("\n") == 1
+    assert not (tmp_path / "x.ply").exists()
