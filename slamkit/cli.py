@@ -1,4 +1,4 @@
-"""Command line: ``slamkit run | eval | report | export | plugins | bench``.
+"""Command line: ``slamkit run | eval | plugins``.
 
 ``slamkit run [OVERRIDES...]`` is a Hydra application (all of Hydra's flags work: ``-m`` for multirun,
 ``--cfg job`` to print the config, ``+backend=gtsam``, ...). The other subcommands are plain argparse.
@@ -167,9 +167,6 @@ def build_parser() -> argparse.ArgumentParser:
     from slamkit.report.cli import add_report_parser
 
     add_report_parser(sub)
-    from slamkit.export.cli import add_export_parser
-
-    add_export_parser(sub)
     bench = sub.add_parser(
         "bench",
         help="benchmarks: `slamkit bench [--json FILE] [--runners threaded,sequential] [OVERRIDES...]` runs a "
@@ -183,6 +180,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_bench_optimizer_arguments(bench_opt)
     bench_opt.set_defaults(func=run_bench_optimizer)
+    from slamkit.export.cli import add_export_parser
+
+    add_export_parser(sub)
     ComponentRegistry.discover().add_cli_commands(sub)
     return parser
 
