@@ -114,3 +114,18 @@ def test_a_path_that_is_not_a_bag(tmp_path: Path) -> None:
     (tmp_path / "text.bag").write_text("not a bag\n")
     with pytest.raises(DatasetError, match=r"text\.bag: not a readable"):
         RosbagDataset(tmp_path / "text.bag", IMAGE_TOPIC)
+
+
+def test_node_keys_are_the_constructor_keywords() -> None:
+    """conf/dataset/rosbag.yaml names every keyword of the reader, each with a comment (as the other datasets')."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    path = Path(__file__).resolve().parents[3] / "conf" / "dataset" / "rosbag.yaml"
+    cfg = OmegaConf.load(path)
+    assert sorted(str(k) for k in cfg if k != "_target_") == sorted(inspect.signature(RosbagDataset).parameters)
+    assert OmegaConf.is_missing(cfg, "path") and OmegaConf.is_missing(cfg, "image_topic")
+    for line in path.read_text().splitlines():
+        if line and not line.startswith("#") and not line.startswith("_target_"):
+            assert "#" in line, f"{path.name}: option without a comment: {line}"
