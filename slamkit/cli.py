@@ -183,6 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_bench_optimizer_arguments(bench_opt)
     bench_opt.set_defaults(func=run_bench_optimizer)
+    from slamkit.export.cli import add_export_parser
+
+    add_export_parser(sub)
     ComponentRegistry.discover().add_cli_commands(sub)
     return parser
 

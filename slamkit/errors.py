@@ -28,6 +28,11 @@ class ConfigError(SlamkitError):
     """A configuration value that is missing or outside its valid range; names the config key."""
 
 
+class ExportError(SlamkitError):
+    """A map that cannot be exported as asked (unknown format or map, an unreadable source, an unwritable output);
+    names the path or the option at fault."""
+
+
 class ProblemError(SlamkitError):
     """An optimization problem that is malformed (NaN/inf, empty, degenerate) and was not sent to a solver."""
 

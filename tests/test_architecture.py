@@ -42,6 +42,7 @@ ALLOWED: dict[str, set[str]] = {
     "runtime": {"pipeline", "map", "events", "interfaces", "geometry", "plugins", "hookspecs"},
     "eval": {"events", "hookspecs", "io", "pipeline", "geometry", "interfaces"},
     "report": set(),
+    "export": {"map", "geometry", "interfaces", "io", "plugins"},
     "app": {
         "api",
         "geometry",
