@@ -5,14 +5,12 @@ SOURCE is a map file or a run directory holding one (``MAP_FILE_NAMES``); the po
 keyframes' images, read again from the dataset the run's config names (the run directory's config.yaml, else the
 config the map file records). ``--no-colours`` skips that (every point mid grey).
 
-Reading the map file itself is :func:`read_map_file`, the one function to wire to the map file format of issue 17
-(slamkit/map/mapfile*.py).
+The map file is slamkit's (slamkit/map/mapfile.py, docs/atlas.md "Saved maps").
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -21,6 +19,7 @@ from typing import Any
 
 from slamkit.errors import ExportError, SlamkitError
 from slamkit.map.atlas import Atlas
+from slamkit.map.mapfile import read_atlas, read_manifest
 
 from . import FORMATS, default_maps, export_map
 from .colours import DatasetImages, FrameImages, dataset_for_colours
@@ -41,19 +40,11 @@ class ExportSource:
 
 
 def read_map_file(path: Path) -> tuple[Atlas, Mapping[str, Any] | None]:
-    """(the Atlas, the config that built it) of a map file, through the map file format of issue 17.3
-    (``slamkit.map.mapfile``: ``read_atlas`` builds in-memory stores and no keyframe database, the export needs no
-    vocabulary; ``read_manifest`` holds the run's config). Its MapFileError names the file and the fault. Until that
-    module is part of slamkit, ExportError."""
-    try:
-        mapfile = importlib.import_module("slamkit.map.mapfile")
-    except ImportError:
-        raise ExportError(
-            f"{path}: reading slamkit map files is not available in this version yet (issue 17.3); "
-            "export a map in Python with slamkit.export.export_map(atlas, ...)"
-        ) from None
-    atlas: Atlas = mapfile.read_atlas(path)
-    config = mapfile.read_manifest(path).get("config")
+    """(the Atlas, the config that built it) of a slamkit map file (slamkit/map/mapfile.py: ``read_atlas`` builds
+    in-memory stores and no keyframe database — the export needs no vocabulary —; the manifest holds the run's
+    config). Its MapFileError names the file and the fault."""
+    atlas: Atlas = read_atlas(path)
+    config = read_manifest(path).get("config")
     return atlas, config if isinstance(config, Mapping) else None
 
 
