@@ -152,6 +152,7 @@ class LocalMappingConfig:
     ba_iterations_second: int = 10
     ba_update_normal_and_depth: bool = False
     ba_point_bad_max_observations: int = 1
+    new_map_points_culled: bool = False
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

@@ -157,13 +157,15 @@ def create_initial_map(
         for m in np.flatnonzero(result.triangulated):
             pid = store.new_point_id()
             i_ref, i_cur = int(ref_idx[m]), int(cur_idx[m])
+            # first keyframe: the current one (ORB-SLAM CreateInitialMapMonocular: new MapPoint(worldPos, pKFcur),
+            # mnFirstKFid = pKFcur->mnId; the age VI-B's culling counts when new_map_points_culled)
             store.add_point(
                 MapPoint(
                     pid,
                     result.xyz_ref[m].astype(np.float64).copy(),
                     ref.features.descriptors[i_ref].copy(),
                     kf_ini.id,
-                    kf_ini.id,
+                    kf_cur.id,
                 )
             )
             store.add_observation(pid, kf_ini.id, i_ref)

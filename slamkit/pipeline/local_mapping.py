@@ -95,10 +95,16 @@ class LocalMapper:
     # ---- VI-A --------------------------------------------------------------------------------------
 
     def _process_new_keyframe(self, kf: KeyFrame) -> None:
-        """ORB-SLAM ProcessNewKeyFrame: insert the keyframe (a no-op for the two of a new map, which initialisation
-        inserted), describe it with a bag of words, update its covisibility connections."""
+        """ORB-SLAM ProcessNewKeyFrame: insert the keyframe (a no-op for the keyframes of a new map, which
+        initialisation inserted), describe it with a bag of words, update its covisibility connections. With
+        ``new_map_points_culled``, the points a keyframe of a new map was created with (it observes them already:
+        ORB-SLAM's ``IsInKeyFrame`` branch) join the recent points that VI-B's culling checks."""
         store = self.store
-        insert_keyframe(store, kf)
+        if not insert_keyframe(store, kf) and self.cfg.new_map_points_culled:
+            own = store.get_keyframe(kf.id).point_ids
+            own = own[own >= 0]
+            known = set(self.recent_points)
+            self.recent_points.extend(p for p in own[store.has_points(own)].tolist() if p not in known)
         if kf.features.bf > 0.0:
             self.recent_points.extend(create_depth_points(store, kf, self.cfg.stereo_new_points_min))
         if self.place is not None and kf.bow is None:

@@ -311,3 +311,48 @@ def test_local_ba_refreshes_the_viewing_data_of_the_points_it_moves() -> None:
     ref_center = store.get_keyframe(point.ref_kf_id).center_w
     assert point.d_max_m == pytest.approx(np.linalg.norm(point.xyz_w - ref_center), rel=1e-9)
     assert abs(point.d_max_m - stale_d_max) > 0.1
+
+
+@pytest.mark.parametrize("culled", [True, False])
+def test_points_of_a_new_map_face_recent_point_culling(culled: bool) -> None:
+    """ORB-SLAM LocalMapping::ProcessNewKeyFrame: a point the processed keyframe already observes (every point of the
+    monocular initial map, created with both keyframes' observations and pKFcur as first keyframe) joins the recent
+    points, so MapPointCulling (VI-B) erases those found in fewer than 25% of the frames predicting them, and those
+    still seen by two keyframes once two keyframes have passed the first one. Without ``new_map_points_culled``
+    they all stay."""
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kf0, kf1 = keyframe(store, 0.0, xyz, desc), keyframe(store, 0.3, xyz, desc)
+    for kf in (kf0, kf1):
+        store.add_keyframe(kf)
+    for j in range(N_MAPPED):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), kf0.id, kf1.id))
+        store.add_observation(pid, kf0.id, j)
+        store.add_observation(pid, kf1.id, j)
+    refresh_points(store, store.point_ids())
+    store.update_connections(kf0.id)
+    store.update_connections(kf1.id)
+    mapper = LocalMapper(LocalMappingConfig(new_map_points_culled=culled), Atlas.of(store), None)  # type: ignore[arg-type]
+    with store.write():
+        for kf in (kf0, kf1):  # as initialisation hands them over: already in the map, their points observed
+            mapper._process_new_keyframe(kf)
+            assert mapper._cull_recent_points(kf) == 0
+    store.increase_visible(np.arange(50), 10)  # points 0-49: predicted in 10 more frames, found in none
+    tracked = np.full(N_POINTS, -1, np.int64)
+    tracked[100:N_MAPPED] = np.arange(100, N_MAPPED)  # later keyframes see points 100-199 only
+    kf2 = keyframe(store, 0.6, xyz, desc, tracked)
+    with store.write():
+        mapper._process_new_keyframe(kf2)
+        found_ratio_culled = mapper._cull_recent_points(kf2)  # kf2 is one keyframe past the first (kf1)
+    kf3 = keyframe(store, 0.9, xyz, desc, tracked.copy())
+    with store.write():
+        mapper._process_new_keyframe(kf3)
+        observation_culled = mapper._cull_recent_points(kf3)  # two past: two observations are too few
+    alive = store.has_points(np.arange(N_MAPPED))
+    if culled:
+        assert (found_ratio_culled, observation_culled) == (50, 50)
+        assert not alive[:100].any() and alive[100:].all()
+    else:
+        assert (found_ratio_culled, observation_culled) == (0, 0)
+        assert alive.all()
