@@ -111,6 +111,7 @@ def test_long_loop_with_a_jump_ends_with_two_maps(tmp_path: Path) -> None:
             assert entry["ate_rmse_m"] is not None and entry["ate_rmse_m"] < 1.0
 
 
+@pytest.mark.slow  # 40 s: the default suite keeps the sequential jump above; this one is run with -m slow
 def test_the_threaded_runner_starts_the_second_map_with_its_workers_parked(tmp_path: Path) -> None:
     """Same jump with ORB-SLAM's three threads: local mapping and loop closing are parked and their queues
     dropped while the active map changes; the first map is kept and the run directory lists both."""

@@ -37,7 +37,7 @@ def assert_same_run(extra: list[str], min_frames: int) -> None:
 
 @pytest.mark.timeout(600)
 def test_the_minimal_store_tracks_the_room_exactly_as_the_in_memory_store(dictmap_plugin: Path) -> None:
-    assert_same_run(["dataset.max_frames=150"], min_frames=140)  # the whole room: the slow test below
+    assert_same_run(["dataset.max_frames=90"], min_frames=80)  # the whole room: the slow test below
 
 
 @pytest.mark.slow

@@ -66,7 +66,7 @@ def check_final_map(rrd: Path, runner: Any) -> dict[str, list[dict[str, Any]]]:
 
 def test_a_recorded_run_holds_every_keyframe_the_final_points_and_each_frames_features(tmp_path: Path) -> None:
     rrd = tmp_path / "room.rrd"
-    runner, _ = run_with_viewer(tmp_path, "dataset.max_frames=120", f"viewer.save={rrd}", "viewer.image_every=10")
+    runner, _ = run_with_viewer(tmp_path, "dataset.max_frames=70", f"viewer.save={rrd}", "viewer.image_every=10")
     rows = check_final_map(rrd, runner)
     frames = len(runner.log.tracking)
     assert len(rows["/world/camera/image/features"]) == frames
