@@ -13,12 +13,18 @@ from slamkit.errors import ConfigError
 @dataclass(frozen=True)
 class ViewerSettings:
     """save: record to this .rrd file (no display); connect: stream to a rerun viewer already running at this URL;
-    neither: spawn a viewer. image_every: log every n-th frame's image (frames). jpeg_quality: 1-100."""
+    neither: spawn a viewer. image_every: log every n-th frame's image (frames). jpeg_quality: 1-100.
+    skip_stale_frames: when the viewer's thread falls behind, a frame with newer frames waiting is drawn without its
+    image and features (False: every frame is drawn, however long it takes). process: draw in a child process (True)
+    or in a thread of the run's process. niceness: how much the child process lowers its priority (Linux)."""
 
     save: Path | None
     connect: str | None
     image_every: int
     jpeg_quality: int
+    skip_stale_frames: bool = True
+    process: bool = True
+    niceness: int = 10
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> ViewerSettings | None:
@@ -32,6 +38,15 @@ class ViewerSettings:
         quality = node.get("jpeg_quality", 80)
         if isinstance(quality, bool) or not isinstance(quality, int) or not 1 <= quality <= 100:
             raise ConfigError(f"viewer.jpeg_quality = {quality!r}: expected an integer in [1, 100]")
+        skip_stale = node.get("skip_stale_frames", True)
+        if not isinstance(skip_stale, bool):
+            raise ConfigError(f"viewer.skip_stale_frames = {skip_stale!r}: expected true or false")
+        process = node.get("process", True)
+        if not isinstance(process, bool):
+            raise ConfigError(f"viewer.process = {process!r}: expected true or false")
+        niceness = node.get("niceness", 10)
+        if isinstance(niceness, bool) or not isinstance(niceness, int) or not 0 <= niceness <= 19:
+            raise ConfigError(f"viewer.niceness = {niceness!r}: expected an integer in [0, 19]")
         save = node.get("save")
         connect = node.get("connect")
         if save is not None and connect is not None:
@@ -41,4 +56,7 @@ class ViewerSettings:
             connect=None if connect is None else str(connect),
             image_every=image_every,
             jpeg_quality=quality,
+            skip_stale_frames=skip_stale,
+            process=process,
+            niceness=niceness,
         )

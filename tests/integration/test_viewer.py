@@ -5,6 +5,11 @@ features, the loop — read back with rerun's own reader; a failing viewer never
 from __future__ import annotations
 
 import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -66,7 +71,13 @@ def check_final_map(rrd: Path, runner: Any) -> dict[str, list[dict[str, Any]]]:
 
 def test_a_recorded_run_holds_every_keyframe_the_final_points_and_each_frames_features(tmp_path: Path) -> None:
     rrd = tmp_path / "room.rrd"
-    runner, _ = run_with_viewer(tmp_path, "dataset.max_frames=70", f"viewer.save={rrd}", "viewer.image_every=10")
+    runner, _ = run_with_viewer(
+        tmp_path,
+        "dataset.max_frames=70",
+        f"viewer.save={rrd}",
+        "viewer.image_every=10",
+        "viewer.skip_stale_frames=false",
+    )
     rows = check_final_map(rrd, runner)
     frames = len(runner.log.tracking)
     assert len(rows["/world/camera/image/features"]) == frames
@@ -92,26 +103,58 @@ def test_the_whole_room_recording_holds_the_loop_event(tmp_path: Path) -> None:
     assert "/world/loops/0" in rows
 
 
+def plain_run(frames: int) -> Any:
+    cfg = compose_config(["runner=sequential", "runner.progress=false", f"dataset.max_frames={frames}"])
+    plain, dataset = build_runner(cfg)
+    plain.run(dataset, dataset.camera)
+    return plain
+
+
 def test_a_failing_viewer_is_logged_once_and_the_run_goes_on_unchanged(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    plain_cfg = compose_config(["runner=sequential", "runner.progress=false", "dataset.max_frames=40"])
-    plain, dataset = build_runner(plain_cfg)
-    plain.run(dataset, dataset.camera)
-
+    plain = plain_run(40)
     calls = []
 
-    def broken(self: RerunViewer, event: Any) -> None:
+    def broken(self: RerunViewer, event: Any, stale: bool = False) -> None:
         calls.append(event.frame_index)
         if event.frame_index == 20:
             raise RuntimeError("display went away")
 
-    monkeypatch.setattr(RerunViewer, "frame_tracked", broken)
+    monkeypatch.setattr(RerunViewer, "frame_tracked", broken)  # reaches a viewer in this process only
     with caplog.at_level(logging.WARNING, logger="slamkit_rerun.plugin"):
-        viewed, _ = run_with_viewer(tmp_path, "dataset.max_frames=40", f"viewer.save={tmp_path / 'v.rrd'}")
+        viewed, _ = run_with_viewer(
+            tmp_path, "dataset.max_frames=40", f"viewer.save={tmp_path / 'v.rrd'}", "viewer.process=false"
+        )
     assert calls == list(range(21)), "the viewer stops at its failure"
     warnings = [r.getMessage() for r in caplog.records if "display went away" in r.getMessage()]
     assert len(warnings) == 1 and "the run goes on" in warnings[0]
+    np.testing.assert_array_equal(viewed.recorder.frames(viewed.store).T_w_c, plain.recorder.frames(plain.store).T_w_c)
+
+
+def test_a_viewer_process_that_dies_is_logged_once_and_the_run_goes_on_unchanged(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    plain = plain_run(40)
+    killed: list[int] = []
+
+    def kill_the_viewer() -> None:  # as soon as the run has started its viewer process
+        deadline = time.monotonic() + 60.0
+        while not killed and time.monotonic() < deadline:
+            for child in multiprocessing.active_children():
+                if child.name.startswith("slamkit-viewer-") and child.pid is not None:
+                    os.kill(child.pid, signal.SIGKILL)
+                    killed.append(child.pid)
+            time.sleep(0.01)
+
+    killer = threading.Thread(target=kill_the_viewer, daemon=True)
+    killer.start()
+    with caplog.at_level(logging.WARNING, logger="slamkit_rerun.plugin"):
+        viewed, _ = run_with_viewer(tmp_path, "dataset.max_frames=40", f"viewer.save={tmp_path / 'v.rrd'}")
+    killer.join()
+    assert killed, "the viewer process was never seen"
+    warnings = [r.getMessage() for r in caplog.records if "the run goes on" in r.getMessage()]
+    assert len(warnings) == 1 and "exit code -9" in warnings[0]
     np.testing.assert_array_equal(viewed.recorder.frames(viewed.store).T_w_c, plain.recorder.frames(plain.store).T_w_c)
 
 
