@@ -13,7 +13,7 @@ failure or Ctrl-C: a run that fails late keeps what it has), writes:
 - config.yaml: the run's resolved config;
 - metrics.json: :func:`slamkit.eval.run_metrics.run_metrics` plus ``status``, ``seed`` (and ``error``,
   ``failed_thread`` when it failed), and ``maps``: one :func:`slamkit.eval.run_metrics.map_metrics` entry per map;
-- frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe that had
+- frames.csv: what tracking did with each frame (and the frames skipped or, in real-time playback, dropped); loops.json: what loop closing did with each keyframe that had
   loop candidates or a pending hypothesis (why a loop was or was not closed);
 - trajectory.png: the trajectory aligned to the ground truth (Sim3) when there is one.
 

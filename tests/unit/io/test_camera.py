@@ -149,3 +149,12 @@ def test_config_node_keys_are_the_constructor_keywords_each_commented() -> None:
     for line in CONF.read_text().splitlines():
         if line and not line.startswith(("#", "_target_")):
             assert "#" in line, f"camera.yaml: option without a comment: {line}"
+
+
+def test_export_does_not_open_a_live_source_again_for_colours() -> None:
+    """slamkit export colours points from the run's images read again; a live device's frames now are not the run's."""
+    from slamkit.errors import SlamkitError
+    from slamkit.export.colours import dataset_for_colours
+
+    with pytest.raises(SlamkitError, match="live source, whose frames were not stored"):
+        dataset_for_colours({"dataset": {"_target_": "slamkit.io.camera.CameraDataset", "device": 63}})

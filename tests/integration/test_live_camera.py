@@ -1,0 +1,137 @@
+"""dataset=camera end to end, without a camera: the synthetic room written as an MJPG .avi (tests/camera_room.py) and
+opened as a live stream. The threaded runner plays it in real time whatever runner.realtime says, tracks it, drops
+the frames it has no time for and says so (log line, metrics.json, frames.csv); the first Ctrl-C ends a live run
+cleanly with its outputs; a device that does not open is one line and exit 2; runner=sequential and runner.preload
+are refused."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from camera_room import camera_override, write_room_video
+
+from slamkit.api import System
+from slamkit.config import compose_config
+from slamkit.errors import ConfigError
+
+pytestmark = pytest.mark.timeout(300)
+
+#: Room frames in the stream, and its rate: 90 frames stamped at 60 Hz (1.5 s), twice the room's own rate, so that
+#: tracking on a loaded 2-core machine cannot keep up and must drop frames.
+N_FRAMES, FPS = 90, 60.0
+
+
+@pytest.fixture(scope="module")
+def room_video(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
+    path = tmp_path_factory.mktemp("live") / "room.avi"
+    return path, write_room_video(path, N_FRAMES, FPS)
+
+
+def _overrides(video: Path, camera: dict[str, Any], *extra: str) -> list[str]:
+    return ["dataset=camera", f"dataset.device={video}", camera_override(camera), "runner.progress=false", *extra]
+
+
+def test_a_live_stream_is_tracked_in_real_time_and_its_dropped_frames_are_reported(
+    room_video: tuple[Path, dict[str, Any]], tmp_path: Path, caplog: Any
+) -> None:
+    video, camera = room_video
+    out = tmp_path / "run"
+    system = System(compose_config(_overrides(video, camera, "runner=threaded")), output_dir=out)
+    with caplog.at_level(logging.INFO):
+        log = system.run_dataset()
+    assert system.runner.realtime  # forced: runner.realtime is false by default
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "ok" and metrics["stream_end"] == "end of stream"
+    assert metrics["dataset"] == f"camera:{video}"
+    # every captured frame was tracked or dropped; tracking, twice too slow for the stream, dropped some
+    assert metrics["frames"] + metrics["frames_dropped"] == N_FRAMES and metrics["frames_dropped"] > 0
+    assert metrics["initialized_at_frame"] is not None and metrics["frames_tracked"] >= metrics["frames"] // 2
+    assert metrics["keyframes"] >= 3 and metrics["realtime_factor"] > 0
+    assert "ate_rmse_m" not in metrics and metrics["path_length_source"].startswith("estimate")  # no ground truth
+    with (out / "frames.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert sorted(int(r["frame"]) for r in rows) == list(range(N_FRAMES))  # each frame once: tracked or dropped
+    dropped = [r for r in rows if r["state"] == "dropped"]
+    assert len(dropped) == metrics["frames_dropped"] == log.frames_dropped
+    assert all(float(r["timestamp_s"]) == pytest.approx(int(r["frame"]) / FPS, abs=1e-3) for r in dropped)
+    assert np.loadtxt(out / "trajectory.tum", ndmin=2).shape[0] == metrics["frames_tracked"]
+    report = [r.getMessage() for r in caplog.records if r.getMessage().startswith("real-time playback:")]
+    assert len(report) == 1 and f"{metrics['frames_dropped']} dropped" in report[0] and "real-time factor" in report[0]
+
+
+def test_runner_sequential_and_preload_refuse_a_live_source(room_video: tuple[Path, dict[str, Any]]) -> None:
+    video, camera = room_video
+    with pytest.raises(ConfigError, match=r"runner=sequential cannot run the live source camera:"):
+        System(compose_config(_overrides(video, camera, "runner=sequential"))).run_dataset()
+    with pytest.raises(ConfigError, match=r"runner\.preload=true cannot preload the live source"):
+        System(compose_config(_overrides(video, camera, "runner=threaded", "runner.preload=true"))).run_dataset()
+
+
+def _slamkit(*args: str) -> list[str]:
+    return [sys.executable, "-m", "slamkit.cli", "run", *args]
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="SIGINT delivery to a child process is POSIX-only here")
+def test_ctrl_c_ends_a_live_run_cleanly_with_its_outputs(tmp_path: Path) -> None:
+    """A live source has no end of its own: the first Ctrl-C ends the stream, local mapping finishes, the outputs
+    are written with status ok and exit code 0."""
+    video = tmp_path / "slow.avi"
+    camera = write_room_video(video, 60, fps=6.0)  # 10 s of stream: still running when Ctrl-C comes
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # SIGINT's default action in the child even when this test runs as a background job (see
+    # tests/integration/test_threaded_runner.py's Ctrl-C test)
+    proc = subprocess.Popen(
+        _slamkit(*_overrides(video, camera), f"hydra.run.dir={out}"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    assert proc.stdout is not None
+    lines = []
+    for line in proc.stdout:  # wait until tracking runs on an initialised map
+        lines.append(line)
+        if "map initialised" in line:
+            break
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    try:
+        rest, _ = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail("the run did not end within 120 s of Ctrl-C:\n" + "".join(lines))
+    output = "".join(lines) + rest
+    assert proc.returncode == 0, output
+    assert "Ctrl-C: the live run ends" in output and f"results in {out}" in output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "ok" and metrics["stream_end"] == "Ctrl-C"
+    assert 0 < metrics["frames"] < 60 and metrics["initialized_at_frame"] is not None
+    assert np.loadtxt(out / "trajectory.tum", ndmin=2).shape[0] == metrics["frames_tracked"] >= 2
+
+
+def test_a_device_that_cannot_be_opened_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    result = subprocess.run(
+        _slamkit("dataset=camera", "dataset.device=63", f"hydra.run.dir={tmp_path / 'run'}"),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert lines == [
+        "slamkit run: camera device 63 (dataset.device) could not be opened (no such device, or it is busy or not "
+        "permitted)"
+    ], result.stderr
