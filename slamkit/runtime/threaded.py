@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import signal
 import threading
 import time
@@ -398,17 +399,22 @@ class ThreadedRunner:
             signal.signal(signal.SIGINT, previous)
 
     def _log_playback(self) -> None:
-        """The end-of-run account of real-time playback: frames tracked and dropped, the real-time factor."""
+        """The end-of-run account of real-time playback: frames tracked and dropped, tracking's median time per frame
+        against the stream's frame period, the real-time factor, how a live stream ended."""
         tracked = len(self.log.tracking)
         dropped = self.log.frames_dropped
         share = 100.0 * dropped / max(tracked + dropped, 1)
         factor = self.log.realtime_factor
+        track_ms = sorted((t1 - t0) * 1e3 for t0, t1 in self.log.tracking_wall_s)
+        period_ms = 1e3 * self.log.sequence_s / (tracked + dropped - 1) if tracked + dropped > 1 else math.nan
         log.info(
-            "real-time playback: %d frames tracked, %d dropped (%.0f%%: tracking was busy when they came), "
-            "real-time factor %s (stream time over wall time)%s",
+            "real-time playback: %d frames tracked, %d dropped (%.0f%%: tracking was busy when they came); tracking "
+            "%.1f ms per frame (median) for a frame every %.1f ms; real-time factor %s (stream time over wall time)%s",
             tracked,
             dropped,
             share,
+            track_ms[len(track_ms) // 2] if track_ms else math.nan,
+            period_ms,
             "n/a" if factor is None else f"{factor:.2f}",
             "" if self.log.source_end is None else f"; the stream ended: {self.log.source_end}",
         )

@@ -9,21 +9,22 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from camera_room import camera_override, write_room_video
+from ctrl_c import interrupt_after
 
 from slamkit.api import System
 from slamkit.config import compose_config
 from slamkit.errors import ConfigError
+from slamkit.io.camera import CameraDataset
+from slamkit.runtime.sequential import SequentialRunner
+from slamkit.runtime.threaded import ThreadedRunner
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -71,11 +72,15 @@ def test_a_live_stream_is_tracked_in_real_time_and_its_dropped_frames_are_report
 
 
 def test_runner_sequential_and_preload_refuse_a_live_source(room_video: tuple[Path, dict[str, Any]]) -> None:
+    """Refused before the run starts (no component is used: the runners are built without any)."""
     video, camera = room_video
+    ds = CameraDataset(device=str(video), camera=camera)
+    sequential = SequentialRunner(None, None, None)  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match=r"runner=sequential cannot run the live source camera:"):
-        System(compose_config(_overrides(video, camera, "runner=sequential"))).run_dataset()
+        sequential.run(ds, ds.camera)
+    threaded = ThreadedRunner(None, None, None, preload=True)  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match=r"runner\.preload=true cannot preload the live source"):
-        System(compose_config(_overrides(video, camera, "runner=threaded", "runner.preload=true"))).run_dataset()
+        threaded.run(ds, ds.camera)
 
 
 def _slamkit(*args: str) -> list[str]:
@@ -89,32 +94,11 @@ def test_ctrl_c_ends_a_live_run_cleanly_with_its_outputs(tmp_path: Path) -> None
     video = tmp_path / "slow.avi"
     camera = write_room_video(video, 60, fps=6.0)  # 10 s of stream: still running when Ctrl-C comes
     out = tmp_path / "run"
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    # SIGINT's default action in the child even when this test runs as a background job (see
-    # tests/integration/test_threaded_runner.py's Ctrl-C test)
-    proc = subprocess.Popen(
-        _slamkit(*_overrides(video, camera), f"hydra.run.dir={out}"),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    # Ctrl-C once tracking runs on an initialised map
+    returncode, output = interrupt_after(
+        _slamkit(*_overrides(video, camera), f"hydra.run.dir={out}"), "map initialised", delay_s=1.0
     )
-    assert proc.stdout is not None
-    lines = []
-    for line in proc.stdout:  # wait until tracking runs on an initialised map
-        lines.append(line)
-        if "map initialised" in line:
-            break
-    time.sleep(1.0)
-    proc.send_signal(signal.SIGINT)
-    try:
-        rest, _ = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        pytest.fail("the run did not end within 120 s of Ctrl-C:\n" + "".join(lines))
-    output = "".join(lines) + rest
-    assert proc.returncode == 0, output
+    assert returncode == 0, output
     assert "Ctrl-C: the live run ends" in output and f"results in {out}" in output
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "ok" and metrics["stream_end"] == "Ctrl-C"
