@@ -263,7 +263,21 @@ class CameraDataset:
         self.end_reason: str | None = None
         asked_fps = _positive(fps, "fps")
         fallback = _positive(fallback_fps, "fallback_fps")
-        reader = self._reader = self._open()
+        if fallback is None:
+            raise ConfigError("dataset.fallback_fps is required: the frame rate when the device states none, Hz")
+        self._reader = self._open()
+        try:
+            self._setup(camera, settings, asked_fps, fallback)
+        except BaseException:
+            self.close()
+            raise
+
+    def _setup(
+        self, camera: Mapping[str, Any] | None, settings: str | Path | None, asked_fps: float | None, fallback: float
+    ) -> None:
+        """The calibration (sized by a first frame; its size asked of a device) and the frame rate."""
+        assert self._reader is not None
+        reader = self._reader
         cap = reader.cap
         if asked_fps is not None and not self.file:
             cap.set(cv2.CAP_PROP_FPS, asked_fps)
@@ -278,7 +292,6 @@ class CameraDataset:
             first = self._probe(reader)
             size = (int(first.shape[1]), int(first.shape[0]))
         if size != wanted:
-            self.close()
             raise CalibrationError(
                 f"{self.label} delivers {size[0]}x{size[1]} px frames but {self._size_parameter()} is "
                 f"{wanted[0]}x{wanted[1]} px"
@@ -289,7 +302,6 @@ class CameraDataset:
         elif math.isfinite(stream_fps) and stream_fps > 0:
             self.fps = stream_fps
         else:
-            assert fallback is not None
             self.fps = fallback
             log.info("%s states no frame rate: %.1f Hz assumed (dataset.fallback_fps)", self.label, fallback)
         if self.file:  # the stream starts at the file's first frame: reopened when it is read
@@ -352,7 +364,6 @@ class CameraDataset:
         """A frame read when the dataset is built (its size sizes the calibration); DatasetError when none comes."""
         got = self._read(reader)
         if got.frame is None:
-            self.close()
             raise DatasetError(f"{self.label} opened but delivered no frame ({got.end})")
         return got.frame
 
