@@ -9,8 +9,8 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -20,17 +20,27 @@ from camera_room import camera_override, write_room_video
 from ctrl_c import interrupt_after
 
 from slamkit.api import System
+from slamkit.cli import main
 from slamkit.config import compose_config
 from slamkit.errors import ConfigError
+from slamkit.eval.metrics import compute_ate
 from slamkit.io.camera import CameraDataset
+from slamkit.io.synthetic.dataset import SyntheticDataset
+from slamkit.io.trajectory_io import read_trajectory
 from slamkit.runtime.sequential import SequentialRunner
 from slamkit.runtime.threaded import ThreadedRunner
+from slamkit.sensors import Trajectory
 
 pytestmark = pytest.mark.timeout(300)
 
-#: Room frames in the stream, and its rate: 90 frames stamped at 60 Hz (1.5 s), twice the room's own rate, so that
-#: tracking on a loaded 2-core machine cannot keep up and must drop frames.
-N_FRAMES, FPS = 90, 60.0
+#: Room frames in the stream and its rate: 60 frames stamped at 15 Hz (4 s of stream, half the room's own rate).
+N_FRAMES, FPS = 60, 15.0
+#: What each tracked frame costs on top of tracking (an on_frame callback): more than the 67 ms frame period, so the
+#: runner must drop frames on any machine, however fast its tracking.
+SLOW_S = 0.07
+#: ATE (Sim3-aligned) of the frames tracked against the room's ground truth, m: ~0.5% of the ~1.6 m the camera moves
+#: in the first 4 s (measured on a loaded 2-core machine: 0.48-0.55 cm over 23-26 tracked frames, 3 runs).
+ATE_MAX_M = 0.01
 
 
 @pytest.fixture(scope="module")
@@ -50,15 +60,17 @@ def test_a_live_stream_is_tracked_in_real_time_and_its_dropped_frames_are_report
     out = tmp_path / "run"
     system = System(compose_config(_overrides(video, camera, "runner=threaded")), output_dir=out)
     with caplog.at_level(logging.INFO):
-        log = system.run_dataset()
+        # what run_dataset() does, with a tracker slower than the stream
+        log = system.runner.run(
+            system.dataset, system.camera, on_frame=lambda _: time.sleep(SLOW_S), run_dir=out, config=system.config
+        )
     assert system.runner.realtime  # forced: runner.realtime is false by default
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "ok" and metrics["stream_end"] == "end of stream"
     assert metrics["dataset"] == f"camera:{video}"
-    # every captured frame was tracked or dropped; tracking, twice too slow for the stream, dropped some
+    # every captured frame was tracked or dropped, and tracking, slower than the stream, dropped some
     assert metrics["frames"] + metrics["frames_dropped"] == N_FRAMES and metrics["frames_dropped"] > 0
-    assert metrics["initialized_at_frame"] is not None and metrics["frames_tracked"] >= metrics["frames"] // 2
-    assert metrics["keyframes"] >= 3 and metrics["realtime_factor"] > 0
+    assert metrics["initialized_at_frame"] is not None and metrics["frames_tracked"] >= 5
     assert "ate_rmse_m" not in metrics and metrics["path_length_source"].startswith("estimate")  # no ground truth
     with (out / "frames.csv").open() as f:
         rows = list(csv.DictReader(f))
@@ -66,9 +78,15 @@ def test_a_live_stream_is_tracked_in_real_time_and_its_dropped_frames_are_report
     dropped = [r for r in rows if r["state"] == "dropped"]
     assert len(dropped) == metrics["frames_dropped"] == log.frames_dropped
     assert all(float(r["timestamp_s"]) == pytest.approx(int(r["frame"]) / FPS, abs=1e-3) for r in dropped)
-    assert np.loadtxt(out / "trajectory.tum", ndmin=2).shape[0] == metrics["frames_tracked"]
     report = [r.getMessage() for r in caplog.records if r.getMessage().startswith("real-time playback:")]
     assert len(report) == 1 and f"{metrics['frames_dropped']} dropped" in report[0] and "real-time factor" in report[0]
+    # the poses are the room's: the stream's frame k (t = k / FPS) is the room's frame k (t = k / 30)
+    est = read_trajectory(out / "trajectory.tum", "tum")
+    assert len(est) == metrics["frames_tracked"]
+    room = SyntheticDataset(scene="room", seed=0, max_frames=N_FRAMES, imu=False, depth=False)
+    assert room.ground_truth is not None
+    ate = compute_ate(room.ground_truth, Trajectory(est.t_s * FPS / room.fps, est.T_w_c), align="sim3")
+    assert ate.matched_poses == len(est) and ate.rmse_m < ATE_MAX_M, ate.rmse_m
 
 
 def test_runner_sequential_and_preload_refuse_a_live_source(room_video: tuple[Path, dict[str, Any]]) -> None:
@@ -106,16 +124,11 @@ def test_ctrl_c_ends_a_live_run_cleanly_with_its_outputs(tmp_path: Path) -> None
     assert np.loadtxt(out / "trajectory.tum", ndmin=2).shape[0] == metrics["frames_tracked"] >= 2
 
 
-def test_a_device_that_cannot_be_opened_is_one_line_and_exit_2(tmp_path: Path) -> None:
-    result = subprocess.run(
-        _slamkit("dataset=camera", "dataset.device=63", f"hydra.run.dir={tmp_path / 'run'}"),
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert result.returncode == 2, result.stderr
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert lines == [
+def test_a_device_that_cannot_be_opened_is_one_line_and_exit_2(tmp_path: Path, capfd: Any) -> None:
+    rc = main(["run", "dataset=camera", "dataset.device=63", f"hydra.run.dir={tmp_path / 'run'}"])
+    err = capfd.readouterr().err
+    assert rc == 2, err
+    assert [line for line in err.splitlines() if line.strip()] == [
         "slamkit run: camera device 63 (dataset.device) could not be opened (no such device, or it is busy or not "
         "permitted)"
-    ], result.stderr
+    ], err
