@@ -31,6 +31,7 @@ from slamkit.plugins import ComponentRegistry
 from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
 from slamkit.runtime.events import EventDispatcher
 from slamkit.runtime.sequential import SequentialRunner
+from slamkit.runtime.source import frame_count
 from slamkit.runtime.threaded import ThreadedRunner
 
 log = logging.getLogger("slamkit")
@@ -283,7 +284,8 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         log.error("job failed while building its components: %s", error)
         return metrics
     dataset = system.dataset
-    log.info("dataset %s: %d frames -> %s", getattr(dataset, "name", "?"), len(dataset), out_dir)
+    n_frames = frame_count(dataset)
+    log.info("dataset %s: %s frames -> %s", getattr(dataset, "name", "?"), n_frames or "live, unknown", out_dir)
     start = time.perf_counter()
     try:
         # the outputs plugin writes the run directory when the run finishes, also when it fails; map.save=FILE

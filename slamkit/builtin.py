@@ -44,6 +44,12 @@ def slamkit_components() -> list[ComponentSpec]:
             "dataset", "video", "slamkit.io.video.VideoDataset", description="a video file with a camera from config"
         ),
         ComponentSpec(
+            "dataset",
+            "camera",
+            "slamkit.io.camera.CameraDataset",
+            description="a live camera or stream (device index or URL) through OpenCV, played in real time",
+        ),
+        ComponentSpec(
             "frontend",
             "mono",
             "slamkit.frontend.mono.MonocularFrontEnd",

@@ -34,7 +34,7 @@ class RunStarted:
     """A run begins (before the first frame is read).
 
     runner: "sequential" or "threaded". dataset: the dataset's name ("synthetic/room"). n_frames: frames the
-    dataset will deliver. run_dir: the run's output directory (None: the caller wants no files, e.g. a test or a
+    dataset will deliver (None: unknown, a live source such as ``dataset=camera``). run_dir: the run's output directory (None: the caller wants no files, e.g. a test or a
     notebook driving the runner). config: the run's composed config, resolved, as plain containers (empty when
     the caller gave none). ground_truth: the dataset's ground-truth trajectory (T_w_c per timestamp), if any.
     K: (3, 3) the (left) camera's pinhole intrinsics, px, and image_size (width, height) px — None when unknown.
@@ -43,7 +43,7 @@ class RunStarted:
     run_id: int
     runner: str
     dataset: str
-    n_frames: int
+    n_frames: int | None
     run_dir: Path | None = None
     config: Mapping[str, Any] = field(default_factory=dict)
     ground_truth: Trajectory | None = None
@@ -291,7 +291,9 @@ class RunFinished:
     by tracking.
     wall_s: wall time of the run, s; sequence_s: time span of the frames played, s; frames_dropped: frames
     real-time playback dropped; realtime_factor: sequence over wall time (None when unknown); preloaded_mb:
-    memory of frames read before playback, MiB.
+    memory of frames read before playback, MiB. dropped_frames: the dropped frames, (frame index, timestamp s)
+    each. source_end: how a live source's stream ended ("end of stream", "Ctrl-C", "dataset.duration_s=...",
+    a read timeout; None for a recorded sequence).
     """
 
     run_id: int
@@ -305,3 +307,5 @@ class RunFinished:
     frames_dropped: int
     realtime_factor: float | None
     preloaded_mb: float
+    dropped_frames: tuple[tuple[int, float], ...] = ()
+    source_end: str | None = None

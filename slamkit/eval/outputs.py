@@ -13,7 +13,7 @@ failure or Ctrl-C: a run that fails late keeps what it has), writes:
 - config.yaml: the run's resolved config;
 - metrics.json: :func:`slamkit.eval.run_metrics.run_metrics` plus ``status``, ``seed`` (and ``error``,
   ``failed_thread`` when it failed), and ``maps``: one :func:`slamkit.eval.run_metrics.map_metrics` entry per map;
-- frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe that had
+- frames.csv: what tracking did with each frame (and the frames skipped or, in real-time playback, dropped); loops.json: what loop closing did with each keyframe that had
   loop candidates or a pending hypothesis (why a loop was or was not closed);
 - trajectory.png: the trajectory aligned to the ground truth (Sim3) when there is one.
 
@@ -174,7 +174,8 @@ def write_run_logs(out_dir: Path, record: RunRecord) -> None:
     """frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe
     (candidates, consistency, BoW matches, Sim3 inliers and scale, corrections), so a user can see why a loop
     was or was not closed."""
-    _write_frames_csv(out_dir / "frames.csv", record.tracking, record.skipped)
+    dropped = record.finished.dropped_frames if record.finished is not None else ()
+    _write_frames_csv(out_dir / "frames.csv", record.tracking, record.skipped, dropped)
     loops = [
         dict(lp.record)
         for lp in record.loops
@@ -183,9 +184,15 @@ def write_run_logs(out_dir: Path, record: RunRecord) -> None:
     (out_dir / "loops.json").write_text(json.dumps(loops, indent=2, default=float) + "\n")
 
 
-def _write_frames_csv(path: Path, tracking: Sequence[FrameTracked], skipped: Sequence[FrameSkipped] = ()) -> None:
-    """One row per frame in frame order: what tracking did with it, or ``skipped`` (no timestamp: the frame
-    could not be read) with the reading error as its message."""
+def _write_frames_csv(
+    path: Path,
+    tracking: Sequence[FrameTracked],
+    skipped: Sequence[FrameSkipped] = (),
+    dropped: Sequence[tuple[int, float]] = (),
+) -> None:
+    """One row per frame in frame order: what tracking did with it, ``skipped`` (no timestamp: the frame could not
+    be read) with the reading error as its message, or ``dropped`` (real-time playback: the frame arrived while
+    tracking was busy and a newer one replaced it; dropped: (frame index, timestamp s) each)."""
     rows: list[tuple[int, list[object]]] = [
         (
             o.frame_index,
@@ -203,6 +210,9 @@ def _write_frames_csv(path: Path, tracking: Sequence[FrameTracked], skipped: Seq
         for o in tracking
     ]
     rows += [(s.frame_index, [s.frame_index, "", "skipped", "", 0, 0, "", s.reason]) for s in skipped]
+    rows += [
+        (i, [i, f"{t:.6f}", "dropped", "", 0, 0, "", "tracking busy: a newer frame replaced it"]) for i, t in dropped
+    ]
     rows.sort(key=lambda row: row[0])  # stable: a frame's rows keep their order
     with path.open("w", newline="") as f:
         writer = csv.writer(f)

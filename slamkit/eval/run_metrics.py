@@ -81,6 +81,8 @@ class RunAccount(Protocol):
     @property
     def realtime_factor(self) -> float | None: ...
     @property
+    def source_end(self) -> str | None: ...
+    @property
     def preloaded_mb(self) -> float: ...
 
 
@@ -174,6 +176,7 @@ def run_metrics(
         "frames_dropped": run.frames_dropped,
         "frames_skipped": run.frames_skipped,
         "realtime_factor": run.realtime_factor,
+        "stream_end": run.source_end,  # a live source (dataset=camera): how its stream ended; null otherwise
         "preloaded_mb": run.preloaded_mb,
         "relocalizations": sum(o.method == "relocalization" and o.state == "ok" for o in run.tracking),
         "loops_closed": sum(loop.loop_kf_id is not None for loop in run.loops),

@@ -117,6 +117,10 @@ class RunRecord:
         return self._finished().realtime_factor
 
     @property
+    def source_end(self) -> str | None:
+        return self._finished().source_end
+
+    @property
     def preloaded_mb(self) -> float:
         return self._finished().preloaded_mb
 

@@ -90,12 +90,21 @@ class DatasetImages:
 def dataset_for_colours(config: Mapping[str, Any]) -> Dataset:
     """The run's dataset built again from its resolved config (``config["dataset"]``) to read its colour images:
     colour switched on where the dataset has the switch (``color``), depth, stereo and IMU off where it has those.
-    Errors building it (dataset moved, ...) are the dataset's own slamkit errors."""
+    Errors building it (dataset moved, ...) are the dataset's own slamkit errors; a live source (``dataset=camera``)
+    is not opened again (its frames now are not the run's) and is a SlamkitError."""
+    from hydra.utils import get_class
+
     from slamkit.plugins import ComponentRegistry
 
     node = dict(config.get("dataset") or {})
     if "_target_" not in node:
         raise SlamkitError("the run's config has no dataset (_target_): no images to take colours from")
+    try:
+        live = bool(getattr(get_class(str(node["_target_"])), "live", False))
+    except Exception:  # an unknown class: building it below says what is wrong
+        live = False
+    if live:
+        raise SlamkitError("the run read a live source, whose frames were not stored")
     for key, value in (("color", True), ("depth", False), ("use_depth", False), ("imu", False)):
         if key in node:
             node[key] = value

@@ -52,14 +52,16 @@ def _imread(path: Path, flags: int) -> NDArray[np.generic]:
     return image
 
 
-def check_size(path: Path, width: int, height: int, expected: tuple[int, int] | None, calib: str) -> None:
+def check_size(
+    path: Path, width: int, height: int, expected: tuple[int, int] | None, calib: str, what: str = "image file"
+) -> None:
     """Raise CalibrationError when an image of ``width`` x ``height`` disagrees with ``expected`` (W, H).
 
-    calib: where the expected size came from (a file or config key), for the message.
+    calib: where the expected size came from (a file or config key), for the message; what: what ``path`` is.
     """
     if expected is not None and (width, height) != (int(expected[0]), int(expected[1])):
         raise CalibrationError(
-            f"image file {path} is {width}x{height} px but the calibration ({calib}) is "
+            f"{what} {path} is {width}x{height} px but the calibration ({calib}) is "
             f"{int(expected[0])}x{int(expected[1])} px"
         )
 

@@ -54,6 +54,7 @@ from slamkit.map.atlas import Atlas
 from slamkit.pipeline.frame import Frame
 from slamkit.pipeline.outcomes import LoopOutcome, MappingOutcome, TrackingOutcome
 from slamkit.runtime.log import RunLog
+from slamkit.runtime.source import frame_count
 
 log = logging.getLogger("slamkit.events")
 
@@ -210,7 +211,7 @@ class RunEvents:
             run_id=self.run_id,
             runner=self.runner,
             dataset=str(getattr(dataset, "name", "?")),
-            n_frames=len(dataset),
+            n_frames=frame_count(dataset),
             run_dir=run_dir,
             config=dict(config or {}),
             ground_truth=getattr(dataset, "ground_truth", None),
@@ -375,6 +376,8 @@ class RunEvents:
                         frames_dropped=run.frames_dropped,
                         realtime_factor=run.realtime_factor,
                         preloaded_mb=run.preloaded_mb,
+                        dropped_frames=tuple(run.dropped_frames),
+                        source_end=run.source_end,
                     ),
                 )
         finally:

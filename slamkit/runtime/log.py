@@ -17,8 +17,9 @@ class RunLog:
     mapping / loop closing processed. resets: active maps erased because tracking was lost soon after initialising
     them; new_maps: maps kept in the Atlas when tracking was lost for good (a new active map started).
     frames_dropped: frames that real-time playback delivered while tracking was busy and that were replaced by a
-    newer one before tracking took them (0 when playing as fast as possible). sequence_s: time span of the frames played (last minus first timestamp, s). wall_s: wall time of
-    the run, s. failed_thread: name of the pipeline thread whose exception stopped the run, if any.
+    newer one before tracking took them (0 when playing as fast as possible); dropped_frames: those frames, (frame
+    index, timestamp s) each. source_end: how a live source's stream ended (None for a recorded sequence).
+    sequence_s: time span of the frames played (last minus first timestamp, s). wall_s: wall time of the run, s. failed_thread: name of the pipeline thread whose exception stopped the run, if any.
     preloaded_mb: memory held by frames read into memory before playback (``runner.preload``), MiB.
     """
 
@@ -29,6 +30,8 @@ class RunLog:
     new_maps: int = 0
     wall_s: float = 0.0
     frames_dropped: int = 0
+    dropped_frames: list[tuple[int, float]] = field(default_factory=list)
+    source_end: str | None = None
     frames_skipped: int = 0  # frames the dataset could not read, left out (runner.bad_frames: skip)
     sequence_s: float = 0.0
     runner: str = "sequential"

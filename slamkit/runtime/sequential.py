@@ -12,6 +12,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from slamkit.errors import ConfigError
 from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.map.atlas import Atlas, MapChange
 from slamkit.pipeline.local_mapping import LocalMapper
@@ -22,7 +23,7 @@ from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
-from slamkit.runtime.source import check_bad_frames_policy, readable_frames
+from slamkit.runtime.source import check_bad_frames_policy, frame_count, is_live, readable_frames
 from slamkit.runtime.workers import raised_by_ctrl_c
 from slamkit.sensors import FrameData
 
@@ -75,10 +76,16 @@ class SequentialRunner:
         run_dir / config: where the run's files go and its resolved config, handed to the lifecycle hooks
         (``slamkit_run_started``; the built-in outputs plugin writes the run directory from its events).
         The same as ``begin``, ``step`` on each readable frame, then ``end`` (what slamkit.api.System does with
-        frames a program hands it).
+        frames a program hands it). A live source (``dataset=camera``) is a ConfigError: reading it one frame at a
+        time between the pipeline's steps would track ever staler frames (the threaded runner plays it).
         """
+        if is_live(dataset):
+            raise ConfigError(
+                f"runner=sequential cannot run the live source {getattr(dataset, 'name', '?')}: a camera runs in real "
+                "time with runner=threaded (the default)"
+            )
         self.begin(dataset, camera, run_dir, config)
-        bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
+        bar = tqdm(total=frame_count(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
         ended_by: BaseException | None = None
         try:
             for data in readable_frames(dataset, self.bad_frames, self._frame_skipped):

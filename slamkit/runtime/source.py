@@ -3,7 +3,10 @@
 Two modes. As fast as possible: every frame is delivered, in order, through a short bounded queue (the next
 frames are read or rendered while tracking works on the current one). Real time: each frame is released at its
 own timestamp (scaled by ``speed``) into a one-slot mailbox; a frame still in the mailbox when the next one
-arrives is replaced and counted as dropped, as a live camera's frames are when tracking is busy.
+arrives is replaced and counted as dropped, as a live camera's frames are when tracking is busy. A live source
+(``dataset=camera``: :func:`is_live`) is real time by nature: it is read continuously into the mailbox, paced by
+the device itself (or, for a file played as a stream, at its timestamps: the dataset's ``paced``), and has no
+length (:func:`frame_count` is None).
 """
 
 from __future__ import annotations
@@ -22,6 +25,18 @@ from slamkit.runtime.workers import ThreadFault
 from slamkit.sensors import FrameData
 
 log = logging.getLogger("slamkit.io")
+
+
+def is_live(dataset: object) -> bool:
+    """Whether ``dataset`` is a live source (a capture device or stream, ``live = True``): real time by nature, no
+    length, no ground truth."""
+    return bool(getattr(dataset, "live", False))
+
+
+def frame_count(dataset: Dataset) -> int | None:
+    """The number of frames the dataset will deliver, or None for a live source (its ``len`` is unknown)."""
+    return None if is_live(dataset) else len(dataset)
+
 
 #: What a run does with a frame whose file is missing, undecodable or damaged (``runner.bad_frames``)
 BAD_FRAME_POLICIES = ("skip", "stop")
@@ -82,10 +97,14 @@ END = EndOfSequence()
 
 
 class FrameSource(threading.Thread):
-    """Delivers FrameData to ``get()``; ``frames_dropped`` counts frames replaced unseen (real time only).
+    """Delivers FrameData to ``get()``; ``frames_dropped`` counts frames replaced unseen (real time only) and
+    ``dropped`` lists them as (frame index, timestamp s).
 
-    frames: the dataset (iterated once, in this thread). realtime: release frames at their timestamps.
-    speed: playback rate factor for real time (2.0 plays twice as fast). on_fault: called if reading raises.
+    frames: the dataset (iterated once, in this thread; an iterator with ``close()``, a generator, is closed here
+    when the source ends, so a capture device is released by the thread that reads it). realtime: one-slot
+    mailbox, newest frame wins. paced: in real time, release each frame at its timestamp (False: as soon as it is
+    read, for a live device that delivers frames at its own rate). speed: playback rate factor for paced real time
+    (2.0 plays twice as fast). on_fault: called if reading raises.
     """
 
     def __init__(
@@ -94,12 +113,14 @@ class FrameSource(threading.Thread):
         realtime: bool,
         on_fault: Callable[[ThreadFault], None],
         speed: float = 1.0,
+        paced: bool = True,
     ) -> None:
         super().__init__(name="frame-source", daemon=True)
         if speed <= 0:
             raise ValueError(f"playback speed must be > 0, got {speed}")
         self._frames = frames
         self.realtime = realtime
+        self.paced = paced
         self.speed = speed
         self._on_fault = on_fault
         self._cond = threading.Condition()
@@ -108,11 +129,19 @@ class FrameSource(threading.Thread):
         self._interrupted = False
         self.frames_read = 0
         self.frames_dropped = 0
+        self.dropped: list[tuple[int, float]] = []
         self.first_timestamp_s: float | None = None
         self.last_timestamp_s: float | None = None
         self.fault: ThreadFault | None = None
 
+    @property
+    def stopping(self) -> bool:
+        """Whether ``stop()`` was called."""
+        return self._stop_requested
+
     def stop(self) -> None:
+        """No more frames: ``get()`` returns what the mailbox / queue holds, then None; the thread ends at its next
+        frame."""
         with self._cond:
             self._stop_requested = True
             self._cond.notify_all()
@@ -141,8 +170,10 @@ class FrameSource(threading.Thread):
                 if isinstance(item, FrameData):
                     # the camera does not wait: an untaken frame is replaced by the newer one
                     while self._slots and isinstance(self._slots[0], FrameData):
-                        self._slots.popleft()
+                        old = self._slots.popleft()
+                        assert isinstance(old, FrameData)
                         self.frames_dropped += 1
+                        self.dropped.append((old.index, old.timestamp_s))
             else:
                 self._cond.wait_for(lambda: len(self._slots) < PREFETCH_FRAMES or self._stop_requested)
             if self._stop_requested:
@@ -162,12 +193,14 @@ class FrameSource(threading.Thread):
             return False
 
     def run(self) -> None:
+        frames: Iterator[FrameData] | None = None
         try:
             start = time.perf_counter()
-            for data in self._frames:
+            frames = iter(self._frames)
+            for data in frames:
                 if self.first_timestamp_s is None:
                     self.first_timestamp_s = data.timestamp_s
-                if self.realtime:
+                if self.realtime and self.paced:
                     due = start + (data.timestamp_s - self.first_timestamp_s) / self.speed
                     if not self._wait_until(due):
                         return
@@ -181,3 +214,10 @@ class FrameSource(threading.Thread):
             self._on_fault(self.fault)
             # the frames already delivered are good: tracking finishes them, then meets the end
             self._put(END)
+        finally:
+            close = getattr(frames, "close", None)
+            if callable(close):
+                try:
+                    close()
+                except Exception as exc:  # releasing the source must not hide how the run ended
+                    log.warning("the frame source could not be closed: %s", exc)

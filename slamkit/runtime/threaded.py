@@ -1,8 +1,9 @@
 """The real-time runner: tracking, local mapping and loop closing in three threads, as ORB-SLAM runs.
 
 Tracking runs in the calling thread (so Ctrl-C lands there); a frame-source thread plays the dataset (as fast as
-possible, or at its own frame rate with dropped frames counted); local mapping and loop closing are
-PipelineWorkers. Each decision has one owner:
+possible, or at its own frame rate with dropped frames counted; a live source such as ``dataset=camera`` always in
+real time, read continuously, its first Ctrl-C ending the run as an end of stream would); local mapping and loop
+closing are PipelineWorkers. Each decision has one owner:
 
 - Tracking is given local mapping's state as data each frame (``MappingState``: idle? accepting keyframes — not
   while parked for a loop correction?) and decides about keyframes; the runner hands the keyframes it made to local
@@ -32,6 +33,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
+import signal
 import threading
 import time
 import traceback
@@ -41,6 +44,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from slamkit.errors import ConfigError
 from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.map.atlas import Atlas, MapChange
 from slamkit.map.entities import KeyFrame
@@ -53,7 +57,7 @@ from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
-from slamkit.runtime.source import END, FrameSource, check_bad_frames_policy, readable_frames
+from slamkit.runtime.source import END, FrameSource, check_bad_frames_policy, frame_count, is_live, readable_frames
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault, raised_by_ctrl_c
 from slamkit.sensors import FrameData
 
@@ -62,6 +66,11 @@ log = logging.getLogger("slamkit.runner")
 #: How long the end of a run waits for a worker thread to finish its queue / to stop after a failure, s.
 DRAIN_TIMEOUT_S = 600.0
 STOP_TIMEOUT_S = 60.0
+#: How long the end of a live run waits for the frame source to release its device (a blocked read gives up after
+#: the dataset's read_timeout_s), s.
+SOURCE_JOIN_TIMEOUT_S = 10.0
+#: ``RunLog.source_end`` of a live run Ctrl-C ended.
+CTRL_C = "Ctrl-C"
 
 
 class ThreadedRunner:
@@ -295,8 +304,12 @@ class ThreadedRunner:
         run_dir / config: where the run's files go and its resolved config, handed to the lifecycle hooks
         (``slamkit_run_started``; the built-in outputs plugin writes the run directory from its events).
         Raises PipelineThreadError when a pipeline thread failed; KeyboardInterrupt passes through after the
-        threads stopped. ``slamkit_run_finished`` fires in every case, after the pipeline threads stopped.
+        threads stopped. ``slamkit_run_finished`` fires in every case, after the pipeline threads stopped. A live
+        source (``dataset=camera``) is played in real time whatever ``realtime`` says; with ``preload`` it is a
+        ConfigError.
         """
+        if is_live(dataset):
+            self._go_live(dataset)
         self._run_events = RunEvents(self.events, "threaded", self.atlas)
         self._run_events.started(dataset, run_dir, config, threaded=True)
         ended_by: BaseException | None = None
@@ -310,18 +323,21 @@ class ThreadedRunner:
         return self.log
 
     def _run(self, dataset: Dataset, camera: Camera, on_frame: Callable[[TrackingOutcome], None] | None = None) -> None:
+        live = is_live(dataset)
         self._prepare(dataset, camera)
         readable = readable_frames(dataset, self.bad_frames, self._frame_skipped)
         frames: Iterable[FrameData] = self._preloaded(readable, len(dataset)) if self.preload else readable
         start = time.perf_counter()
-        self._source = FrameSource(frames, self.realtime, self._on_fault, self.speed)
+        # a live device paces itself: read continuously (a file played as a stream is paced at its timestamps)
+        paced = not live or bool(getattr(dataset, "paced", False))
+        self._source = FrameSource(frames, self.realtime, self._on_fault, self.speed, paced=paced)
         workers = self._make_workers()
-        bar = tqdm(total=len(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
+        bar = tqdm(total=frame_count(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
         for thread in (self._source, *workers):
             thread.start()
         finished = False
         try:
-            with gil_switch_interval(self.gil_switch_interval_s):
+            with gil_switch_interval(self.gil_switch_interval_s), self._ctrl_c_ends_stream(live):
                 self._track_frames(camera, bar, on_frame)
             if self._fault is None:
                 self._drain(workers)
@@ -331,12 +347,77 @@ class ThreadedRunner:
             if not finished or self._fault is not None:
                 self._stop_all(workers)
             self._source.stop()
+            if live:  # the source thread releases the device
+                self._source.join(timeout=SOURCE_JOIN_TIMEOUT_S)
+                self.log.source_end = self.log.source_end or getattr(dataset, "end_reason", None)
             self.log.frames_dropped = self._source.frames_dropped
+            self.log.dropped_frames = list(self._source.dropped)
             if self._source.first_timestamp_s is not None and self._source.last_timestamp_s is not None:
                 self.log.sequence_s = self._source.last_timestamp_s - self._source.first_timestamp_s
             self.log.wall_s = time.perf_counter() - start
+            if self.realtime:
+                self._log_playback()
         if self._fault is not None:
             raise self._fault.as_error()
+
+    def _go_live(self, dataset: Dataset) -> None:
+        """A live source is real time by nature: playback becomes real time (frames tracking has no time for are
+        dropped, never queued); it cannot be preloaded (it has no end)."""
+        if self.preload:
+            raise ConfigError(
+                f"runner.preload=true cannot preload the live source {getattr(dataset, 'name', '?')}: it has no end"
+            )
+        if not self.realtime:
+            log.info("live source %s: real-time playback", getattr(dataset, "name", "?"))
+            self.realtime = True
+        self.log.source_end = None
+
+    @contextlib.contextmanager
+    def _ctrl_c_ends_stream(self, live: bool) -> Iterator[None]:
+        """A live source has no end of its own: during its run the first Ctrl-C (SIGINT) ends the stream as an end of
+        stream would — the frame taken is tracked, local mapping and loop closing finish their queues, the outputs are
+        written, status "ok" with ``source_end`` "Ctrl-C"; a second Ctrl-C interrupts the run as Ctrl-C does on a
+        recorded sequence. Only in the main thread (where Python delivers signals)."""
+        if not live or threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        previous = signal.getsignal(signal.SIGINT)
+        if previous is None:  # a handler not installed from Python cannot be put back: Python's own then
+            previous = signal.default_int_handler
+
+        def on_sigint(signum: int, frame: object) -> None:
+            if self.log.source_end == CTRL_C or self._source is None:
+                raise KeyboardInterrupt
+            self.log.source_end = CTRL_C
+            log.warning("Ctrl-C: the live run ends, its outputs are written (Ctrl-C again to interrupt it at once)")
+            self._source.stop()
+
+        signal.signal(signal.SIGINT, on_sigint)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+    def _log_playback(self) -> None:
+        """The end-of-run account of real-time playback: frames tracked and dropped, tracking's median time per frame
+        against the stream's frame period, the real-time factor, how a live stream ended."""
+        tracked = len(self.log.tracking)
+        dropped = self.log.frames_dropped
+        share = 100.0 * dropped / max(tracked + dropped, 1)
+        factor = self.log.realtime_factor
+        track_ms = sorted((t1 - t0) * 1e3 for t0, t1 in self.log.tracking_wall_s)
+        period_ms = 1e3 * self.log.sequence_s / (tracked + dropped - 1) if tracked + dropped > 1 else math.nan
+        log.info(
+            "real-time playback: %d frames tracked, %d dropped (%.0f%%: tracking was busy when they came); tracking "
+            "%.1f ms per frame (median) for a frame every %.1f ms; real-time factor %s (stream time over wall time)%s",
+            tracked,
+            dropped,
+            share,
+            track_ms[len(track_ms) // 2] if track_ms else math.nan,
+            period_ms,
+            "n/a" if factor is None else f"{factor:.2f}",
+            "" if self.log.source_end is None else f"; the stream ended: {self.log.source_end}",
+        )
 
     def _make_workers(self) -> list[PipelineWorker[KeyFrame]]:
         """Local mapping's and loop closing's workers (not started yet)."""

@@ -3,10 +3,12 @@
 Parametrized over ``ComponentRegistry.discover().components("dataset")``, each built from its default config node
 (conf/dataset/NAME.yaml, or the plugin's node) with only the keys a reader cannot default: the sequence it reads
 (``root``, ../shared/datasets for the real-data readers, skipped with a reason when absent; small image and video
-files written with OpenCV into tmp_path for ``folder`` and ``video``) and a few frames (``max_frames``) to stay fast.
+files written with OpenCV into tmp_path for ``folder``, ``video`` and ``camera``, whose device is a video file played
+as a live stream) and a few frames (``max_frames``) to stay fast.
 
 What a reader promises (slamkit/interfaces.py Dataset, slamkit/sensors.py FrameData):
-- ``len(ds)`` is the number of frames iteration yields; indices run 0, 1, 2, ...; timestamps strictly increase.
+- ``len(ds)`` is the number of frames iteration yields (a live source, ``live = True``, has none: its ``len`` raises
+  TypeError); indices run 0, 1, 2, ...; timestamps strictly increase.
 - every image is (H, W) uint8 with (W, H) the camera's size; colour (H, W, 3) and depth (H, W) when present.
 - calibration is sane: K upper triangular with fx, fy > 0 and the principal point inside the image; a right
   camera comes with T_l_r (both or neither), SE(3) with a non-zero baseline; T_b_c, when given, is SE(3); fps > 0.
@@ -27,6 +29,7 @@ import yaml
 
 from slamkit.interfaces import Dataset
 from slamkit.plugins import ComponentRegistry
+from slamkit.runtime.source import frame_count, is_live
 from slamkit.sensors import FrameData
 
 REGISTRY = ComponentRegistry.discover()
@@ -80,13 +83,21 @@ def _folder(_shared: Callable[[], Path], tmp: Path) -> dict[str, Any]:
     return {"root": str(folder), "fps": 10.0, "camera": dict(CAMERA), "max_frames": N_FRAMES}
 
 
-def _video(_shared: Callable[[], Path], tmp: Path) -> dict[str, Any]:
+def _clip(tmp: Path) -> Path:
     path = tmp / "clip.avi"
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 15.0, (320, 240))
     for i in range(N_FRAMES + 2):
         writer.write(_texture(i))
     writer.release()
-    return {"root": str(path), "camera": dict(CAMERA), "max_frames": N_FRAMES}
+    return path
+
+
+def _video(_shared: Callable[[], Path], tmp: Path) -> dict[str, Any]:
+    return {"root": str(_clip(tmp)), "camera": dict(CAMERA), "max_frames": N_FRAMES}
+
+
+def _camera(_shared: Callable[[], Path], tmp: Path) -> dict[str, Any]:
+    return {"device": str(_clip(tmp)), "camera": dict(CAMERA), "max_frames": N_FRAMES}
 
 
 #: name -> the keys a reader needs to read something (the rest of its default node is kept).
@@ -97,6 +108,7 @@ INPUTS: dict[str, Callable[[Callable[[], Path], Path], dict[str, Any]]] = {
     "kitti": _kitti,
     "folder": _folder,
     "video": _video,
+    "camera": _camera,
 }
 
 
@@ -136,7 +148,12 @@ def test_is_a_dataset(built: tuple[Dataset, list[FrameData]]) -> None:
 
 def test_length_matches_iteration_and_indices(built: tuple[Dataset, list[FrameData]]) -> None:
     ds, frames = built
-    assert len(ds) == len(frames) == N_FRAMES
+    if is_live(ds):
+        assert frame_count(ds) is None and len(frames) == N_FRAMES
+        with pytest.raises(TypeError):
+            len(ds)
+    else:
+        assert len(ds) == len(frames) == N_FRAMES
     assert [f.index for f in frames] == list(range(len(frames)))
     assert [f.index for f in ds] == [f.index for f in frames]  # a second pass gives the same sequence
 

@@ -4,9 +4,6 @@ threads stops the run with that thread's name, keeps what was computed, and neve
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -14,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from ctrl_c import interrupt_after
 
 from slamkit.app import build_runner
 from slamkit.config import compose_config
@@ -85,7 +83,9 @@ def test_a_failure_in_any_thread_stops_the_run_with_its_name_and_keeps_the_traje
     else:
         component = getattr(runner, target)
         method = "detect" if target == "loop_closer" else "step"  # loop closing's thread starts with detection
-        setattr(component, method, _fail_on_call(40 if thread == "tracking" else 8, message)(getattr(component, method)))
+        setattr(
+            component, method, _fail_on_call(40 if thread == "tracking" else 8, message)(getattr(component, method))
+        )
         dataset_to_play = dataset
         dataset_to_play_len = len(dataset)
 
@@ -137,7 +137,6 @@ def test_slamkit_run_writes_a_failed_run_and_exits_non_zero(tmp_path: Path, monk
 @pytest.mark.skipif(sys.platform == "win32", reason="SIGINT delivery to a child process is POSIX-only here")
 def test_ctrl_c_stops_a_threaded_run_with_exit_code_130(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [
         sys.executable,
         "-m",
@@ -147,31 +146,9 @@ def test_ctrl_c_stops_a_threaded_run_with_exit_code_130(tmp_path: Path) -> None:
         "runner.progress=false",
         f"hydra.run.dir={out}",
     ]
-    # Ctrl-C's default action in the child even when this test runs as a background job (a non-interactive
-    # shell starts those with SIGINT ignored, the child would inherit that and Python would not raise
-    # KeyboardInterrupt at all)
-    proc = subprocess.Popen(
-        cmd,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
-    assert proc.stdout is not None
-    lines = []
-    for line in proc.stdout:  # wait until tracking runs on an initialised map
-        lines.append(line)
-        if "map initialised" in line:
-            break
-    time.sleep(3.0)
-    proc.send_signal(signal.SIGINT)
-    try:
-        rest, _ = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        pytest.fail("the run did not stop within 120 s of Ctrl-C:\n" + "".join(lines))
-    assert proc.returncode == 130, "".join(lines) + rest
+    # Ctrl-C once tracking runs on an initialised map
+    returncode, output = interrupt_after(cmd, "map initialised", delay_s=3.0)
+    assert returncode == 130, output
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "interrupted"
     assert 0 < metrics["frames"] < 840

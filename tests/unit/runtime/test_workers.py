@@ -117,6 +117,35 @@ def test_realtime_source_drops_frames_a_busy_consumer_misses() -> None:
     assert 50 <= src.frames_dropped <= 95
 
 
+def test_live_source_is_read_continuously_newest_frame_wins_and_is_closed_at_the_end() -> None:
+    """A live device paces itself (paced=False): frames go into the mailbox as they are read, a consumer slower
+    than the device gets the newest, the dropped ones are listed with their timestamps, and the source (a
+    generator: a capture) is closed by the source thread when it stops."""
+    closed = threading.Event()
+
+    def device():  # type: ignore[no-untyped-def]
+        try:
+            for frame in _frames(1000, 30.0):
+                time.sleep(0.002)  # a 500 Hz device, stamped at 30 Hz: paced, this would take 33 s
+                yield frame
+        finally:
+            closed.set()
+
+    src = FrameSource(device(), realtime=True, on_fault=lambda f: None, paced=False)
+    src.start()
+    got = []
+    while len(got) < 10:
+        item = src.get(timeout_s=5)
+        assert isinstance(item, FrameData)
+        got.append(item.index)
+        time.sleep(0.02)
+    src.stop()
+    assert closed.wait(timeout=5) and src.frames_dropped > 0
+    assert got == sorted(got) and got[-1] > 40  # far beyond the 10th frame: never stale ones
+    assert len(src.dropped) == src.frames_dropped
+    assert all(t == pytest.approx(i / 30.0) for i, t in src.dropped) and not set(got) & {i for i, _ in src.dropped}
+
+
 def test_a_failing_source_reports_its_fault() -> None:
     def frames():  # type: ignore[no-untyped-def]
         yield from _frames(3, 30.0)
