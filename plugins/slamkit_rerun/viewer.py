@@ -128,9 +128,10 @@ class RerunViewer:
                 rr.Pinhole(image_from_camera=started.K, resolution=list(started.image_size)),
                 static=True,
             )
+        frames = "a live stream of" if started.n_frames is None else started.n_frames
         rec.log(
             "events",
-            rr.TextLog(f"run started: {started.dataset}, {started.n_frames} frames, {started.runner} runner"),
+            rr.TextLog(f"run started: {started.dataset}, {frames} frames, {started.runner} runner"),
             static=True,
         )
 
