@@ -126,7 +126,7 @@ def search_local_points(frame: Frame, candidates: I64, store: MapStore, cfg: Tra
     # stereo/RGB-D (ORB-SLAM2 SearchByProjection(F, vpMapPoints)): a candidate with a right coordinate must agree
     # with the point's predicted one (mTrackProjXR = u - bf / z) within the search radius at the predicted level
     gate = None
-    if feats.bf > 0.0:
+    if feats.bf > 0.0 and cfg.right_coordinate_gate:
         gate = right_u_gate(feats, predicted_u_right(test.uv_px[v], test.z_m[v], feats.bf), radius)
     m = match_projected(
         feats,

@@ -88,7 +88,7 @@ def track_with_motion_model(
         elif -z_cur > baseline:
             lo = np.zeros_like(last_level)
             hi = last_level
-    u_right = predicted_u_right(uv[q], z[q], feats.bf) if feats.bf > 0.0 else None
+    u_right = predicted_u_right(uv[q], z[q], feats.bf) if feats.bf > 0.0 and cfg.right_coordinate_gate else None
     for th in (radius, 2.0 * radius):
         frame.point_ids[:] = -1
         # stereo/RGB-D (ORB-SLAM2 SearchByProjection(CurrentFrame, LastFrame)): a candidate with a right coordinate
