@@ -82,6 +82,7 @@ class TrackingConfig:
     local_map_search_radius_px: float = 1.0
     local_map_search_radius_relocalized_px: float = 5.0
     local_map_search_radius_rgbd_px: float = 3.0
+    right_coordinate_gate: bool = False
     motion_model_search_radius_stereo_px: float = 7.0
     local_map_covisible_keyframes: int = 80
     local_map_neighbors_per_keyframe: int = 10
@@ -153,6 +154,7 @@ class LocalMappingConfig:
     ba_update_normal_and_depth: bool = False
     ba_point_bad_max_observations: int = 1
     new_map_points_culled: bool = False
+    fuse_right_coordinate_gate: bool = False
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

@@ -9,7 +9,12 @@ from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.frame import ImageBounds
 from slamkit.pipeline.map_points import refresh_points
-from slamkit.pipeline.projection import frustum_test, match_projected
+from slamkit.pipeline.projection import (
+    frustum_test,
+    fuse_reprojection_gate,
+    match_projected,
+    predicted_u_right,
+)
 
 
 def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
@@ -31,6 +36,7 @@ def fuse_points(
     *,
     max_distance: int,
     chi2_gate: float,
+    chi2_gate_stereo: float | None = None,
 ) -> int:
     """Project ``point_ids`` into ``kf`` and fuse each match (radius_px scaled by the predicted level).
 
@@ -38,6 +44,11 @@ def fuse_points(
     mapping, ORB-SLAM Fuse), or always the incoming one with ``incoming_wins`` (loop fusion, ORB-SLAM
     SearchAndFuse). max_distance: Hamming threshold, bits (pipeline.matcher.th_low); chi2_gate: reprojection
     gate over the level's sigma^2 (pipeline.chi2.fuse_mono). Returns the number of fused matches.
+
+    chi2_gate_stereo: with a stereo/RGB-D keyframe (bf > 0), ORB-SLAM2 Fuse(pKF, vpMapPoints)'s gate on every
+    candidate in the window before the descriptor comparison: 3 dof with the right coordinate (u_R = u - bf / z)
+    against this threshold (pipeline.chi2.stereo_rounded, 7.8), 2 dof against ``chi2_gate`` for a candidate without
+    one. None, or a monocular keyframe: the 2-dof gate on the best match only (slamkit's monocular fusion).
     """
     kf_id = kf.id
     points = [p for p in store.get_points(point_ids) if kf_id not in p.observations]
@@ -63,6 +74,12 @@ def fuse_points(
         return 0
     level = test.predicted_level[q]
     radius = radius_px * np.power(feats.scale_factor, level)
+    in_window_gate = chi2_gate_stereo is not None and feats.bf > 0.0
+    right_gate = None
+    if in_window_gate:
+        assert chi2_gate_stereo is not None
+        u_right = predicted_u_right(test.uv_px[q], test.z_m[q], feats.bf)
+        right_gate = fuse_reprojection_gate(feats, u_right, chi2_gate, chi2_gate_stereo)
     m = match_projected(
         feats,
         np.zeros(len(feats), bool),
@@ -76,11 +93,15 @@ def fuse_points(
         None,
         None,
         None,
+        right_gate=right_gate,
     )
-    sigma2 = feats.level_sigma2()
-    uv_pred = test.uv_px[q[m.query]]
-    err2 = np.sum((uv_pred - feats.uv_undist_px[m.feature]) ** 2, axis=1)
-    gated = err2 <= chi2_gate * sigma2[m.feature]
+    if in_window_gate:
+        gated = np.ones(len(m), bool)  # every candidate was gated in the window
+    else:
+        sigma2 = feats.level_sigma2()
+        uv_pred = test.uv_px[q[m.query]]
+        err2 = np.sum((uv_pred - feats.uv_undist_px[m.feature]) ** 2, axis=1)
+        gated = err2 <= chi2_gate * sigma2[m.feature]
     fused = 0
     survivors: list[int] = []
     for row, feat in zip(m.query[gated].tolist(), m.feature[gated].tolist(), strict=True):

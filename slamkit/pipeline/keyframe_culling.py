@@ -74,9 +74,18 @@ class ObservationTable:
 
     def redundancy(self, kf_id: int, min_observers: int) -> tuple[int, int]:
         """(points of ``kf_id`` still in the map, those seen by >= min_observers other keyframes at the same or
-        a finer scale, among points with more than min_observers observations) (ORB-SLAM thObs = 3)."""
+        a finer scale, among points with more than min_observers observations) (ORB-SLAM thObs = 3).
+
+        A stereo/RGB-D keyframe (bf > 0) counts only its points observed with a depth up to its close threshold
+        (ORB-SLAM2 KeyFrameCulling: ``if(!mbMonocular)`` skips a point whose keypoint depth is > mThDepth or < 0).
+        ORB-SLAM2's first test ``Observations() > thObs`` counts a stereo observation twice; it never decides here:
+        a point with nObs >= thObs other observers has more than thObs observers in either count."""
         kf = self.store.get_keyframe(kf_id)
-        feats = np.flatnonzero(kf.point_ids >= 0)
+        has_point = kf.point_ids >= 0
+        if kf.features.bf > 0.0:
+            depth = kf.features.depth_m
+            has_point &= np.isfinite(depth) & (depth >= 0.0) & (depth <= kf.features.th_depth_m)
+        feats = np.flatnonzero(has_point)
         pids = kf.point_ids[feats]
         if pids.size == 0 or self.point_ids.size == 0:
             return 0, 0

@@ -338,6 +338,7 @@ class LocalMapper:
                         cfg.fuse_search_radius_px,
                         max_distance=cfg.matcher.th_low,
                         chi2_gate=cfg.chi2.fuse_mono,
+                        chi2_gate_stereo=cfg.chi2.stereo_rounded if cfg.fuse_right_coordinate_gate else None,
                     )
         with store.write():
             alive = [t for t in targets if store.has_keyframe(t)]
@@ -350,6 +351,7 @@ class LocalMapper:
                     cfg.fuse_search_radius_px,
                     max_distance=cfg.matcher.th_low,
                     chi2_gate=cfg.chi2.fuse_mono,
+                    chi2_gate_stereo=cfg.chi2.stereo_rounded if cfg.fuse_right_coordinate_gate else None,
                 )
         with store.write():
             refresh_points(store, kf.point_ids[kf.point_ids >= 0].tolist())

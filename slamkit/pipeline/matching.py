@@ -132,6 +132,32 @@ class FeatureGrid:
         )
 
 
+#: ``search_windows`` gates: none (every sensor's default), the right-coordinate check of ORB-SLAM2's
+#: SearchByProjection (|u_R,pred - u_R| <= tolerance for a candidate with a right coordinate), the reprojection
+#: chi-square of ORB-SLAM2's Fuse (2 dof, or 3 with the right coordinate, over the candidate level's sigma^2).
+GATE_NONE, GATE_RIGHT_U, GATE_REPROJECTION_CHI2 = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class RightGate:
+    """A per-candidate gate of ``search_windows`` for stereo/RGB-D features (ORB-SLAM2 ORBmatcher), applied inside
+    the window before the descriptor comparison, so a rejected candidate is neither best nor second best.
+
+    kind: GATE_RIGHT_U or GATE_REPROJECTION_CHI2. query_u_right_px: (Q,) px, each query's predicted right
+    coordinate u - bf / z. tolerance_px: (Q,) px (GATE_RIGHT_U). train_u_right_px: (N,) px, the features' right
+    coordinates (NaN: none, monocular observation). train_inv_sigma2: (N,) 1 / sigma^2 of each feature's level
+    (GATE_REPROJECTION_CHI2). chi2_mono / chi2_stereo: the gate's thresholds for 2 / 3 dof
+    (GATE_REPROJECTION_CHI2)."""
+
+    kind: int
+    query_u_right_px: F64
+    train_u_right_px: F64
+    tolerance_px: F64 | None = None
+    train_inv_sigma2: F64 | None = None
+    chi2_mono: float = 0.0
+    chi2_stereo: float = 0.0
+
+
 @numba.njit(cache=True, nogil=True)
 def _search_windows(
     q_uv: F64,
@@ -148,6 +174,13 @@ def _search_windows(
     cell_px: float,
     n_cols: int,
     n_rows: int,
+    gate: int,
+    q_ur: F64,
+    q_ur_tol: F64,
+    t_ur: F64,
+    t_inv_sigma2: F64,
+    chi2_mono: float,
+    chi2_stereo: float,
 ) -> tuple[I64, NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:  # pragma: no cover
     nq = q_uv.shape[0]
     qd = q_desc.view(np.uint64)
@@ -177,6 +210,18 @@ def _search_windows(
                     dv = t_uv[j, 1] - v
                     if du * du + dv * dv > r * r:
                         continue
+                    if gate == GATE_RIGHT_U:
+                        # a candidate with a right coordinate must agree with the predicted one within the tolerance
+                        if t_ur[j] == t_ur[j] and abs(q_ur[i] - t_ur[j]) > q_ur_tol[i]:
+                            continue
+                    elif gate == GATE_REPROJECTION_CHI2:
+                        # reprojection error over the candidate's level sigma^2: 3 dof where it has a right coordinate
+                        if t_ur[j] == t_ur[j]:
+                            dr = q_ur[i] - t_ur[j]
+                            if (du * du + dv * dv + dr * dr) * t_inv_sigma2[j] > chi2_stereo:
+                                continue
+                        elif (du * du + dv * dv) * t_inv_sigma2[j] > chi2_mono:
+                            continue
                     d = row_distance(qd, i, td, j)
                     if d < best[i]:
                         second[i] = best[i]
@@ -227,17 +272,37 @@ def search_windows(
     radius_px: F64 | float,
     min_level: NDArray[np.integer] | int = 0,
     max_level: NDArray[np.integer] | int = 1 << 20,
+    right_gate: RightGate | None = None,
 ) -> WindowMatches:
     """Best descriptor match for each query within a circular window of the grid's features.
 
     query_uv_px: (Q, 2) predicted positions; radius_px: scalar or (Q,); min/max_level: scalar or (Q,)
-    inclusive range of pyramid levels allowed for the candidates; query_desc: (Q, D).
+    inclusive range of pyramid levels allowed for the candidates; query_desc: (Q, D). right_gate: an optional
+    stereo/RGB-D gate on each candidate (its train arrays indexed like the grid's features); None: no gate.
     """
     q = np.ascontiguousarray(query_uv_px, np.float64).reshape(-1, 2)
     nq = q.shape[0]
     radius = np.broadcast_to(np.asarray(radius_px, np.float64), (nq,)).copy()
     lo = np.broadcast_to(np.asarray(min_level, np.int32), (nq,)).copy()
     hi = np.broadcast_to(np.asarray(max_level, np.int32), (nq,)).copy()
+    empty = np.zeros(0, np.float64)
+    gate, q_ur, q_tol, t_ur, t_inv_s2 = GATE_NONE, empty, empty, empty, empty
+    chi2_mono = chi2_stereo = 0.0
+    if right_gate is not None:
+        gate = right_gate.kind
+        q_ur = np.ascontiguousarray(right_gate.query_u_right_px, np.float64).reshape(nq)
+        t_ur = np.ascontiguousarray(right_gate.train_u_right_px, np.float64).reshape(grid.uv_px.shape[0])
+        if gate == GATE_RIGHT_U:
+            if right_gate.tolerance_px is None:
+                raise ValueError("search_windows: the right-coordinate gate needs tolerance_px")
+            q_tol = np.broadcast_to(np.asarray(right_gate.tolerance_px, np.float64), (nq,)).copy()
+        elif gate == GATE_REPROJECTION_CHI2:
+            if right_gate.train_inv_sigma2 is None:
+                raise ValueError("search_windows: the reprojection gate needs train_inv_sigma2")
+            t_inv_s2 = np.ascontiguousarray(right_gate.train_inv_sigma2, np.float64).reshape(t_ur.shape[0])
+            chi2_mono, chi2_stereo = float(right_gate.chi2_mono), float(right_gate.chi2_stereo)
+        else:
+            raise ValueError(f"search_windows: unknown gate {gate}")
     idx, best, second, best_level, second_level = _search_windows(
         q,
         radius,
@@ -253,6 +318,13 @@ def search_windows(
         grid.cell_px,
         grid.n_cols,
         grid.n_rows,
+        gate,
+        q_ur,
+        q_tol,
+        t_ur,
+        t_inv_s2,
+        chi2_mono,
+        chi2_stereo,
     )
     return WindowMatches(idx, best, second, best_level, second_level)
 

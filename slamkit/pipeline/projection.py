@@ -6,18 +6,22 @@ undistorted pinhole image for a pinhole camera, the raw image for a Kannala-Bran
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
-from slamkit.features import Features
+from slamkit.features import Features, Observations
 from slamkit.interfaces import Camera
 from slamkit.pipeline.frame import ImageBounds
 from slamkit.pipeline.map_points import predict_level
 from slamkit.pipeline.matching import (
+    GATE_REPROJECTION_CHI2,
+    GATE_RIGHT_U,
     FeatureGrid,
+    RightGate,
     WindowMatches,
     resolve_one_to_one,
     rotation_consistent,
@@ -89,6 +93,7 @@ def match_projected(
     rotation_bins: int | None,
     cell_px: float = 10.0,
     ratio_same_level_only: bool = False,
+    right_gate: RightGate | None = None,
 ) -> ProjectionMatches:
     """Match projected points (uv_px (Q, 2), descriptors (Q, D)) to the frame's features not ``taken``.
 
@@ -96,13 +101,22 @@ def match_projected(
     only where best and second-best lie on the same pyramid level, ORB-SLAM's SearchByProjection of the local map); when the queries carry
     keypoint angles (matching frame to frame), ORB-SLAM's rotation-consistency check with ``rotation_bins``
     (pipeline.matcher.rotation_bins; None when the queries carry no angles); each feature once.
+    right_gate: the stereo/RGB-D candidate gate (:func:`right_u_gate`, :func:`fuse_reprojection_gate`) with its train
+    arrays over all the frame's features; None (monocular): no gate.
     """
     if uv_px.shape[0] == 0 or len(features) == 0:
         empty = np.zeros(0, np.int64)
         return ProjectionMatches(empty, empty, np.zeros(0, np.int32))
     grid, free = _free_grid(features, taken, bounds, cell_px)
+    if right_gate is not None:
+        inv_s2 = right_gate.train_inv_sigma2
+        right_gate = dataclasses.replace(
+            right_gate,
+            train_u_right_px=right_gate.train_u_right_px[free],
+            train_inv_sigma2=None if inv_s2 is None else inv_s2[free],
+        )
     m: WindowMatches = search_windows(
-        grid, features.descriptors[free], uv_px, descriptors, radius_px, min_level, max_level
+        grid, features.descriptors[free], uv_px, descriptors, radius_px, min_level, max_level, right_gate
     )
     ok = m.accepted(max_distance, ratio, ratio_same_level_only)
     q = np.flatnonzero(ok)
@@ -118,18 +132,48 @@ def match_projected(
     return ProjectionMatches(q.astype(np.int64), f.astype(np.int64), d)
 
 
+def predicted_u_right(uv_px: F64, z_m: F64, bf: float) -> F64:
+    """(Q,) px: the right-image u of points projecting at uv_px (Q, 2) with depth z_m (Q,) m in a rectified pair
+    (or RGB-D's virtual one) of baseline x fx ``bf`` (m px): u - bf / z (ORB-SLAM2 mTrackProjXR, Fuse's ur)."""
+    return uv_px[:, 0] - bf / z_m
+
+
+def right_u_gate(features: Observations, query_u_right_px: F64, tolerance_px: F64) -> RightGate:
+    """ORB-SLAM2 SearchByProjection's stereo check: a candidate with a right coordinate (``features.u_right_px``
+    finite) is skipped when it differs from the query's predicted one by more than the query's tolerance (the
+    search radius at its level)."""
+    return RightGate(GATE_RIGHT_U, query_u_right_px, features.u_right_px.astype(np.float64), tolerance_px=tolerance_px)
+
+
+def fuse_reprojection_gate(
+    features: Observations, query_u_right_px: F64, chi2_mono: float, chi2_stereo: float
+) -> RightGate:
+    """ORB-SLAM2 Fuse(pKF, vpMapPoints)'s check of each candidate: (du^2 + dv^2 [+ du_R^2]) / sigma^2 of its level
+    at most ``chi2_stereo`` (3 dof, a candidate with a right coordinate) or ``chi2_mono`` (2 dof)."""
+    return RightGate(
+        GATE_REPROJECTION_CHI2,
+        query_u_right_px,
+        features.u_right_px.astype(np.float64),
+        train_inv_sigma2=1.0 / features.level_sigma2(),
+        chi2_mono=chi2_mono,
+        chi2_stereo=chi2_stereo,
+    )
+
+
 @dataclass(frozen=True)
 class FrustumTest:
     """The local-map visibility test of ORB-SLAM V-D for a set of map points seen from a camera pose.
 
     visible: (Q,) bool, passes the five filters' geometric part (in image, depth > 0, distance in the
-    scale-invariance range, viewing angle); uv_px, predicted_level, view_cos for each point.
+    scale-invariance range, viewing angle); uv_px, predicted_level, view_cos and z_m (depth in the camera, m) for
+    each point.
     """
 
     visible: NDArray[np.bool_]
     uv_px: F64
     predicted_level: I64
     view_cos: F64
+    z_m: F64
 
 
 def frustum_test(
@@ -147,7 +191,7 @@ def frustum_test(
     """ORB-SLAM Frame::isInFrustum for many points: (1) projects inside the image with positive depth,
     (3) distance within [0.8 d_min, 1.2 d_max], (2) viewing angle v.n >= min_view_cos (cos 60 deg),
     (4) predicted pyramid level from the distance. Filter (5), the descriptor match, is ``match_projected``."""
-    uv, _, valid = project_points(T_c_w, xyz_w, camera)
+    uv, z, valid = project_points(T_c_w, xyz_w, camera)
     center = -T_c_w[:3, :3].T @ T_c_w[:3, 3]
     ray = xyz_w - center
     dist = np.linalg.norm(ray, axis=1)
@@ -158,7 +202,7 @@ def frustum_test(
     ok &= (dist >= 0.8 * d_min_m) & (dist <= 1.2 * d_max_m)
     ok &= view_cos >= min_view_cos
     level = predict_level(d_max_m, dist, scale_factor, n_levels)
-    return FrustumTest(ok, uv, level, view_cos)
+    return FrustumTest(ok, uv, level, view_cos, z)
 
 
 def radius_by_viewing_cos(view_cos: F64) -> F64:

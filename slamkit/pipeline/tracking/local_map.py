@@ -12,7 +12,14 @@ from numpy.typing import NDArray
 from slamkit.interfaces import MapStore
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame
-from slamkit.pipeline.projection import frustum_test, match_projected, project_points, radius_by_viewing_cos
+from slamkit.pipeline.projection import (
+    frustum_test,
+    match_projected,
+    predicted_u_right,
+    project_points,
+    radius_by_viewing_cos,
+    right_u_gate,
+)
 from slamkit.pipeline.tracking.frame_pose import PoseRefiner
 
 I64 = NDArray[np.int64]
@@ -116,6 +123,11 @@ def search_local_points(frame: Frame, candidates: I64, store: MapStore, cfg: Tra
         th = cfg.local_map_search_radius_px
     level = test.predicted_level[v]
     radius = th * radius_by_viewing_cos(test.view_cos[v]) * np.power(feats.scale_factor, level)
+    # stereo/RGB-D (ORB-SLAM2 SearchByProjection(F, vpMapPoints)): a candidate with a right coordinate must agree
+    # with the point's predicted one (mTrackProjXR = u - bf / z) within the search radius at the predicted level
+    gate = None
+    if feats.bf > 0.0 and cfg.right_coordinate_gate:
+        gate = right_u_gate(feats, predicted_u_right(test.uv_px[v], test.z_m[v], feats.bf), radius)
     m = match_projected(
         feats,
         frame.point_ids >= 0,
@@ -130,5 +142,6 @@ def search_local_points(frame: Frame, candidates: I64, store: MapStore, cfg: Tra
         None,
         None,
         ratio_same_level_only=True,  # ORB-SLAM2/3 SearchByProjection: ratio only when best and second share a level
+        right_gate=gate,
     )
     frame.point_ids[m.feature] = candidates[s[v[m.query]]]

@@ -12,7 +12,7 @@ from slamkit.geometry.se3 import SE3, invert_T
 from slamkit.interfaces import MapStore
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame
-from slamkit.pipeline.projection import match_projected, project_points
+from slamkit.pipeline.projection import match_projected, predicted_u_right, project_points, right_u_gate
 from slamkit.pipeline.tracking.frame_pose import PoseRefiner
 
 F64 = NDArray[np.float64]
@@ -67,7 +67,7 @@ def track_with_motion_model(
     pids = last.point_ids[valid]
     xyz = store.point_rows(pids, "xyz_w")
     desc = store.point_rows(pids, "descriptor")
-    uv, _, inside = project_points(T_pred, xyz, frame.camera)
+    uv, z, inside = project_points(T_pred, xyz, frame.camera)
     inside &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
     q = np.flatnonzero(inside)
     last_level = last.features.level[valid[q]].astype(np.int64)
@@ -88,8 +88,12 @@ def track_with_motion_model(
         elif -z_cur > baseline:
             lo = np.zeros_like(last_level)
             hi = last_level
+    u_right = predicted_u_right(uv[q], z[q], feats.bf) if feats.bf > 0.0 and cfg.right_coordinate_gate else None
     for th in (radius, 2.0 * radius):
         frame.point_ids[:] = -1
+        # stereo/RGB-D (ORB-SLAM2 SearchByProjection(CurrentFrame, LastFrame)): a candidate with a right coordinate
+        # must agree with the predicted u - bf / z within the search radius
+        gate = None if u_right is None else right_u_gate(feats, u_right, th * scale)
         m = match_projected(
             frame.features,
             np.zeros(len(frame.features), bool),
@@ -103,6 +107,7 @@ def track_with_motion_model(
             None,
             last.features.angle_deg[valid[q]].astype(np.float64),
             cfg.matcher.rotation_bins,
+            right_gate=gate,
         )
         frame.point_ids[m.feature] = pids[q[m.query]]
         if len(m) >= cfg.min_motion_model_matches:

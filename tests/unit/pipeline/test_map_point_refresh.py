@@ -3,6 +3,8 @@ culling count agree exactly with straightforward per-point implementations of OR
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -24,8 +26,9 @@ def _record(features: Features) -> Observations:
 N_FEATS = 60
 
 
-def random_map(seed: int, n_kf: int = 8, n_points: int = 150) -> InMemoryMapStore:
-    """Keyframes at random poses with random descriptors/levels; points observed by random keyframe subsets."""
+def random_map(seed: int, n_kf: int = 8, n_points: int = 150, rgbd: bool = False) -> InMemoryMapStore:
+    """Keyframes at random poses with random descriptors/levels; points observed by random keyframe subsets.
+    rgbd: RGB-D records (bf 40 m px, close below 3 m; depths 0.5-6 m, a fifth of the keypoints without one)."""
     rng = np.random.default_rng(seed)
     store = InMemoryMapStore()
     for _ in range(n_kf):
@@ -49,6 +52,13 @@ def random_map(seed: int, n_kf: int = 8, n_points: int = 150) -> InMemoryMapStor
                 8,
             )
         )
+        if rgbd:
+            depth = rng.uniform(0.5, 6.0, N_FEATS).astype(np.float32)
+            depth[rng.random(N_FEATS) < 0.2] = np.nan
+            u_right = (uv[:, 0] - 40.0 / depth).astype(np.float32)
+            feats = dataclasses.replace(
+                feats, depth_m=depth, u_right_px=u_right, bf=40.0, th_depth_m=3.0, sensor="rgbd"
+            )
         kf_id = store.new_keyframe_id()
         store.add_keyframe(KeyFrame(kf_id, kf_id, float(kf_id), T, CAMERA, feats, np.full(N_FEATS, -1, np.int64)))
     for _ in range(n_points):
@@ -137,10 +147,12 @@ def test_observers_missing_from_the_mapping_are_ignored() -> None:
 
 
 def naive_redundancy(store: InMemoryMapStore, kf_id: int, m: int) -> tuple[int, int]:
-    """ORB-SLAM KeyFrameCulling's count, observation by observation."""
+    """ORB-SLAM KeyFrameCulling's count, observation by observation (stereo/RGB-D: close points only)."""
     k = store.get_keyframe(kf_id)
     n_points = redundant = 0
     for feat in np.flatnonzero(k.point_ids >= 0):
+        if k.features.bf > 0.0 and not (0.0 <= k.features.depth_m[feat] <= k.features.th_depth_m):
+            continue  # ORB-SLAM2: if(!mbMonocular) skip mvDepth[i] > mThDepth || mvDepth[i] < 0 (NaN: -1)
         point = store.get_point(int(k.point_ids[feat]))
         n_points += 1
         if len(point.observations) <= m:
@@ -155,9 +167,9 @@ def naive_redundancy(store: InMemoryMapStore, kf_id: int, m: int) -> tuple[int, 
     return n_points, redundant
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_culling_count_matches_the_per_observation_loop_while_culling(seed: int) -> None:
-    store = random_map(seed, n_kf=10, n_points=300)
+@pytest.mark.parametrize("seed,rgbd", [(0, False), (1, False), (2, True)])
+def test_culling_count_matches_the_per_observation_loop_while_culling(seed: int, rgbd: bool) -> None:
+    store = random_map(seed, n_kf=10, n_points=300, rgbd=rgbd)
     candidates = store.keyframe_ids()[1:]
     table = ObservationTable(store, candidates)
     redundant_seen = 0
