@@ -37,6 +37,8 @@ from slamkit.runtime.threaded import ThreadedRunner
 log = logging.getLogger("slamkit")
 
 RUNNER_KINDS = ("sequential", "threaded")
+#: ``mode``: mapping (ORB-SLAM's default) or localization only in a loaded map (ORB-SLAM ActivateLocalizationMode)
+MODES = ("slam", "localization")
 Runner = SequentialRunner | ThreadedRunner
 
 
@@ -119,6 +121,7 @@ def _output_dir() -> Path:
 def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> tuple[Runner, Dataset]:
     """Build the dataset, the components and the runner a composed config describes (no Hydra runtime
     needed: tests and notebooks call this with ``slamkit.config.compose_config(...)``)."""
+    localization = run_mode(cfg) == "localization"  # checked before anything is built
     registry = registry or ComponentRegistry.discover()
     for failure in registry.failures:
         log.warning("%s", failure)
@@ -127,6 +130,10 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     pipeline = PipelineConfig.from_node(OmegaConf.to_container(cfg.pipeline, resolve=True))  # type: ignore[arg-type]
     rng = np.random.default_rng(int(cfg.seed))
     place = components.get("place")  # None: no relocalization, no loop closing
+    if localization and place is None:
+        raise ConfigError(
+            "mode=localization starts by relocalizing in the loaded map: it needs a place recognizer (place=dbow)"
+        )
     map_node = cfg.get("map")
     if map_node is None or "_target_" not in map_node:
         raise ConfigError("map: missing; expected a map store (map=memory)")
@@ -136,6 +143,10 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     atlas = mapfile_run.run_atlas(
         map_node, lambda ids: registry.instantiate("map", store_node, ids=ids), place, [dataset.camera]
     )
+    if localization and atlas.active.n_keyframes() == 0:
+        raise ConfigError(
+            f"mode=localization: the active map of map.load={map_node.get('load')} has no keyframe to localize against"
+        )
     init_extractor = None
     factor = pipeline.tracking.init_feature_factor
     if factor != 1 and "n_features" in cfg.features:
@@ -160,6 +171,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         place,
         pose_optimizer=_pose_optimizer(pipeline.tracking.pose_optimization, components["optimizer"]),
         fps=float(dataset.fps),
+        localization_only=localization,
     )
     kind = str(cfg.runner.get("kind", "sequential"))
     if kind not in RUNNER_KINDS:
@@ -168,9 +180,11 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     if kind == "threaded":
         background_optimizer = _background_optimizer(cfg, components["optimizer"])
     pins = KeyFramePins()  # loop closing pins the keyframes it uses, local mapping's culling leaves them
-    mapper = LocalMapper(pipeline.local_mapping, atlas, background_optimizer, place, pins)
+    # localization only: no local mapping and no loop closing (ORB-SLAM ActivateLocalizationMode stops local mapping,
+    # and loop closing gets its keyframes from it)
+    mapper = None if localization else LocalMapper(pipeline.local_mapping, atlas, background_optimizer, place, pins)
     loop_closer = None
-    if place is not None:
+    if place is not None and not localization:
         loop_closer = LoopCloser(pipeline.loop_closing, atlas, background_optimizer, place, rng, pins)
     progress = bool(cfg.runner.get("progress", True))
     bad_frames = str(cfg.runner.get("bad_frames", "skip"))  # checked by the runner
@@ -196,6 +210,28 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             tracker, mapper, atlas, progress=progress, loop_closer=loop_closer, events=events, bad_frames=bad_frames
         )
     return runner, dataset
+
+
+def run_mode(cfg: DictConfig) -> str:
+    """``mode`` of a run config, checked: "slam" (default) or "localization", which needs ``map.load`` and refuses
+    ``map.save`` (ConfigError: a one-line error, exit 2 from the CLI).
+
+    Localization only (ORB-SLAM2/3 System::ActivateLocalizationMode) tracks in a map and changes none of it. ORB-SLAM3
+    would still write its Atlas at shutdown when asked to (System::Shutdown saves whatever the mode); slamkit refuses
+    ``map.save`` with it instead: the map has nothing new to save, and ``map.save`` naming the loaded file would
+    rewrite the file this mode promises to leave untouched."""
+    mode = cfg.get("mode", "slam")
+    if mode not in MODES:
+        raise ConfigError(f"mode = {mode!r}: expected one of {', '.join(MODES)}")
+    if mode == "localization":
+        map_node = cfg.get("map") or {}
+        if map_node.get("load") in (None, "", False):
+            raise ConfigError("mode=localization needs a map to localize in: map.load=FILE (a map saved with map.save)")
+        if map_node.get("save") not in (None, "", False):
+            raise ConfigError(
+                "mode=localization leaves the map as it was: map.save is not allowed with it (save from a mode=slam run)"
+            )
+    return str(mode)
 
 
 def _int_setting(node: DictConfig, key: str, low: int, high: int, default: int) -> int:

@@ -71,6 +71,8 @@ class RunAccount(Protocol):
     @property
     def resets(self) -> int: ...
     @property
+    def maps_merged(self) -> int: ...
+    @property
     def wall_s(self) -> float: ...
     @property
     def runner(self) -> str: ...
@@ -164,6 +166,10 @@ def run_metrics(
         "frames_lost": int(sum(s == "lost" for s in states)),
         "initialized_at_frame": init_frame,
         "resets": run.resets,
+        # keyframes local mapping inserted during the run (0 in localization mode), culled ones included; a loaded
+        # map's keyframes are not added by the run
+        "keyframes_added": len(run.mapping),
+        "maps_merged": run.maps_merged,  # ORB-SLAM3 map merging: counted from the run's MapsMerged events
         "keyframes": final_map.n_keyframes,
         "map_points": final_map.n_points,
         "tracking_ms_median": _percentile(track_ms, 50),

@@ -17,6 +17,7 @@ from slamkit.events import (
     KeyFrameInserted,
     LoopChecked,
     MapCreated,
+    MapsMerged,
     MapSnapshot,
     RunFinished,
     RunStarted,
@@ -39,6 +40,7 @@ class RunRecord:
         self.skipped: list[FrameSkipped] = []  # frames the dataset could not read, left out of the run
         self.mapping: list[KeyFrameInserted] = []
         self.loops: list[LoopChecked] = []
+        self.merges: list[MapsMerged] = []
         self.finished: RunFinished | None = None
         self._trajectories: dict[int, TrajectoryRecorder] = {}  # map id -> that map's frames
 
@@ -82,6 +84,9 @@ class RunRecord:
     def on_loop_checked(self, event: LoopChecked) -> None:
         self.loops.append(event)
 
+    def on_maps_merged(self, event: MapsMerged) -> None:
+        self.merges.append(event)
+
     def on_run_finished(self, event: RunFinished) -> None:
         self.finished = event
 
@@ -99,6 +104,11 @@ class RunRecord:
     @property
     def resets(self) -> int:
         return self._finished().resets
+
+    @property
+    def maps_merged(self) -> int:
+        """Merges of two maps of the Atlas the run's events reported (``slamkit_maps_merged``)."""
+        return len(self.merges)
 
     @property
     def wall_s(self) -> float:

@@ -123,6 +123,7 @@ class TrackingConfig:
     pose_iterations_per_round: int = 10
     reset_lost_map_max_keyframes: int = 10
     time_recently_lost_s: float = 3.0
+    localization_min_motion_model_inliers: int = 21
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

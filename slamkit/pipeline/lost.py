@@ -13,6 +13,12 @@ One simplification: ORB-SLAM3 also lets a small map (at most 10 keyframes) that 
 map try to relocalize for 3 s before resetting it; here a small map is reset on its first lost frame, whichever
 step failed (as ORB-SLAM2 and slamkit before the Atlas did).
 
+In localization mode (``mode=localization``, ORB-SLAM2/3's mbOnlyTracking) the map is read-only: it is neither reset
+nor replaced, and tracking keeps relocalizing in it for as long as it takes (``LostPolicy.map_read_only``). ORB-SLAM2
+would still reset a map of at most 5 keyframes there (the reset check after Track's two branches), and ORB-SLAM3's
+localization branch never reaches its LOST state (RECENTLY_LOST turns LOST only in the mapping branch); neither fits a
+map loaded to be used as it is.
+
 The decision is a pure function of a small record, :func:`decide_when_lost`.
 """
 
@@ -43,14 +49,18 @@ class LostRecord:
 @dataclass(frozen=True)
 class LostPolicy:
     """The two constants (``pipeline.tracking``): ``reset_lost_map_max_keyframes`` (ORB-SLAM3: 10) and
-    ``time_recently_lost_s`` (ORB-SLAM3 visual-only: 3 s)."""
+    ``time_recently_lost_s`` (ORB-SLAM3 visual-only: 3 s); map_read_only: localization mode, the map is never reset
+    or replaced (always RELOCALIZE)."""
 
     reset_lost_map_max_keyframes: int = 10
     time_recently_lost_s: float = 3.0
+    map_read_only: bool = False
 
 
 def decide_when_lost(record: LostRecord, policy: LostPolicy) -> LostDecision:
     """ORB-SLAM3's choice for a frame tracking could not track (see the module docstring)."""
+    if policy.map_read_only:
+        return LostDecision.RELOCALIZE
     if record.keyframes_in_map <= policy.reset_lost_map_max_keyframes:
         return LostDecision.RESET_MAP
     if record.lost_for_s > policy.time_recently_lost_s:

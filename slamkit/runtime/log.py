@@ -15,7 +15,8 @@ class RunLog:
 
     tracking: one outcome per frame tracking received (in order). mapping / loops: one outcome per keyframe local
     mapping / loop closing processed. resets: active maps erased because tracking was lost soon after initialising
-    them; new_maps: maps kept in the Atlas when tracking was lost for good (a new active map started).
+    them; new_maps: maps kept in the Atlas when tracking was lost for good (a new active map started); maps_merged:
+    merges of two maps of the Atlas (ORB-SLAM3 map merging: one per ``slamkit_maps_merged`` event the runner fires).
     frames_dropped: frames that real-time playback delivered while tracking was busy and that were replaced by a
     newer one before tracking took them (0 when playing as fast as possible); dropped_frames: those frames, (frame
     index, timestamp s) each. source_end: how a live source's stream ended (None for a recorded sequence).
@@ -28,6 +29,7 @@ class RunLog:
     loops: list[LoopOutcome] = field(default_factory=list)
     resets: int = 0
     new_maps: int = 0
+    maps_merged: int = 0
     wall_s: float = 0.0
     frames_dropped: int = 0
     dropped_frames: list[tuple[int, float]] = field(default_factory=list)

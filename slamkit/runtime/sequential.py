@@ -36,14 +36,15 @@ class SequentialRunner:
     def __init__(
         self,
         tracker: Tracker,
-        mapper: LocalMapper,
+        mapper: LocalMapper | None,
         atlas: Atlas,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
         events: EventDispatcher | None = None,
         bad_frames: str = "skip",
     ) -> None:
-        """events: fires the plugins' lifecycle hooks (None: nobody listens). bad_frames: what to do with a frame
+        """mapper: local mapping (None: localization only, ``mode=localization``: tracking makes no keyframe).
+        events: fires the plugins' lifecycle hooks (None: nobody listens). bad_frames: what to do with a frame
         the dataset cannot read, "skip" (logged and reported) or "stop" (slamkit.runtime.source.readable_frames)."""
         self.tracker = tracker
         self.mapper = mapper
@@ -153,6 +154,8 @@ class SequentialRunner:
         log_tracking_outcome(self.log, self.recorder, out, map_change)
         self._run_events.map_events(out)
         for kf in out.new_keyframes:
+            if self.mapper is None:
+                raise RuntimeError(f"frame {out.frame_index}: a keyframe was made in a run without local mapping")
             mapped = self.mapper.step(kf)
             self.log.mapping.append(mapped)
             for culled in mapped.culled_keyframes:

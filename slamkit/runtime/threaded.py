@@ -90,7 +90,7 @@ class ThreadedRunner:
     def __init__(
         self,
         tracker: Tracker,
-        mapper: LocalMapper,
+        mapper: LocalMapper | None,
         atlas: Atlas,
         progress: bool = True,
         loop_closer: LoopCloser | None = None,
@@ -102,8 +102,9 @@ class ThreadedRunner:
         events: EventDispatcher | None = None,
         bad_frames: str = "skip",
     ) -> None:
-        """bad_frames: what to do with a frame the dataset cannot read, "skip" (logged and reported) or "stop"
-        (slamkit.runtime.source.readable_frames)."""
+        """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
+        closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
+        (logged and reported) or "stop" (slamkit.runtime.source.readable_frames)."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -156,7 +157,7 @@ class ThreadedRunner:
 
     def _map_keyframe(self, kf: KeyFrame, abort: threading.Event) -> None:
         """Local mapping thread: one keyframe (VI-A..E), then hand it to loop closing."""
-        assert self._mapping is not None
+        assert self._mapping is not None and self.mapper is not None
         if self._mapping.pending() > 0:
             abort.set()  # ORB-SLAM skips local BA while newer keyframes wait
         t_start = time.perf_counter()
@@ -229,8 +230,10 @@ class ThreadedRunner:
     def _mapping_state(self) -> MappingState:
         """Local mapping's state for the tracker (ORB-SLAM AcceptKeyFrames / isStopped || stopRequested); as fast
         as possible the runner waits for a busy local mapping (``waits_for_idle``), as a camera's frame period
-        would give it time to finish."""
-        assert self._mapping is not None
+        would give it time to finish. Without local mapping (localization only) it accepts nothing, as ORB-SLAM's
+        stopped local mapping."""
+        if self._mapping is None:
+            return MappingState(idle=False, accepting_keyframes=False)
         stopping = self._mapping.stopping()
         return MappingState(
             idle=self._mapping.idle() and not stopping,
@@ -262,7 +265,6 @@ class ThreadedRunner:
         return out
 
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
-        assert self._mapping is not None
         map_before = self.atlas.active_id
         out = self.tracker.step(data, camera, self._mapping_state())
         if out.keyframe == KeyFrameDecision.MAPPING_BUSY:
@@ -277,9 +279,12 @@ class ThreadedRunner:
         map_was_reset = map_change == MapChange.RESET
         log_tracking_outcome(self.log, self.recorder, out, map_change)
         self._run_events.map_events(out)
-        if out.new_keyframes and not self._mapping.idle():
+        if out.new_keyframes and self._mapping is None:
+            raise RuntimeError(f"frame {out.frame_index}: a keyframe was made in a run without local mapping")
+        if out.new_keyframes and self._mapping is not None and not self._mapping.idle():
             self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
         for kf in out.new_keyframes:
+            assert self._mapping is not None
             self._mapping.submit(kf)
         ref_id, T_ref_w = None, None
         if out.state == TrackingState.OK and out.T_c_w is not None and out.T_ref_w is not None:
@@ -425,7 +430,9 @@ class ThreadedRunner:
         # lower-priority local mapping, tracking on ahead of a map whose new points are not triangulated yet (the
         # room was lost at frame ~146 that way); with real-time playback tracking leaves time each frame period.
         nice = self.background_niceness if self.realtime else 0
-        self._mapping = PipelineWorker("local-mapping", self._map_keyframe, self._on_fault, nice)
+        self._mapping = None
+        if self.mapper is not None:  # None: localization only, tracking alone
+            self._mapping = PipelineWorker("local-mapping", self._map_keyframe, self._on_fault, nice)
         if self.loop_closer is not None:
             self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault, nice)
             # the global BA after a loop runs in its own thread, parking local mapping to write its result
@@ -504,7 +511,7 @@ class ThreadedRunner:
 
     def _track_frames(self, camera: Camera, bar: tqdm[Any], on_frame: Callable[[TrackingOutcome], None] | None) -> None:
         """The tracking loop: take frames from the source until the end, a fault or a stop."""
-        assert self._source is not None and self._mapping is not None
+        assert self._source is not None
         while self._fault is None or self._fault.thread_name == self._source.name:
             item = self._source.get()
             if item is None or item is END:
@@ -524,7 +531,7 @@ class ThreadedRunner:
             bar.update(1)
             bar.set_postfix_str(
                 f"{out.state.value} kf={self.store.n_keyframes()} mp={self.store.n_points()} "
-                f"q={self._mapping.pending()} drop={self._source.frames_dropped}",
+                f"q={self._mapping.pending() if self._mapping is not None else 0} drop={self._source.frames_dropped}",
                 refresh=False,
             )
 
@@ -557,6 +564,8 @@ class ThreadedRunner:
 
     def _lower_optimizer_process_priority(self) -> None:
         """A worker process serving only local mapping and loop closing (GTSAM offloaded) is background work too."""
+        if self.mapper is None:
+            return
         optimizer = self.mapper.optimizer
         pid = getattr(optimizer, "pid", None)
         if self.realtime and isinstance(pid, int) and optimizer is not self.tracker.optimizer:

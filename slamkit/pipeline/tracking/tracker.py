@@ -21,6 +21,19 @@ One owner per decision. Tracking decides; the runner, which owns the threads, ca
   :meth:`Tracker.start_new_map`, so the tracker never calls into the runner and no thread works on a map while the
   active map changes.
 
+Localization mode (``localization_only``, ``mode=localization``; ORB-SLAM2/3 Tracking::Track's mbOnlyTracking branch)
+tracks and relocalizes against the loaded map and never changes it: no keyframe (NeedNewKeyFrame returns false), so no
+new point, and when lost it relocalizes for as long as it takes (no reset, no new map). While the last frame tracked
+enough map points (mbVO false) the initial pose comes from the motion model alone (more than
+``localization_min_motion_model_inliers - 1`` inliers) or, without a velocity, the reference keyframe, then the local
+map is tracked. When it tracked mostly visual-odometry points (mbVO: fewer than ``min_inliers_after_pose_opt`` of its
+matches on map points) the frame is tracked twice, by the motion model and by relocalization: a successful
+relocalization wins and brings the local map back, else the motion model's pose is kept without the local map.
+Visual-odometry points are ORB-SLAM2's temporary points of a stereo/RGB-D last frame (UpdateLastFrame, only in this
+mode); slamkit does not make them yet, so every match is a map point and mbVO only follows a failed motion model.
+One deliberate difference: a relocalization from LOST clears mbVO (ORB-SLAM2 leaves it as it was, so the frame after a
+lost spell skipped TrackLocalMap).
+
 Deterministic given the rng (the initializer's RANSAC).
 """
 
@@ -90,25 +103,34 @@ class Tracker:
         place: PlaceRecognizer | None = None,
         pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
         fps: float = 30.0,
+        localization_only: bool = False,
     ) -> None:
         """frontend: turns each packet into the frame's observation record (it holds the feature extractors).
         pose_optimizer: motion-only BA of tracking; default the compiled one of
         slamkit.pipeline.pose_optimization (same algorithm as ``Optimizer.optimize_pose``, a few hundred times
         cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend.
-        fps: the camera's frame rate (Hz), ORB-SLAM's mMaxFrames unless ``keyframe_max_frames`` sets it."""
+        fps: the camera's frame rate (Hz), ORB-SLAM's mMaxFrames unless ``keyframe_max_frames`` sets it.
+        localization_only: ORB-SLAM's localization mode (``mode=localization``, see the module docstring): the Atlas's
+        active map must have keyframes; tracking never makes a keyframe and never resets or replaces the map."""
         self.cfg = cfg
         self.max_frames = max_frames_of(cfg, fps)  # ORB-SLAM mMaxFrames (frames)
         self.frontend = frontend
         self.optimizer = optimizer
         self.optimize_pose = pose_optimizer or motion_only_ba
         self.atlas = atlas  # the maps; tracking works on the active one (``store``)
-        self.lost_policy = LostPolicy(cfg.reset_lost_map_max_keyframes, cfg.time_recently_lost_s)
+        self.localization_only = localization_only  # ORB-SLAM mbOnlyTracking
+        self._vo = False  # ORB-SLAM2 mbVO (localization mode): the last frame tracked few map points
+        self.lost_policy = LostPolicy(
+            cfg.reset_lost_map_max_keyframes, cfg.time_recently_lost_s, map_read_only=localization_only
+        )
         self._lost_since_s: float | None = None  # timestamp of the first frame of the current lost spell
         self.place = place  # bag of words: reference-keyframe matching and relocalization (ORB-SLAM V-B, V-C)
         self.refiner = PoseRefiner(cfg, self.store, self.optimize_pose)
         self.relocalizations = 0
         # an Atlas whose active map already has keyframes (a saved map, map.load=FILE): relocalize in it first
         self.state = TrackingState.LOST if self.store.n_keyframes() else TrackingState.NOT_INITIALIZED
+        if localization_only and self.state != TrackingState.LOST:
+            raise ValueError("localization only: the active map has no keyframe to localize against")
         self.init = MonocularInitialization(cfg, initializer, rng)
         self.rng = rng  # the initializer's RANSAC and the relocalization's PnP RANSAC
         self.last_frame: Frame | None = None
@@ -301,6 +323,12 @@ class Tracker:
                 ok = self._relocalize(frame)
                 if not ok:
                     why.append("relocalization: no candidate keyframe gave a pose with enough inliers")
+                elif self.localization_only:
+                    self._vo = False  # the map is tracked again (ORB-SLAM2 keeps mbVO here: module docstring)
+            elif self.state == TrackingState.OK and self.last_frame is not None and self.localization_only:
+                last = self.last_frame
+                update_last_frame(store, last, self._last_T_l_r)
+                ok, method = self._localization_initial_pose(frame, last, why)
             elif self.state == TrackingState.OK and self.last_frame is not None:
                 last = self.last_frame
                 update_last_frame(store, last, self._last_T_l_r)
@@ -310,23 +338,15 @@ class Tracker:
                     if not ok:
                         why.append(f"motion model: {np.count_nonzero(frame.point_ids >= 0)} matches/inliers left")
                 if not ok:
-                    assert last.T_c_w is not None
-                    ok = track_reference_keyframe(
-                        frame,
-                        self.reference_kf_id,
-                        last.T_c_w,
-                        store,
-                        cfg,
-                        self.refiner,
-                        self.place,
-                        self._frame_bow_of(frame),
-                    )
+                    ok = self._track_reference_keyframe(frame, last, why)
                     method = "reference_keyframe"
-                    if not ok:
-                        why.append(f"reference keyframe: {np.count_nonzero(frame.point_ids >= 0)} matches/inliers left")
             t1 = time.perf_counter()
             inliers = 0
-            if ok:
+            if ok and self.localization_only and self._vo:
+                # ORB-SLAM2: "few matches to MapPoints in the map. We cannot retrieve a local map": the motion model's
+                # pose, no TrackLocalMap until a relocalization succeeds
+                inliers = int(np.count_nonzero(frame.point_ids >= 0))
+            elif ok:
                 since_reloc = frame.index - self.last_reloc_frame_index
                 wide = since_reloc < cfg.local_map_wide_search_frames_after_reloc
                 inliers, reference = track_local_map(frame, store, cfg, self.refiner, wide)
@@ -352,7 +372,10 @@ class Tracker:
         outcome = TrackingOutcome(
             frame.index, frame.timestamp_s, TrackingState.OK, frame.T_c_w.copy(), len(frame.features), inliers, method
         )
-        outcome.keyframe = decide_keyframe(self._keyframe_facts(frame, inliers, mapping), cfg)
+        if self.localization_only:
+            outcome.keyframe = KeyFrameDecision.NOT_NEEDED  # ORB-SLAM NeedNewKeyFrame: mbOnlyTracking -> false
+        else:
+            outcome.keyframe = decide_keyframe(self._keyframe_facts(frame, inliers, mapping), cfg)
         if outcome.keyframe == KeyFrameDecision.INSERT:
             kf = self._new_keyframe(frame)
             outcome.new_keyframes = [kf]
@@ -365,6 +388,67 @@ class Tracker:
                 if ref is not None and store.has_keyframe(ref):
                     outcome.reference_kf_id, outcome.T_ref_w = ref, store.get_keyframe(ref).T_c_w
         return outcome
+
+    def _track_reference_keyframe(self, frame: Frame, last: Frame, why: list[str]) -> bool:
+        """V-B's second case (TrackReferenceKeyFrame), from the last frame's pose; says why it failed in ``why``."""
+        assert last.T_c_w is not None
+        ok = track_reference_keyframe(
+            frame,
+            self.reference_kf_id,
+            last.T_c_w,
+            self.store,
+            self.cfg,
+            self.refiner,
+            self.place,
+            self._frame_bow_of(frame),
+        )
+        if not ok:
+            why.append(f"reference keyframe: {np.count_nonzero(frame.point_ids >= 0)} matches/inliers left")
+        return ok
+
+    def _localization_initial_pose(self, frame: Frame, last: Frame, why: list[str]) -> tuple[bool, str]:
+        """The initial pose in localization mode (ORB-SLAM2 Tracking::Track, mbOnlyTracking, state OK): returns
+        (success, method). mbVO false: the motion model alone, or the reference keyframe without a velocity. mbVO
+        true: the motion model and relocalization both; relocalization's pose wins when it succeeds (mbVO cleared),
+        else the motion model's is kept (its matched points' found counters raised, ORB-SLAM2's IncreaseFound)."""
+        store = self.store
+        if not self._vo:
+            if self.velocity is not None:
+                ok = self._localization_motion_model(frame, last)
+                if not ok:
+                    why.append(f"motion model: {np.count_nonzero(frame.point_ids >= 0)} inliers left")
+                return ok, "motion_model"
+            return self._track_reference_keyframe(frame, last, why), "reference_keyframe"
+        ok_mm = False
+        by_mm: tuple[F64 | None, NDArray[np.int64], NDArray[np.bool_]] | None = None
+        if self.velocity is not None:
+            ok_mm = self._localization_motion_model(frame, last)
+            by_mm = (None if frame.T_c_w is None else frame.T_c_w.copy(), frame.point_ids.copy(), frame.outlier.copy())
+        ok_reloc = self._relocalize(frame)
+        if ok_reloc:
+            self._vo = False
+            return True, "relocalization"
+        if ok_mm and by_mm is not None:
+            frame.T_c_w, frame.point_ids, frame.outlier = by_mm
+            if self._vo:
+                found = frame.point_ids[(frame.point_ids >= 0) & ~frame.outlier]
+                store.increase_found(found[store.has_points(found)])
+            return True, "motion_model"
+        why.append("visual odometry: neither the motion model nor relocalization gave a pose")
+        return False, "motion_model"
+
+    def _localization_motion_model(self, frame: Frame, last: Frame) -> bool:
+        """ORB-SLAM2 TrackWithMotionModel in localization mode: success with more than
+        ``localization_min_motion_model_inliers - 1`` inliers after the pose optimization (visual-odometry matches
+        counted), and mbVO set when fewer than ``min_inliers_after_pose_opt`` of them are on map points (points some
+        keyframe observes)."""
+        assert self.velocity is not None
+        track_with_motion_model(frame, last, self.velocity, self.store, self.cfg, self.refiner)
+        matched = frame.point_ids[frame.point_ids >= 0]
+        in_map = matched[self.store.has_points(matched)]
+        n_map = int(np.count_nonzero(self.store.point_rows(in_map, "n_observations") > 0)) if in_map.size else 0
+        self._vo = n_map < self.cfg.min_inliers_after_pose_opt
+        return int(matched.size) >= self.cfg.localization_min_motion_model_inliers
 
     def _new_keyframe(self, frame: Frame) -> KeyFrame:
         """The keyframe made from the tracked frame (put in the map by local mapping); it becomes the reference."""
