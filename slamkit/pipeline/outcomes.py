@@ -134,7 +134,9 @@ class LoopOutcome:
     "agreed", "accepted", "missed" or "dropped". loop_kf_id: the loop keyframe of an accepted loop (its correction
     follows: ``LoopCloser.correct``). merge_candidates: place-recognition candidates in other maps of the Atlas
     (ORB-SLAM3 DetectNBestCandidates' merge candidates: the same machinery, a match in another map is a merge
-    candidate), reported but not acted upon yet (map merging is a later step).
+    candidate); merge_tried / merge_pending: their verification, recorded as ``tried`` / ``pending`` (each record also
+    names the candidate's ``map``); merge_kf_id / merge_map_id / merge_matches / merge_scale: an accepted merge (the
+    matched keyframe, its map, the refined matches, the Sim3's scale), merged by ``LoopCloser.merge``.
     """
 
     kf_id: int
@@ -142,6 +144,12 @@ class LoopOutcome:
     consistent: list[int] = field(default_factory=list)
     tried: list[dict[str, object]] = field(default_factory=list)
     merge_candidates: list[int] = field(default_factory=list)
+    merge_tried: list[dict[str, object]] = field(default_factory=list)
+    merge_pending: dict[str, object] | None = None
+    merge_kf_id: int | None = None
+    merge_map_id: int | None = None
+    merge_matches: int = 0
+    merge_scale: float = 1.0
     pending: dict[str, object] | None = None
     loop_kf_id: int | None = None
     matches: int = 0
