@@ -38,6 +38,7 @@ from slamkit.events import (
     KeyFrameInserted,
     LoopChecked,
     MapCreated,
+    MapsMerged,
     RunFinished,
     RunStarted,
 )
@@ -100,6 +101,12 @@ class RunOutputs:
         record = self._runs.get(event.run_id)
         if record is not None:
             record.on_loop_checked(event)
+
+    @hookimpl
+    def slamkit_maps_merged(self, event: MapsMerged) -> None:
+        record = self._runs.get(event.run_id)
+        if record is not None:
+            record.on_maps_merged(event)
 
     @hookimpl
     def slamkit_run_finished(self, event: RunFinished) -> None:

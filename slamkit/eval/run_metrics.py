@@ -71,6 +71,8 @@ class RunAccount(Protocol):
     @property
     def resets(self) -> int: ...
     @property
+    def maps_merged(self) -> int: ...
+    @property
     def wall_s(self) -> float: ...
     @property
     def runner(self) -> str: ...
@@ -162,6 +164,7 @@ def run_metrics(
         "frames_lost": int(sum(s == "lost" for s in states)),
         "initialized_at_frame": init_frame,
         "resets": run.resets,
+        "maps_merged": run.maps_merged,
         "keyframes": final_map.n_keyframes,
         "map_points": final_map.n_points,
         "tracking_ms_median": _percentile(track_ms, 50),

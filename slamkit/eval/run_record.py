@@ -10,6 +10,8 @@ System::SaveTrajectoryEuRoC writes the biggest map's).
 
 from __future__ import annotations
 
+import numpy as np
+
 from slamkit.events import (
     FrameSkipped,
     FrameTracked,
@@ -17,6 +19,7 @@ from slamkit.events import (
     KeyFrameInserted,
     LoopChecked,
     MapCreated,
+    MapsMerged,
     MapSnapshot,
     RunFinished,
     RunStarted,
@@ -39,6 +42,7 @@ class RunRecord:
         self.skipped: list[FrameSkipped] = []  # frames the dataset could not read, left out of the run
         self.mapping: list[KeyFrameInserted] = []
         self.loops: list[LoopChecked] = []
+        self.merges: list[MapsMerged] = []
         self.finished: RunFinished | None = None
         self._trajectories: dict[int, TrajectoryRecorder] = {}  # map id -> that map's frames
 
@@ -82,6 +86,18 @@ class RunRecord:
     def on_loop_checked(self, event: LoopChecked) -> None:
         self.loops.append(event)
 
+    def on_maps_merged(self, event: MapsMerged) -> None:
+        """The active map (``into_map_id``) absorbed another: its frames, recorded so far in its previous scale, are
+        rescaled (the move's scale is the cube root of its rotation block's determinant), then the absorbed map's
+        frames join it (their keyframes now belong to it)."""
+        self.merges.append(event)
+        scale = float(np.cbrt(np.linalg.det(np.asarray(event.T_into_merged)[:3, :3])))
+        into = self._trajectory(event.into_map_id)
+        into.rescale(None, scale)
+        absorbed = self._trajectories.pop(event.merged_map_id, None)
+        if absorbed is not None:
+            into.absorb(absorbed)
+
     def on_run_finished(self, event: RunFinished) -> None:
         self.finished = event
 
@@ -99,6 +115,10 @@ class RunRecord:
     @property
     def resets(self) -> int:
         return self._finished().resets
+
+    @property
+    def maps_merged(self) -> int:
+        return len(self.merges)
 
     @property
     def wall_s(self) -> float:

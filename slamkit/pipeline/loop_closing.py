@@ -39,7 +39,8 @@ from slamkit.geometry.sim3_ransac import ransac_sim3
 from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
-from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of
+from slamkit.map.mapfile_contents import read_map_contents
+from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of, run_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
 from slamkit.pipeline.global_ba import GlobalBAOutcome, commit_global_ba, optimize_global_ba, snapshot_global_ba
@@ -66,6 +67,15 @@ from slamkit.pipeline.loop_verification import (
     project_window,
     verification_window,
 )
+from slamkit.pipeline.map_merging import (
+    import_map,
+    merge_essential_graph_problem,
+    transform_map,
+    welding_bundle,
+    welding_window,
+    window_points,
+)
+from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.outcomes import LoopOutcome
 from slamkit.pipeline.projection import require_pinhole_image
 from slamkit.problems import Sim3Problem
@@ -95,6 +105,20 @@ class AcceptedMerge:
     map_id: int
     S_cw: Sim3
     matches: dict[int, int]
+
+
+@dataclass(frozen=True)
+class MapMerge:
+    """What a merge did to the maps, as it happens (``LoopCloser.on_merge``): the active map ``into_map_id`` (whose
+    keyframes ``moved_kf_ids`` were moved by ``G``, x_new = G x_old, into the other map's world frame) absorbs the map
+    ``merged_map_id``; ``kf_id`` / ``matched_kf_id`` the keyframes of the common region."""
+
+    kf_id: int
+    matched_kf_id: int
+    merged_map_id: int
+    into_map_id: int
+    moved_kf_ids: frozenset[int]
+    G: Sim3
 
 
 @dataclass
@@ -159,6 +183,11 @@ class LoopCloser:
         self._pending: PendingLoop | None = None
         self._pending_merge: tuple[int, PendingLoop] | None = None  # (the matched map's id, the hypothesis)
         self.loops: list[LoopOutcome] = []
+        self.merges: list[LoopOutcome] = []
+        #: set by a runner: called under the active map's write lock when a merge moves the active map into another
+        #: map's frame, before the other map's entities come in (the trajectory recorder rescales the frames recorded
+        #: relative to the moved keyframes; the runner fires slamkit_maps_merged)
+        self.on_merge: Callable[[MapMerge], None] | None = None
         self.global_bas: list[GlobalBAOutcome] = []
         self.global_ba_error: BaseException | None = None
         #: set by a threaded runner: a context manager parking local mapping (then the global BA runs in its own
@@ -181,8 +210,10 @@ class LoopCloser:
         return self.store.covisibility.best_neighbors(kf_id, n) if kf_id in self.store.covisibility else []
 
     def step(self, kf: KeyFrame) -> LoopOutcome:
-        """Detection, then the correction of a loop it accepted (what the sequential runner does)."""
+        """Detection, then the merge or the correction of a loop it accepted (what the sequential runner does)."""
         detection = self.detect(kf)
+        if detection.merge is not None:
+            return self.merge(detection)
         return self.correct(detection) if detection.loop is not None else detection.outcome
 
     # ---- detection (local mapping goes on meanwhile) ------------------------------------------------------
@@ -206,29 +237,35 @@ class LoopCloser:
         merge: AcceptedMerge | None = None
         try:
             merge = self._find_merge(kf, out)
-            loop = self._find_loop(kf, out, t0)
+            if merge is None or not self.cfg.merge_maps:
+                # ORB-SLAM3 LoopClosing::Run: a detected merge comes first, the loop search waits for the merged map
+                loop = self._find_loop(kf, out, t0)
         finally:
             with self.store.read():
                 if self.store.has_keyframe(kf.id) and kf.bow is not None:
                     self.place.add(kf.id, kf.bow)
-            if loop is None:
-                self.pins.unpin(kf.id)
         if merge is not None:
             self._pending_merge = None
             out.merge_kf_id, out.merge_map_id = merge.merge_kf_id, merge.map_id
             out.merge_matches, out.merge_scale = len(merge.matches), merge.S_cw.s
             log.info(
-                "keyframe %d: merge with map %d detected at its keyframe %d, %d matches, scale %.3f (not merged yet)",
+                "keyframe %d: merge with map %d detected at its keyframe %d, %d matches, scale %.3f%s",
                 kf.id,
                 merge.map_id,
                 merge.merge_kf_id,
                 len(merge.matches),
                 merge.S_cw.s,
+                "" if self.cfg.merge_maps else " (not merged: pipeline.loop_closing.merge_maps is false)",
             )
+            if not self.cfg.merge_maps:
+                merge = None
         if loop is not None:
             self._pending = None
             out.loop_kf_id, out.matches, out.scale = loop.loop_kf_id, len(loop.matches), loop.S_cw.s
-        return LoopDetection(kf, out, loop, pinned=loop is not None, merge=merge)
+        pinned = loop is not None or merge is not None
+        if not pinned:
+            self.pins.unpin(kf.id)
+        return LoopDetection(kf, out, loop, pinned=pinned, merge=merge)
 
     def _find_loop(self, kf: KeyFrame, out: LoopOutcome, t0: float) -> AcceptedLoop | None:
         """The accepted loop at ``kf`` (pinned), or None with ``out.reason`` saying why not."""
@@ -301,9 +338,131 @@ class LoopCloser:
     def release(self, detection: LoopDetection) -> None:
         """Unpin the keyframes of an accepted loop (done by :meth:`correct`; call it for a loop that will not be
         corrected, e.g. the run stops). Idempotent."""
-        if detection.loop is not None and detection.pinned:
-            self.pins.unpin(detection.kf.id, detection.loop.loop_kf_id)
+        if detection.pinned:
+            self.pins.unpin(detection.kf.id, *([detection.loop.loop_kf_id] if detection.loop is not None else []))
             detection.pinned = False
+
+    # ---- ORB-SLAM3 sec. III-B: map merging (local mapping parked) -------------------------------------------
+
+    def merge(self, detection: LoopDetection) -> LoopOutcome:
+        """Merge the map ``detection`` found (ORB-SLAM3 MergeLocal, slamkit/pipeline/map_merging.py) into the
+        active map; the caller keeps local mapping stopped meanwhile (ORB-SLAM3: RequestStop). Tracking goes on: it
+        waits only while the map is written (the rigid move, the import and the fusion, then the welding BA's and the
+        essential graph's results). Releases the keyframe detection pinned."""
+        merge = detection.merge
+        if merge is None:
+            raise ValueError(f"keyframe {detection.outcome.kf_id}: detection accepted no merge")
+        kf, out = detection.kf, detection.outcome
+        try:
+            self.abort_global_ba()
+            t0 = time.perf_counter()
+            self._merge(kf, merge, out)
+            out.timings_ms["merge_ms"] = (time.perf_counter() - t0) * 1e3
+            self.last_loop_kf_id = kf.id
+            self._pending = None
+            self._groups = []
+            self.merges.append(out)
+        finally:
+            self.release(detection)
+        log.info(
+            "maps merged: map %d into the active map %d (keyframe %d <-> %d, %d matches, scale %.3f), %d keyframes "
+            "imported, %.0f ms (the map locked for %.0f ms at most)",
+            merge.map_id,
+            self.atlas.active_id,
+            kf.id,
+            merge.merge_kf_id,
+            len(merge.matches),
+            merge.S_cw.s,
+            out.merge_imported_keyframes,
+            out.timings_ms.get("merge_ms", 0.0),
+            max((v for k, v in out.timings_ms.items() if k.startswith("merge_locked")), default=0.0),
+        )
+        return out
+
+    def _merge(self, kf: KeyFrame, merge: AcceptedMerge, out: LoopOutcome) -> None:
+        cfg = self.cfg
+        store = self.store
+        other = self.atlas.get(merge.map_id)  # not the active map: nobody changes it
+        n_window, tries = cfg.merge_window_keyframes, cfg.merge_window_max_tries
+        # ORB-SLAM3 MergeLocal: the windows of the two maps, before anything moves
+        merge_window = welding_window(other, merge.merge_kf_id, n_window, tries)
+        merge_points = window_points(other, merge_window)
+        contents = read_map_contents(other)
+        t_lock = time.perf_counter()
+        with store.write():
+            store.update_connections(kf.id)  # ORB-SLAM3: mpCurrentKF->UpdateConnections()
+            current_window = welding_window(store, kf.id, n_window, tries)
+            moved = frozenset(store.keyframe_ids())
+            # x_other = G x_active: the current keyframe's camera sees the same point as T_c_w x_active and S_cw x_other
+            G = merge.S_cw.inverse() @ sim3_of_pose(kf.T_c_w)
+            transform_map(store, G)
+            if self.on_merge is not None:
+                self.on_merge(MapMerge(kf.id, merge.merge_kf_id, merge.map_id, self.atlas.active_id, moved, G))
+            before_links = {k: set(store.covisibility.neighbors(k)) for k in current_window}
+            imported = import_map(store, contents, kf.id, merge.merge_kf_id, merge.matches)
+            self.atlas.absorb(merge.map_id)
+            fused = 0
+            for k in current_window:
+                if store.has_keyframe(k):
+                    fused += fuse_points(
+                        store,
+                        store.get_keyframe(k),
+                        merge_points,
+                        cfg.loop_fuse_radius_px,
+                        incoming_wins=True,
+                        max_distance=cfg.matcher.th_low,
+                        chi2_gate=cfg.chi2.fuse_mono,
+                    )
+            for k in [*current_window, *merge_window]:
+                if store.has_keyframe(k):
+                    store.update_connections(k)
+            new_links = {
+                k: set(store.covisibility.neighbors(k)) - before_links.get(k, set()) - set(current_window)
+                for k in current_window
+                if store.has_keyframe(k)
+            }
+            new_links.setdefault(kf.id, set()).add(merge.merge_kf_id)
+            store.add_loop_edge(kf.id, merge.merge_kf_id)
+            store.bump_epoch()
+            before = {k: sim3_of_pose(store.get_keyframe(k).T_c_w) for k in store.keyframe_ids() if k not in imported}
+        out.timings_ms["merge_locked_weld_ms"] = (time.perf_counter() - t_lock) * 1e3
+        out.merge_imported_keyframes = len(imported)
+        out.merge_fused = fused
+        out.merge_transform = G.matrix().tolist()
+        # the welding BA: snapshot under the read lock, optimized without it, committed under the write lock
+        t_ba = time.perf_counter()
+        with store.read():
+            snap = welding_bundle(
+                store,
+                current_window,
+                merge_window,
+                cfg.merge_ba_iterations_first,
+                cfg.merge_ba_iterations_second,
+                cfg.chi2.mono,
+                cfg.chi2.stereo,
+            )
+        if snap is not None:
+            result = run_bundle(store, self.optimizer, snap)
+            out.merge_ba_outliers = int(result.outlier.sum())
+            with store.write():
+                refresh_points(store, snap.point_ids.tolist(), normals=True, descriptors=False)
+        out.timings_ms["merge_welding_ba_ms"] = (time.perf_counter() - t_ba) * 1e3
+        if cfg.merge_essential_graph:
+            t_eg = time.perf_counter()
+            with store.read():
+                fixed = set(imported) | set(current_window) | set(merge_window)
+                problem, eg_kf_ids = merge_essential_graph_problem(store, fixed, before, new_links, cfg.theta_min)
+            if not problem.fixed.all():
+                result_eg = self.optimizer.optimize_essential_graph(problem)
+                t_write = time.perf_counter()
+                with store.write():
+                    apply_essential_graph(store, problem, result_eg, eg_kf_ids)
+                    store.bump_epoch()
+                out.timings_ms["merge_locked_essential_graph_ms"] = (time.perf_counter() - t_write) * 1e3
+                out.essential_graph_edges = int(problem.edge_i.shape[0])
+            out.timings_ms["merge_essential_graph_ms"] = (time.perf_counter() - t_eg) * 1e3
+        if cfg.global_ba:
+            self.start_global_ba(kf.id)
 
     # ---- VII-A: detection ----------------------------------------------------------------------------
 

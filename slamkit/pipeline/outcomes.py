@@ -136,7 +136,9 @@ class LoopOutcome:
     (ORB-SLAM3 DetectNBestCandidates' merge candidates: the same machinery, a match in another map is a merge
     candidate); merge_tried / merge_pending: their verification, recorded as ``tried`` / ``pending`` (each record also
     names the candidate's ``map``); merge_kf_id / merge_map_id / merge_matches / merge_scale: an accepted merge (the
-    matched keyframe, its map, the refined matches, the Sim3's scale), merged by ``LoopCloser.merge``.
+    matched keyframe, its map, the refined matches, the Sim3's scale), merged by ``LoopCloser.merge``; after the merge
+    merge_imported_keyframes / merge_fused / merge_ba_outliers its counts and merge_transform the (4, 4) similarity
+    x_new = G x_old that moved the active map into the matched map's frame (None: no merge done).
     """
 
     kf_id: int
@@ -150,6 +152,10 @@ class LoopOutcome:
     merge_map_id: int | None = None
     merge_matches: int = 0
     merge_scale: float = 1.0
+    merge_imported_keyframes: int = 0
+    merge_fused: int = 0
+    merge_ba_outliers: int = 0
+    merge_transform: list[list[float]] | None = None
     pending: dict[str, object] | None = None
     loop_kf_id: int | None = None
     matches: int = 0

@@ -15,7 +15,8 @@ class RunLog:
 
     tracking: one outcome per frame tracking received (in order). mapping / loops: one outcome per keyframe local
     mapping / loop closing processed. resets: active maps erased because tracking was lost soon after initialising
-    them; new_maps: maps kept in the Atlas when tracking was lost for good (a new active map started).
+    them; new_maps: maps kept in the Atlas when tracking was lost for good (a new active map started); maps_merged: maps
+    of the Atlas merged into the active one (ORB-SLAM3 map merging).
     frames_dropped: frames that real-time playback delivered while tracking was busy and that were replaced by a
     newer one before tracking took them (0 when playing as fast as possible). sequence_s: time span of the frames played (last minus first timestamp, s). wall_s: wall time of
     the run, s. failed_thread: name of the pipeline thread whose exception stopped the run, if any.
@@ -27,6 +28,7 @@ class RunLog:
     loops: list[LoopOutcome] = field(default_factory=list)
     resets: int = 0
     new_maps: int = 0
+    maps_merged: int = 0
     wall_s: float = 0.0
     frames_dropped: int = 0
     frames_skipped: int = 0  # frames the dataset could not read, left out (runner.bad_frames: skip)

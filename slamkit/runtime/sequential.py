@@ -15,7 +15,7 @@ from tqdm import tqdm
 from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.map.atlas import Atlas, MapChange
 from slamkit.pipeline.local_mapping import LocalMapper
-from slamkit.pipeline.loop_closing import LoopCloser
+from slamkit.pipeline.loop_closing import LoopCloser, MapMerge
 from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.outcomes import MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.tracking import Tracker
@@ -56,6 +56,17 @@ class SequentialRunner:
         self._run_events = RunEvents(None, "sequential", atlas)
         self._first_t: float | None = None  # timestamp of the run's first frame, s
         self._start = time.perf_counter()  # wall clock at the run's start (perf_counter), s
+        if loop_closer is not None:
+            loop_closer.on_merge = self._on_merge
+
+    def _on_merge(self, merge: MapMerge) -> None:
+        """Loop closing moves the active map into another map's frame to merge them: the frames recorded relative to
+        the moved keyframes follow the move's scale; slamkit_maps_merged fires."""
+        self.recorder.rescale(merge.moved_kf_ids, merge.G.s)
+        self.log.maps_merged += 1
+        self._run_events.maps_merged(
+            merge.kf_id, merge.matched_kf_id, merge.merged_map_id, merge.into_map_id, merge.G.matrix()
+        )
 
     @property
     def store(self) -> MapStore:

@@ -423,3 +423,54 @@ def test_a_merge_a_single_covisible_confirms_waits_for_the_next_keyframes(world:
     assert third.merge is not None and third.merge.map_id == 0 and closer._pending_merge is None
     xs = np.linspace(-0.2, 0.3, 12)
     assert np.allclose(third.merge.S_cw.to_se3(), pose_at(float(xs[2]), 0.3), atol=1e-6)
+
+
+# ---- ORB-SLAM3 sec. III-B: map merging (LoopCloser.merge, slamkit/pipeline/map_merging.py) ---------------------
+
+
+def test_a_merge_welds_the_active_map_into_the_matched_maps_frame_and_scale(world: World) -> None:
+    """The active map revisits map 0's place in its own frame (turned, moved) and scale (half map 0's): the merge
+    moves it into map 0's frame and scale, takes map 0's keyframes and points in, fuses the duplicates (the revisit's
+    points are map 0's points), and leaves one map in the Atlas, the active one, with one spanning tree."""
+    drift = np.eye(4)
+    drift[:3, :3] = so3_exp(np.array([0.0, np.radians(30.0), np.radians(60.0)]))
+    drift[:3, 3] = [2.0, 1.0, -0.5]
+    closer, atlas, ids = two_map_closer(world, drift)
+    from slamkit.pipeline.map_merging import transform_map
+
+    with atlas.active.write():
+        transform_map(atlas.active, Sim3(0.5, np.eye(3), np.zeros(3)))  # the active map's scale: half map 0's
+    merges = []
+    closer.on_merge = merges.append
+    map0_kfs, map0_points = atlas.get(0).keyframe_ids(), atlas.get(0).point_ids()
+    out = closer.step(atlas.active.get_keyframe(ids[-1]))
+    assert out.merge_map_id == 0 and out.merge_transform is not None
+    assert atlas.map_ids() == [1] and atlas.active_id == 1
+    store = atlas.active
+    assert set(map0_kfs) | set(ids) == set(store.keyframe_ids())
+    assert [m.merged_map_id for m in merges] == [0] and merges[0].moved_kf_ids == frozenset(ids)
+    assert merges[0].G.s == pytest.approx(2.0, rel=1e-3)
+    # every keyframe of the merged map at its true pose (map 0's world is the true one), the revisit's scale undone
+    xs = np.linspace(-0.2, 0.3, 12)
+    for k, x in zip(ids, xs, strict=True):
+        assert np.allclose(store.get_keyframe(k).T_c_w, pose_at(float(x), 0.3), atol=1e-3), k
+    for k in map0_kfs:
+        assert np.allclose(store.get_keyframe(k).T_c_w, atlas.get(1).get_keyframe(k).T_c_w)
+    # duplicates fused: the revisit's features observe map 0's points, no point of the revisit's is left
+    assert store.point_ids() == map0_points
+    current = store.get_keyframe(ids[-1])
+    assert (np.sort(current.point_ids[current.point_ids >= 0]) == np.array(map0_points)).all()
+    for pid in map0_points:
+        assert np.allclose(store.get_point(pid).xyz_w, world.xyz_a[pid], atol=1e-6)
+    # one spanning tree over every keyframe: one root, no cycle
+    tree = store.spanning_tree
+    roots = [k for k in store.keyframe_ids() if tree.parent(k) is None]
+    assert len(roots) == 1
+    for k in store.keyframe_ids():
+        seen, j = set(), k
+        while tree.parent(j) is not None:
+            assert j not in seen
+            seen.add(j)
+            j = tree.parent(j)  # type: ignore[assignment]
+    assert (min(ids[-1], out.merge_kf_id), max(ids[-1], out.merge_kf_id)) in store.loop_edges()  # type: ignore[type-var]
+    assert not closer.pins.snapshot()  # the merge released the keyframe detection pinned
