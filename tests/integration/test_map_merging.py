@@ -37,19 +37,22 @@ def _run(runner_name: str, tmp_path: Path) -> tuple[object, dict, dict]:
 
 
 def _check_merged(runner: object, metrics: dict, written: dict) -> None:
+    """metrics: the runner's own account (its recorder holds the active map's frames since that map started);
+    written: the run directory's metrics.json (every map's frames, the absorbed map's joined to the merged map's)."""
     log, atlas = runner.log, runner.atlas  # type: ignore[attr-defined]
     assert log.new_maps == 1 and log.maps_merged == 1
     assert atlas.map_ids() == [1], "the first map was absorbed by the active one"
     merges = [lp for lp in log.loops if lp.merge_transform is not None]
     assert len(merges) == 1 and merges[0].merge_map_id == 0
-    # both maps' frames in one frame: the run's trajectory (Sim3-aligned once) against the ground truth
-    assert metrics["maps_merged"] == 1 and written["maps_merged"] == 1
-    assert len(written["maps"]) == 1 and written["frames_tracked"] == metrics["frames_tracked"]
-    assert metrics["frames_tracked"] >= 0.8 * metrics["frames"]
-    assert metrics["loops_false"] == 0
-    assert metrics["kf_ate_rmse_m"] < 1.5 * ROOM_KF_ATE_M, metrics["kf_ate_rmse_m"]
+    assert metrics["maps_merged"] == 1 and written["maps_merged"] == 1 and len(written["maps"]) == 1
+    # both maps' frames in one frame: the whole run's trajectory (one Sim3 alignment) against the ground truth;
+    # the first map's frames (10..149) are in it
+    first_map_frames = 130  # of its 140
+    assert written["frames_tracked"] >= metrics["frames_tracked"] + first_map_frames
+    assert written["loops_false"] == 0
+    assert written["kf_ate_rmse_m"] < 1.5 * ROOM_KF_ATE_M, written["kf_ate_rmse_m"]
+    assert written["ate_rmse_m"] < 1.5 * ROOM_ATE_M, written["ate_rmse_m"]
     assert metrics["ate_rmse_m"] < 1.5 * ROOM_ATE_M, metrics["ate_rmse_m"]
-    assert written["ate_rmse_m"] == pytest.approx(metrics["ate_rmse_m"], rel=0.05)
 
 
 @pytest.mark.slow
@@ -67,4 +70,6 @@ def test_the_room_jump_ends_in_one_merged_map_threaded(tmp_path: Path) -> None:
     merge = next(lp for lp in runner.log.loops if lp.merge_transform is not None)  # type: ignore[attr-defined]
     locked = max(v for k, v in merge.timings_ms.items() if k.startswith("merge_locked"))
     track_ms = [o.timings_ms.get("track_ms", 0.0) for o in runner.log.tracking]  # type: ignore[attr-defined]
-    assert max(track_ms) < locked + 2000.0
+    # measured on a loaded 2-core machine (docs/BENCHMARKS.md): the slowest frame during the merge 0.88 s with a
+    # median of 0.1 s; the bound leaves room for load
+    assert max(track_ms) < locked + 3000.0
