@@ -219,12 +219,14 @@ class LoopClosed:
 
 @dataclass(frozen=True)
 class MapsMerged:
-    """Two maps of the Atlas were merged into one (ORB-SLAM3 map merging).
+    """Two maps of the Atlas were merged into one (ORB-SLAM3 map merging, slamkit/pipeline/map_merging.py).
 
-    Specified now so listeners can be written against it; no runner fires it yet: the Atlas and its map merging
-    (a later issue) will. merged_map_id: the map that was absorbed; into_map_id: the map that holds the result;
-    kf_id / matched_kf_id: the keyframes whose place recognition found the overlap; T_into_merged: (4, 4) the
-    transform applied to the absorbed map (a Sim3 for monocular: scale in its rotation block).
+    Fired by loop closing's thread when the merge moves the active map, before the welding BA. merged_map_id: the map
+    that was absorbed (it leaves the Atlas); into_map_id: the active map, which holds the result under its id;
+    kf_id / matched_kf_id: the current keyframe and the absorbed map's keyframe whose place recognition found the
+    overlap. The merged map keeps the absorbed map's world frame: T_into_merged: (4, 4) the similarity x_new = T x_old
+    that moved the into-map's entities from its previous world frame into that one (a Sim3 for monocular: scale in
+    its rotation block); the absorbed map's entities keep their coordinates.
     """
 
     run_id: int

@@ -179,14 +179,18 @@ def write_outputs(out_dir: Path, record: RunRecord) -> dict[str, Any]:
 
 def write_run_logs(out_dir: Path, record: RunRecord) -> None:
     """frames.csv: what tracking did with each frame; loops.json: what loop closing did with each keyframe
-    (candidates, consistency, BoW matches, Sim3 inliers and scale, corrections), so a user can see why a loop
-    was or was not closed."""
+    (candidates, consistency, BoW matches, Sim3 inliers and scale, corrections; merge candidates, their verification
+    and a merge's counts and timings), so a user can see why a loop was or was not closed, or two maps merged."""
     dropped = record.finished.dropped_frames if record.finished is not None else ()
     _write_frames_csv(out_dir / "frames.csv", record.tracking, record.skipped, dropped)
     loops = [
         dict(lp.record)
         for lp in record.loops
-        if lp.record.get("candidates") or lp.record.get("pending") or lp.loop_kf_id is not None
+        if lp.record.get("candidates")
+        or lp.record.get("pending")
+        or lp.loop_kf_id is not None
+        or lp.record.get("merge_candidates")
+        or lp.record.get("merge_pending")
     ]
     (out_dir / "loops.json").write_text(json.dumps(loops, indent=2, default=float) + "\n")
 

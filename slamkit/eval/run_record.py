@@ -10,6 +10,8 @@ System::SaveTrajectoryEuRoC writes the biggest map's).
 
 from __future__ import annotations
 
+import numpy as np
+
 from slamkit.events import (
     FrameSkipped,
     FrameTracked,
@@ -85,7 +87,16 @@ class RunRecord:
         self.loops.append(event)
 
     def on_maps_merged(self, event: MapsMerged) -> None:
+        """The active map (``into_map_id``) absorbed another: its frames, recorded so far in its previous scale, are
+        rescaled (the move's scale is the cube root of its rotation block's determinant), then the absorbed map's
+        frames join it (their keyframes now belong to it)."""
         self.merges.append(event)
+        scale = float(np.cbrt(np.linalg.det(np.asarray(event.T_into_merged)[:3, :3])))
+        into = self._trajectory(event.into_map_id)
+        into.rescale(None, scale)
+        absorbed = self._trajectories.pop(event.merged_map_id, None)
+        if absorbed is not None:
+            into.absorb(absorbed)
 
     def on_run_finished(self, event: RunFinished) -> None:
         self.finished = event

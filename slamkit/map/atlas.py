@@ -3,7 +3,7 @@ one of them active, keyframe and map point ids unique across all of them, and on
 recognizer) shared by all of them.
 
 Tracking, local mapping and loop closing work on the *active* map (``Atlas.active``); the other maps stay in the
-Atlas untouched (merging them is a later step). A map is never deleted because tracking was lost: when tracking
+Atlas untouched until loop closing merges one of them into the active map (:meth:`Atlas.absorb`). A map is never deleted because tracking was lost: when tracking
 gives up on a map that is big enough, :meth:`Atlas.create_map` starts a new active map and keeps the old one
 (ORB-SLAM3 Tracking::CreateMapInAtlas -> Atlas::CreateNewMap). A map too small to keep is reset instead
 (:meth:`Atlas.reset_active`, ORB-SLAM3 System::ResetActiveMap): its keyframes are erased, from the map and from
@@ -188,6 +188,15 @@ class Atlas:
         del self._maps[self._active_id]
         self._active_id = self._add(store)
         return self._active_id
+
+    def absorb(self, map_id: int) -> None:
+        """Map merging (ORB-SLAM3 MergeLocal; slamkit/pipeline/map_merging.py) moved every keyframe and point of the
+        map ``map_id`` into the active map: the map leaves the Atlas (ORB-SLAM3 Atlas::SetMapBad, RemoveBadMaps). Its
+        keyframes keep their ids, so the keyframe database needs no change. Called by loop closing under the active
+        map's write lock; ValueError for the active map or an unknown one."""
+        if map_id == self._active_id or map_id not in self._maps:
+            raise ValueError(f"map {map_id} cannot be absorbed into the active map {self._active_id}")
+        del self._maps[map_id]
 
     def change_since(self, map_id: int) -> MapChange | None:
         """How the active map changed since ``map_id`` was the active one: None (it still is), RESET (that map

@@ -196,6 +196,12 @@ class LoopClosingConfig:
     common_regions_min_refined: int = 80
     confirm_min_optimized: int = 50
     confirm_min_matches: int = 100
+    merge_maps: bool = True
+    merge_window_keyframes: int = 15
+    merge_window_max_tries: int = 3
+    merge_ba_iterations_first: int = 5
+    merge_ba_iterations_second: int = 10
+    merge_essential_graph: bool = True
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

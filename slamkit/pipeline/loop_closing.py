@@ -6,9 +6,12 @@ other keyframes (see ``loop_verification``; possibly over the next keyframes) --
 ``geometric_verification: false``) compute and optimize the Sim3 on each candidate's BoW matches and require
 enough matches -- then correct the loop (Sim3 propagation, loop fusion, essential graph).
 
-The same detection is the Atlas' merge detection (ORB-SLAM3): a common region in the active map is a loop; a
-place-recognition candidate in another map is a merge candidate, recorded in ``LoopOutcome.merge_candidates``
-and not acted upon yet.
+The same detection is the Atlas' merge detection (ORB-SLAM3 sec. III-A, LoopClosing::NewDetectCommonRegions): a
+common region in the active map is a loop; one in another map of the Atlas is a merge. A merge candidate goes
+through the same common-region search (``_common_region`` with the candidate's map as the window's side) and the
+same verification in the current keyframe's covisibles and the next keyframes (its own pending hypothesis, as
+ORB-SLAM3's mnMergeNumCoincidences), without the loop's temporal consistency (ORB-SLAM3 has none) and without the
+loop's rotation bound (two maps' world frames are unrelated). An accepted merge is ``LoopDetection.merge``.
 
 Detection and correction are two steps, as in ORB-SLAM (DetectLoop/ComputeSim3, then CorrectLoop):
 ``LoopCloser.detect(kf)`` runs after local mapping has processed ``kf`` and *while local mapping goes on* (it reads
@@ -36,7 +39,8 @@ from slamkit.geometry.sim3_ransac import ransac_sim3
 from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
-from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of
+from slamkit.map.mapfile_contents import read_map_contents
+from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of, run_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
 from slamkit.pipeline.global_ba import GlobalBAOutcome, commit_global_ba, optimize_global_ba, snapshot_global_ba
@@ -63,6 +67,15 @@ from slamkit.pipeline.loop_verification import (
     project_window,
     verification_window,
 )
+from slamkit.pipeline.map_merging import (
+    import_map,
+    merge_essential_graph_problem,
+    transform_map,
+    welding_bundle,
+    welding_window,
+    window_points,
+)
+from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.outcomes import LoopOutcome
 from slamkit.pipeline.projection import require_pinhole_image
 from slamkit.problems import Sim3Problem
@@ -82,15 +95,43 @@ class AcceptedLoop:
     matches: dict[int, int]
 
 
+@dataclass(frozen=True)
+class AcceptedMerge:
+    """A merge detection accepted (ORB-SLAM3 mbMergeDetected): the matched keyframe ``merge_kf_id`` in the map
+    ``map_id`` (not the active one), S_cw the current keyframe's Sim3 pose in that map's world frame (world ->
+    camera) and matches (current keyframe's feature -> matched map's point id)."""
+
+    merge_kf_id: int
+    map_id: int
+    S_cw: Sim3
+    matches: dict[int, int]
+
+
+@dataclass(frozen=True)
+class MapMerge:
+    """What a merge did to the maps, as it happens (``LoopCloser.on_merge``): the active map ``into_map_id`` (whose
+    keyframes ``moved_kf_ids`` were moved by ``G``, x_new = G x_old, into the other map's world frame) absorbs the map
+    ``merged_map_id``; ``kf_id`` / ``matched_kf_id`` the keyframes of the common region."""
+
+    kf_id: int
+    matched_kf_id: int
+    merged_map_id: int
+    into_map_id: int
+    moved_kf_ids: frozenset[int]
+    G: Sim3
+
+
 @dataclass
 class LoopDetection:
-    """What :meth:`LoopCloser.detect` did at one keyframe: its outcome so far and the accepted loop (None: no loop to
-    correct). pinned: the accepted loop's two keyframes are still pinned (until corrected or released)."""
+    """What :meth:`LoopCloser.detect` did at one keyframe: its outcome so far, the accepted loop (None: no loop to
+    correct) and the accepted merge (None: no merge; a keyframe has one or the other). pinned: the keyframe of an
+    accepted loop or merge and the loop keyframe are still pinned (until corrected or released)."""
 
     kf: KeyFrame
     outcome: LoopOutcome
     loop: AcceptedLoop | None
     pinned: bool = False
+    merge: AcceptedMerge | None = None
 
 
 @dataclass
@@ -140,7 +181,13 @@ class LoopCloser:
         self.last_loop_kf_id = -(10**9)
         self._groups: list[_ConsistentGroup] = []
         self._pending: PendingLoop | None = None
+        self._pending_merge: tuple[int, PendingLoop] | None = None  # (the matched map's id, the hypothesis)
         self.loops: list[LoopOutcome] = []
+        self.merges: list[LoopOutcome] = []
+        #: set by a runner: called under the active map's write lock when a merge moves the active map into another
+        #: map's frame, before the other map's entities come in (the trajectory recorder rescales the frames recorded
+        #: relative to the moved keyframes; the runner fires slamkit_maps_merged)
+        self.on_merge: Callable[[MapMerge], None] | None = None
         self.global_bas: list[GlobalBAOutcome] = []
         self.global_ba_error: BaseException | None = None
         #: set by a threaded runner: a context manager parking local mapping (then the global BA runs in its own
@@ -163,8 +210,10 @@ class LoopCloser:
         return self.store.covisibility.best_neighbors(kf_id, n) if kf_id in self.store.covisibility else []
 
     def step(self, kf: KeyFrame) -> LoopOutcome:
-        """Detection, then the correction of a loop it accepted (what the sequential runner does)."""
+        """Detection, then the merge or the correction of a loop it accepted (what the sequential runner does)."""
         detection = self.detect(kf)
+        if detection.merge is not None:
+            return self.merge(detection)
         return self.correct(detection) if detection.loop is not None else detection.outcome
 
     # ---- detection (local mapping goes on meanwhile) ------------------------------------------------------
@@ -185,18 +234,38 @@ class LoopCloser:
                 return LoopDetection(kf, out, None)
             self.pins.pin(kf.id)
         loop: AcceptedLoop | None = None
+        merge: AcceptedMerge | None = None
         try:
-            loop = self._find_loop(kf, out, t0)
+            merge = self._find_merge(kf, out)
+            if merge is None or not self.cfg.merge_maps:
+                # ORB-SLAM3 LoopClosing::Run: a detected merge comes first, the loop search waits for the merged map
+                loop = self._find_loop(kf, out, t0)
         finally:
             with self.store.read():
                 if self.store.has_keyframe(kf.id) and kf.bow is not None:
                     self.place.add(kf.id, kf.bow)
-            if loop is None:
-                self.pins.unpin(kf.id)
+        if merge is not None:
+            self._pending_merge = None
+            out.merge_kf_id, out.merge_map_id = merge.merge_kf_id, merge.map_id
+            out.merge_matches, out.merge_scale = len(merge.matches), merge.S_cw.s
+            log.info(
+                "keyframe %d: merge with map %d detected at its keyframe %d, %d matches, scale %.3f%s",
+                kf.id,
+                merge.map_id,
+                merge.merge_kf_id,
+                len(merge.matches),
+                merge.S_cw.s,
+                "" if self.cfg.merge_maps else " (not merged: pipeline.loop_closing.merge_maps is false)",
+            )
+            if not self.cfg.merge_maps:
+                merge = None
         if loop is not None:
             self._pending = None
             out.loop_kf_id, out.matches, out.scale = loop.loop_kf_id, len(loop.matches), loop.S_cw.s
-        return LoopDetection(kf, out, loop, pinned=loop is not None)
+        pinned = loop is not None or merge is not None
+        if not pinned:
+            self.pins.unpin(kf.id)
+        return LoopDetection(kf, out, loop, pinned=pinned, merge=merge)
 
     def _find_loop(self, kf: KeyFrame, out: LoopOutcome, t0: float) -> AcceptedLoop | None:
         """The accepted loop at ``kf`` (pinned), or None with ``out.reason`` saying why not."""
@@ -269,9 +338,131 @@ class LoopCloser:
     def release(self, detection: LoopDetection) -> None:
         """Unpin the keyframes of an accepted loop (done by :meth:`correct`; call it for a loop that will not be
         corrected, e.g. the run stops). Idempotent."""
-        if detection.loop is not None and detection.pinned:
-            self.pins.unpin(detection.kf.id, detection.loop.loop_kf_id)
+        if detection.pinned:
+            self.pins.unpin(detection.kf.id, *([detection.loop.loop_kf_id] if detection.loop is not None else []))
             detection.pinned = False
+
+    # ---- ORB-SLAM3 sec. III-B: map merging (local mapping parked) -------------------------------------------
+
+    def merge(self, detection: LoopDetection) -> LoopOutcome:
+        """Merge the map ``detection`` found (ORB-SLAM3 MergeLocal, slamkit/pipeline/map_merging.py) into the
+        active map; the caller keeps local mapping stopped meanwhile (ORB-SLAM3: RequestStop). Tracking goes on: it
+        waits only while the map is written (the rigid move, the import and the fusion, then the welding BA's and the
+        essential graph's results). Releases the keyframe detection pinned."""
+        merge = detection.merge
+        if merge is None:
+            raise ValueError(f"keyframe {detection.outcome.kf_id}: detection accepted no merge")
+        kf, out = detection.kf, detection.outcome
+        try:
+            self.abort_global_ba()
+            t0 = time.perf_counter()
+            self._merge(kf, merge, out)
+            out.timings_ms["merge_ms"] = (time.perf_counter() - t0) * 1e3
+            self.last_loop_kf_id = kf.id
+            self._pending = None
+            self._groups = []
+            self.merges.append(out)
+        finally:
+            self.release(detection)
+        log.info(
+            "maps merged: map %d into the active map %d (keyframe %d <-> %d, %d matches, scale %.3f), %d keyframes "
+            "imported, %.0f ms (the map locked for %.0f ms at most)",
+            merge.map_id,
+            self.atlas.active_id,
+            kf.id,
+            merge.merge_kf_id,
+            len(merge.matches),
+            merge.S_cw.s,
+            out.merge_imported_keyframes,
+            out.timings_ms.get("merge_ms", 0.0),
+            max((v for k, v in out.timings_ms.items() if k.startswith("merge_locked")), default=0.0),
+        )
+        return out
+
+    def _merge(self, kf: KeyFrame, merge: AcceptedMerge, out: LoopOutcome) -> None:
+        cfg = self.cfg
+        store = self.store
+        other = self.atlas.get(merge.map_id)  # not the active map: nobody changes it
+        n_window, tries = cfg.merge_window_keyframes, cfg.merge_window_max_tries
+        # ORB-SLAM3 MergeLocal: the windows of the two maps, before anything moves
+        merge_window = welding_window(other, merge.merge_kf_id, n_window, tries)
+        merge_points = window_points(other, merge_window)
+        contents = read_map_contents(other)
+        t_lock = time.perf_counter()
+        with store.write():
+            store.update_connections(kf.id)  # ORB-SLAM3: mpCurrentKF->UpdateConnections()
+            current_window = welding_window(store, kf.id, n_window, tries)
+            moved = frozenset(store.keyframe_ids())
+            # x_other = G x_active: the current keyframe's camera sees the same point as T_c_w x_active and S_cw x_other
+            G = merge.S_cw.inverse() @ sim3_of_pose(kf.T_c_w)
+            transform_map(store, G)
+            if self.on_merge is not None:
+                self.on_merge(MapMerge(kf.id, merge.merge_kf_id, merge.map_id, self.atlas.active_id, moved, G))
+            before_links = {k: set(store.covisibility.neighbors(k)) for k in current_window}
+            imported = import_map(store, contents, kf.id, merge.merge_kf_id, merge.matches)
+            self.atlas.absorb(merge.map_id)
+            fused = 0
+            for k in current_window:
+                if store.has_keyframe(k):
+                    fused += fuse_points(
+                        store,
+                        store.get_keyframe(k),
+                        merge_points,
+                        cfg.loop_fuse_radius_px,
+                        incoming_wins=True,
+                        max_distance=cfg.matcher.th_low,
+                        chi2_gate=cfg.chi2.fuse_mono,
+                    )
+            for k in [*current_window, *merge_window]:
+                if store.has_keyframe(k):
+                    store.update_connections(k)
+            new_links = {
+                k: set(store.covisibility.neighbors(k)) - before_links.get(k, set()) - set(current_window)
+                for k in current_window
+                if store.has_keyframe(k)
+            }
+            new_links.setdefault(kf.id, set()).add(merge.merge_kf_id)
+            store.add_loop_edge(kf.id, merge.merge_kf_id)
+            store.bump_epoch()
+            before = {k: sim3_of_pose(store.get_keyframe(k).T_c_w) for k in store.keyframe_ids() if k not in imported}
+        out.timings_ms["merge_locked_weld_ms"] = (time.perf_counter() - t_lock) * 1e3
+        out.merge_imported_keyframes = len(imported)
+        out.merge_fused = fused
+        out.merge_transform = G.matrix().tolist()
+        # the welding BA: snapshot under the read lock, optimized without it, committed under the write lock
+        t_ba = time.perf_counter()
+        with store.read():
+            snap = welding_bundle(
+                store,
+                current_window,
+                merge_window,
+                cfg.merge_ba_iterations_first,
+                cfg.merge_ba_iterations_second,
+                cfg.chi2.mono,
+                cfg.chi2.stereo,
+            )
+        if snap is not None:
+            result = run_bundle(store, self.optimizer, snap)
+            out.merge_ba_outliers = int(result.outlier.sum())
+            with store.write():
+                refresh_points(store, snap.point_ids.tolist(), normals=True, descriptors=False)
+        out.timings_ms["merge_welding_ba_ms"] = (time.perf_counter() - t_ba) * 1e3
+        if cfg.merge_essential_graph:
+            t_eg = time.perf_counter()
+            with store.read():
+                fixed = set(imported) | set(current_window) | set(merge_window)
+                problem, eg_kf_ids = merge_essential_graph_problem(store, fixed, before, new_links, cfg.theta_min)
+            if not problem.fixed.all():
+                result_eg = self.optimizer.optimize_essential_graph(problem)
+                t_write = time.perf_counter()
+                with store.write():
+                    apply_essential_graph(store, problem, result_eg, eg_kf_ids)
+                    store.bump_epoch()
+                out.timings_ms["merge_locked_essential_graph_ms"] = (time.perf_counter() - t_write) * 1e3
+                out.essential_graph_edges = int(problem.edge_i.shape[0])
+            out.timings_ms["merge_essential_graph_ms"] = (time.perf_counter() - t_eg) * 1e3
+        if cfg.global_ba:
+            self.start_global_ba(kf.id)
 
     # ---- VII-A: detection ----------------------------------------------------------------------------
 
@@ -282,22 +473,10 @@ class LoopCloser:
         assert kf.bow is not None
         cfg = self.cfg
         cov = self.store.covisibility
-        strong = cov.neighbors(kf.id, cfg.candidate_min_covisible_weight) or cov.neighbors(kf.id)
-        scores = [self.place.score(kf.bow, b) for n in strong if (b := self.store.get_keyframe(n).bow) is not None]
-        min_score = min(scores) if scores else 0.0
+        min_score = self._min_score(kf)
         # the other maps' keyframes are left out like the connected ones: a loop is searched in the active map only
-        # (ORB-SLAM3 DetectLoopCandidates: "it must be in the same map"; merging maps is a later step)
+        # (ORB-SLAM3 DetectLoopCandidates: "it must be in the same map"; the other maps' are merge candidates)
         other_maps = self.atlas.keyframes_outside_active()
-        if other_maps:
-            # ORB-SLAM3 DetectNBestCandidates: a candidate in another map is a merge candidate (reported only)
-            active = set(self.store.keyframe_ids())
-            out.merge_candidates = [
-                k
-                for k, _ in self.place.loop_candidates(kf.bow, active | {kf.id}, min_score, self.atlas.best_neighbors)
-                if k in other_maps
-            ][: cfg.n_best_candidates]
-            if out.merge_candidates:
-                log.info("keyframe %d: merge candidates %s (not acted upon)", kf.id, out.merge_candidates)
         connected = {kf.id, *cov.neighbors(kf.id)} | other_maps
         candidates = [
             k
@@ -325,6 +504,143 @@ class LoopCloser:
         if not consistent:
             out.reason = f"{len(candidates)} candidate(s), none consistent over {cfg.consistency_detections} keyframes"
         return consistent
+
+    def _min_score(self, kf: KeyFrame) -> float:
+        """VII-A's s_min: the lowest BoW score of ``kf`` against its covisible neighbours with weight >= 30 (all of
+        them when none is that strong; 0 without neighbours). Called under the read lock."""
+        assert kf.bow is not None
+        cov = self.store.covisibility
+        strong = cov.neighbors(kf.id, self.cfg.candidate_min_covisible_weight) or cov.neighbors(kf.id)
+        scores = [self.place.score(kf.bow, b) for n in strong if (b := self.store.get_keyframe(n).bow) is not None]
+        return min(scores) if scores else 0.0
+
+    # ---- ORB-SLAM3 sec. III-A: merge detection (a common region in another map of the Atlas) ---------------
+
+    def _find_merge(self, kf: KeyFrame, out: LoopOutcome) -> AcceptedMerge | None:
+        """ORB-SLAM3 NewDetectCommonRegions' merge half: a pending merge is checked in ``kf`` first (accepted after
+        ``verify_coincidences`` agreeing keyframes); else, once the active map has more than
+        ``min_keyframes_between_loops`` keyframes, the best ``n_best_candidates`` place-recognition candidates in
+        other maps (DetectNBestCandidates) each give a common-region hypothesis (``_common_region`` in the
+        candidate's map), and the one with the most refined matches is verified in the current keyframe's covisible
+        keyframes (``_verify``). Records in ``out.merge_candidates`` / ``merge_tried`` / ``merge_pending``."""
+        assert kf.bow is not None
+        cfg = self.cfg
+        if not cfg.enabled:
+            return None
+        with self.store.read():
+            if self._pending_merge is not None:
+                merge = self._check_pending_merge(kf, out)
+                if merge is not None or (self._pending_merge is not None and self._pending_merge[1].misses == 0):
+                    return merge  # accepted, or confirmed by this keyframe: more keyframes must agree
+            if self.store.n_keyframes() <= cfg.min_keyframes_between_loops:
+                return None  # ORB-SLAM3 NewDetectCommonRegions: no detection in a map of fewer than 12 keyframes
+            other_maps = self.atlas.keyframes_outside_active()
+            if not other_maps:
+                return None
+            active = set(self.store.keyframe_ids()) | {kf.id}
+            ranked = self.place.loop_candidates(kf.bow, active, self._min_score(kf), self.atlas.best_neighbors)
+            out.merge_candidates = [k for k, _ in ranked if k in other_maps][: cfg.n_best_candidates]
+        best: tuple[_Hypothesis, int] | None = None
+        for cand_id in out.merge_candidates:
+            map_id = self.atlas.map_of(cand_id)
+            info: dict[str, object] = {"candidate": cand_id, "map": map_id}
+            out.merge_tried.append(info)
+            if map_id is None or map_id == self.atlas.active_id:
+                info["rejected"] = "no longer in another map"
+                continue
+            hyp = self._common_region(kf, cand_id, info, self.atlas.get(map_id))
+            if hyp is not None and (best is None or len(hyp.matches) > len(best[0].matches)):
+                best = (hyp, map_id)
+        if best is None:
+            return None
+        hyp, map_id = best
+        for info in out.merge_tried:
+            if info is not hyp.info and "rejected" not in info:
+                info["rejected"] = "another candidate has more refined matches (ORB-SLAM3: best of the candidates)"
+        with self.store.read():
+            if not self.store.has_keyframe(kf.id):
+                hyp.info["rejected"] = "culled before the verification"
+                return None
+            return self._verify_merge(kf, map_id, hyp)
+
+    def _verify_merge(self, kf: KeyFrame, map_id: int, hyp: _Hypothesis) -> AcceptedMerge | None:
+        """The verification of a merge hypothesis (as a loop's in ``_verify``, without the rotation bound): accepted,
+        pending (``self._pending_merge``) or rejected. Called under the read lock."""
+        cfg = self.cfg
+        merge_store = self.atlas.get(map_id)
+        own, _ = check_keyframe(merge_store, kf, hyp.S_cw, hyp.window, self._thresholds)
+        checks: list[KeyframeCheck] = [own]
+        if own.agrees:
+            checks += check_covisibles(
+                self.store,
+                kf,
+                hyp.S_cw,
+                hyp.window,
+                self._thresholds,
+                cfg.verify_covisible_keyframes,
+                cfg.verify_coincidences,
+                window_store=merge_store,
+            )
+        agreeing = sum(c.agrees for c in checks[1:])
+        hyp.info["verification"] = [c.as_dict() for c in checks]
+        hyp.info["agreeing"] = agreeing
+        if not own.agrees:
+            hyp.info["rejected"] = f"verification: the current keyframe disagrees ({own.why})"
+            return None
+        if agreeing >= cfg.verify_coincidences:
+            return AcceptedMerge(hyp.matched_kf_id, map_id, hyp.S_cw, hyp.matches)
+        if agreeing == 0:
+            hyp.info["rejected"] = "verification: no covisible keyframe agrees"
+            return None
+        pending = PendingLoop(hyp.matched_kf_id, kf.id, kf.T_c_w.copy(), hyp.S_cw, hyp.window, agreeing, 0, hyp.matches)
+        self._pending_merge = (map_id, pending)
+        hyp.info["rejected"] = (
+            f"verification: {agreeing} of {cfg.verify_coincidences} keyframes agree; pending for the next keyframes"
+        )
+        return None
+
+    def _check_pending_merge(self, kf: KeyFrame, out: LoopOutcome) -> AcceptedMerge | None:
+        """A pending merge checked in a new keyframe, as a pending loop (``_check_pending``; ORB-SLAM3
+        mnMergeNumCoincidences / mnMergeNumNotFound). Called under the read lock."""
+        assert self._pending_merge is not None
+        map_id, pending = self._pending_merge
+        if map_id not in self.atlas.map_ids() or map_id == self.atlas.active_id:
+            self._pending_merge = None
+            out.merge_pending = {"merge_kf": pending.loop_kf_id, "state": "dropped", "why": "the map is gone"}
+            return None
+        merge_store = self.atlas.get(map_id)
+        if not merge_store.has_keyframe(pending.loop_kf_id):
+            self._pending_merge = None
+            out.merge_pending = {"merge_kf": pending.loop_kf_id, "state": "dropped", "why": "merge keyframe gone"}
+            return None
+        cfg = self.cfg
+
+        def refine(k: KeyFrame, S_k_w: Sim3, proj: WindowProjection) -> str:
+            return self._refine_hypothesis(k, merge_store, pending.loop_kf_id, S_k_w, proj)
+
+        step = advance_pending(
+            self.store,
+            pending,
+            kf,
+            self._thresholds,
+            cfg.verify_coincidences,
+            cfg.verify_max_misses,
+            refine,
+            window_store=merge_store,
+        )
+        out.merge_pending = {
+            "merge_kf": pending.loop_kf_id,
+            "map": map_id,
+            "state": step.state,
+            "check": step.check.as_dict(),
+            "coincidences": pending.coincidences,
+            "misses": pending.misses,
+        }
+        if step.state == "dropped":
+            self._pending_merge = None
+        if step.state == "accepted":
+            return AcceptedMerge(pending.loop_kf_id, map_id, step.S_k_w, step.matches)
+        return None
 
     # ---- VII-B: Sim3 -----------------------------------------------------------------------------------
 
@@ -472,8 +788,12 @@ class LoopCloser:
                 return None
             return self._verify(kf, best.matched_kf_id, best.S_cw, best.window, best.matches, best.info)
 
-    def _common_region(self, kf: KeyFrame, cand_id: int, info: dict[str, object]) -> _Hypothesis | None:
+    def _common_region(
+        self, kf: KeyFrame, cand_id: int, info: dict[str, object], cand_store: MapStore | None = None
+    ) -> _Hypothesis | None:
         """One BoW candidate of ORB-SLAM3's DetectCommonRegionsFromBoW; None with ``info["rejected"]`` saying why.
+        cand_store: the map holding the candidate (None: the active map, a loop; another map of the Atlas: a merge,
+        whose candidate side nobody changes, so it is read without its lock).
 
         1. The candidate and its ``candidate_covisibles`` best covisible keyframes: abort when one of them is
            connected to the current keyframe (bAbortByNearKF); else match each by BoW (ratio ``bow_ratio``) and
@@ -489,12 +809,13 @@ class LoopCloser:
            least ``common_regions_min_refined``: the hypothesis and its matches."""
         cfg = self.cfg
         store = self.store
+        cs = store if cand_store is None else cand_store  # the candidate's side
         assert kf.bow is not None
         with store.read():
-            if not store.has_keyframe(cand_id) or not store.has_keyframe(kf.id):
+            if not cs.has_keyframe(cand_id) or not store.has_keyframe(kf.id):
                 info["rejected"] = "culled"
                 return None
-            group = common_region_keyframes(store, cand_id, cfg.candidate_covisibles)
+            group = common_region_keyframes(cs, cand_id, cfg.candidate_covisibles)
             current_side = {kf.id, *store.covisibility.neighbors(kf.id)}
             near = [k for k in group if k in current_side]
             if near:
@@ -505,7 +826,7 @@ class LoopCloser:
             used: set[int] = set()
             counts: list[int] = []
             for j in group:
-                kf_j = store.get_keyframe(j)
+                kf_j = cs.get_keyframe(j)
                 if kf_j.bow is None:
                     counts.append(0)
                     continue
@@ -516,7 +837,7 @@ class LoopCloser:
                     kf_j.bow,
                     cfg.bow_ratio,
                     own_valid,
-                    store.has_points(kf_j.point_ids),
+                    cs.has_points(kf_j.point_ids),
                     max_distance=cfg.matcher.th_low,
                     rotation_bins=cfg.matcher.rotation_bins,
                 )
@@ -532,15 +853,15 @@ class LoopCloser:
                 info["rejected"] = f"{len(pooled)} pooled BoW matches < {cfg.sim3_min_bow_matches}"
                 return None
             matched_id = group[int(np.argmax(counts))]
-            matched = store.get_keyframe(matched_id)
+            matched = cs.get_keyframe(matched_id)
             require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
             require_pinhole_image(matched.camera, "loop closing (Sim3 RANSAC and optimization)")
             i1 = np.array(sorted(pooled), dtype=np.int64)
             xyz1 = self._points_c(kf, i1)
             T_m_w = matched.T_c_w.copy()
-            xyz2 = np.stack([store.get_point(pooled[int(f)][0]).xyz_w for f in i1]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
+            xyz2 = np.stack([cs.get_point(pooled[int(f)][0]).xyz_w for f in i1]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
             level2 = np.array(
-                [store.get_keyframe(pooled[int(f)][1]).features.level[pooled[int(f)][2]] for f in i1], dtype=np.int64
+                [cs.get_keyframe(pooled[int(f)][1]).features.level[pooled[int(f)][2]] for f in i1], dtype=np.int64
             )
         info["matched_kf"] = matched_id
         front = xyz2[:, 2] > 1e-9
@@ -571,17 +892,17 @@ class LoopCloser:
             return None
         loose = int(cfg.matcher.th_low * cfg.common_regions_hamming_ratio)
         with store.read():
-            if not store.has_keyframe(matched_id) or not store.has_keyframe(kf.id):
+            if not cs.has_keyframe(matched_id) or not store.has_keyframe(kf.id):
                 info["rejected"] = "culled during the Sim3 RANSAC"
                 return None
-            window = points_of(store, common_region_keyframes(store, matched_id, cfg.candidate_covisibles))
+            window = points_of(cs, common_region_keyframes(cs, matched_id, cfg.candidate_covisibles))
             S_cw = ransac.S_12 @ sim3_of_pose(T_m_w)
-            guided = project_window(store, kf, S_cw, window, cfg.common_regions_search_radius_px, loose)
+            guided = project_window(cs, kf, S_cw, window, cfg.common_regions_search_radius_px, loose)
             info["projected_matches"] = len(guided.matches)
             if len(guided.matches) < cfg.common_regions_min_projected:
                 info["rejected"] = f"{len(guided.matches)} projected matches < {cfg.common_regions_min_projected}"
                 return None
-            problem = self._sim3_problem(kf, matched, matched_id, ransac.S_12, guided.matches)
+            problem = self._sim3_problem(kf, matched, matched_id, ransac.S_12, guided.matches, cs)
         if problem is None:
             info["rejected"] = "no projected match has a point in the current keyframe"
             return None
@@ -592,29 +913,36 @@ class LoopCloser:
             return None
         S_cm = Sim3.from_matrix(opt.S_12)
         with store.read():
-            if not store.has_keyframe(matched_id) or not store.has_keyframe(kf.id):
+            if not cs.has_keyframe(matched_id) or not store.has_keyframe(kf.id):
                 info["rejected"] = "culled during the Sim3 optimization"
                 return None
             S_cw = S_cm @ sim3_of_pose(T_m_w)
             refined = project_window(
-                store, kf, S_cw, window, cfg.common_regions_refined_radius_px, cfg.matcher.th_low
+                cs, kf, S_cw, window, cfg.common_regions_refined_radius_px, cfg.matcher.th_low
             ).matches
             info["loop_matches"] = len(refined)
             info["scale"] = S_cm.s
             if len(refined) < cfg.common_regions_min_refined:
                 info["rejected"] = f"{len(refined)} refined matches < {cfg.common_regions_min_refined}"
                 return None
-            verify_window = verification_window(store, matched_id, cfg.candidate_covisibles, kf.id)
+            verify_window = verification_window(cs, matched_id, cfg.candidate_covisibles, kf.id)
         return _Hypothesis(matched_id, S_cw, refined, verify_window, info)
 
     def _sim3_problem(
-        self, kf: KeyFrame, matched: KeyFrame, matched_id: int, S_cm: Sim3, matches: dict[int, int]
+        self,
+        kf: KeyFrame,
+        matched: KeyFrame,
+        matched_id: int,
+        S_cm: Sim3,
+        matches: dict[int, int],
+        matched_store: MapStore | None = None,
     ) -> Sim3Problem | None:
         """ORB-SLAM3 OptimizeSim3(..., bAllPoints = true) on guided matches (current feature -> window point): a
         match counts when the current feature has a live point; its observation in the matched keyframe is the
         keypoint there if the matched keyframe sees the point, else the point's projection (at the current
-        feature's level). Called under the read lock."""
+        feature's level). matched_store: the map of ``matched`` (None: the active map). Called under the read lock."""
         store = self.store
+        ms = store if matched_store is None else matched_store
         rows = [
             (f, int(kf.point_ids[f]), pid)
             for f, pid in sorted(matches.items())
@@ -625,12 +953,12 @@ class LoopCloser:
         feats = np.array([r[0] for r in rows], dtype=np.int64)
         T_c_w, T_m_w = kf.T_c_w, matched.T_c_w
         xyz1 = np.stack([store.get_point(r[1]).xyz_w for r in rows]) @ T_c_w[:3, :3].T + T_c_w[:3, 3]
-        xyz2 = np.stack([store.get_point(r[2]).xyz_w for r in rows]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
+        xyz2 = np.stack([ms.get_point(r[2]).xyz_w for r in rows]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
         uv2 = _pinhole(matched.camera.K, xyz2)
         level1 = kf.features.level[feats].astype(np.int64)
         level2 = level1.copy()
         for n, (_, _, pid) in enumerate(rows):
-            g = store.get_point(pid).observations.get(matched_id)
+            g = ms.get_point(pid).observations.get(matched_id)
             if g is not None:
                 uv2[n] = matched.features.uv_undist_px[g]
                 level2[n] = int(matched.features.level[g])
@@ -733,14 +1061,22 @@ class LoopCloser:
         ``confirm_min_optimized`` inliers, and the projection at least ``confirm_min_matches`` matches (ORB-SLAM3
         re-projects with the same estimate, so this is the projection's count). Why it fails, "" if it agrees.
         Called under the read lock."""
-        cfg = self.cfg
         pending = self._pending
         assert pending is not None
+        return self._refine_hypothesis(kf, self.store, pending.loop_kf_id, S_k_w, proj)
+
+    def _refine_hypothesis(
+        self, kf: KeyFrame, matched_store: MapStore, matched_id: int, S_k_w: Sim3, proj: WindowProjection
+    ) -> str:
+        """DetectAndReffineSim3FromLastKF's checks of a hypothesis S_k_w between ``kf`` and the keyframe
+        ``matched_id`` of ``matched_store`` (the active map for a loop, another map for a merge) on the projection's
+        matches ``proj``: why it fails, "" if it agrees. Called under the read lock."""
+        cfg = self.cfg
         if len(proj.matches) < cfg.confirm_min_matches:
             return f"{len(proj.matches)} matches < {cfg.confirm_min_matches}"
-        matched = self.store.get_keyframe(pending.loop_kf_id)
+        matched = matched_store.get_keyframe(matched_id)
         S_km = S_k_w @ sim3_of_pose(matched.T_c_w).inverse()
-        problem = self._sim3_problem(kf, matched, pending.loop_kf_id, S_km, proj.matches)
+        problem = self._sim3_problem(kf, matched, matched_id, S_km, proj.matches, matched_store)
         inliers = 0 if problem is None else int(self.optimizer.optimize_sim3(problem).inliers.sum())
         if inliers <= cfg.confirm_min_optimized:
             return f"{inliers} inliers after Sim3 optimization <= {cfg.confirm_min_optimized}"

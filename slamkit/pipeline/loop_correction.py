@@ -8,6 +8,7 @@ back from a Sim3 as [R, t / s] (scale is absorbed by the map, as in ORB-SLAM).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,24 +105,45 @@ def essential_graph_problem(
     poses, the other edges from the poses before correction; initial values are the corrected poses.
     """
     kf_ids = store.keyframe_ids()
+    initial = {k: corr.corrected.get(k, sim3_of_pose(store.get_keyframe(k).T_c_w)) for k in kf_ids}
+    cov = store.covisibility
+    links = [
+        (i, j)
+        for i, linked in sorted(loop_connections.items())
+        for j in sorted(linked)
+        if (i, j) == (current_id, loop_kf_id) or cov.weight(i, j) >= theta_min
+    ]
+    return essential_graph_over(store, initial, corr.non_corrected, {loop_kf_id}, links, theta_min)
+
+
+def essential_graph_over(
+    store: MapStore,
+    initial: Mapping[int, Sim3],
+    before: Mapping[int, Sim3],
+    fixed: set[int],
+    new_links: list[tuple[int, int]],
+    theta_min: int,
+) -> tuple[EssentialGraphProblem, list[int]]:
+    """The essential-graph problem (ORB-SLAM OptimizeEssentialGraph) over every keyframe of the map, ``initial``
+    their Sim3 poses (keyframe id -> S_c_w; every keyframe of the map), ``fixed`` the ones held.
+
+    Edges: ``new_links`` (a loop's or a merge's new connections) measured from the ``initial`` poses, then the
+    essential graph of the map (slamkit.map.graphs.essential_graph_edges: spanning tree, loop edges, covisibility
+    edges with at least theta_min shared points) measured from the poses ``before`` the correction where given, else
+    from ``initial``; an edge is inserted once, first wins."""
+    kf_ids = store.keyframe_ids()
     row = {k: i for i, k in enumerate(kf_ids)}
-    initial = [corr.corrected.get(k, sim3_of_pose(store.get_keyframe(k).T_c_w)) for k in kf_ids]
-    measured = [corr.non_corrected.get(k, initial[row[k]]) for k in kf_ids]
-    # edge -> its measurement source: loop connections are measured from the corrected poses, every other edge
-    # from the poses before correction (ORB-SLAM OptimizeEssentialGraph); an edge is inserted once, first wins
+    init = [initial[k] for k in kf_ids]
+    measured = [before.get(k, init[row[k]]) for k in kf_ids]
     edges: dict[tuple[int, int], list[Sim3]] = {}
 
     def add(i: int, j: int, source: list[Sim3]) -> None:
         if i != j and i in row and j in row:
             edges.setdefault((min(i, j), max(i, j)), source)
 
-    cov = store.covisibility
-    for i, linked in sorted(loop_connections.items()):
-        for j in sorted(linked):
-            if (i, j) != (current_id, loop_kf_id) and cov.weight(i, j) < theta_min:
-                continue
-            add(i, j, initial)
-    for a, b in essential_graph_edges(cov, store.spanning_tree, store.loop_edges(), theta_min):
+    for i, j in new_links:
+        add(i, j, init)
+    for a, b in essential_graph_edges(store.covisibility, store.spanning_tree, store.loop_edges(), theta_min):
         add(a, b, measured)
     pairs = sorted(edges)
     S_ij = (
@@ -130,8 +152,8 @@ def essential_graph_problem(
         else np.zeros((0, 4, 4))
     )
     problem = EssentialGraphProblem(
-        S_c_w=np.stack([s.matrix() for s in initial]),
-        fixed=np.array([k == loop_kf_id for k in kf_ids]),
+        S_c_w=np.stack([s.matrix() for s in init]),
+        fixed=np.array([k in fixed for k in kf_ids]),
         edge_i=np.array([row[i] for i, _ in pairs], np.int64),
         edge_j=np.array([row[j] for _, j in pairs], np.int64),
         S_ij=S_ij,

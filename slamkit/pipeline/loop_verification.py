@@ -271,9 +271,11 @@ def check_covisibles(
     th: VerificationThresholds,
     n_covisibles: int,
     needed: int,
+    window_store: MapStore | None = None,
 ) -> list[KeyframeCheck]:
     """ORB-SLAM3's check of a new hypothesis with the current keyframe's best ``n_covisibles`` covisible
-    keyframes, each with S_j_w = T_j_c S_c_w; stops once ``needed`` agree."""
+    keyframes, each with S_j_w = T_j_c S_c_w; stops once ``needed`` agree. ``store`` holds ``kf`` and its covisible
+    keyframes, ``window_store`` the window's points (None: ``store``; another map of the Atlas for a merge)."""
     T_w_c = np.linalg.inv(kf.T_c_w)
     checks: list[KeyframeCheck] = []
     neighbors = store.covisibility.best_neighbors(kf.id, n_covisibles) if kf.id in store.covisibility else []
@@ -284,7 +286,7 @@ def check_covisibles(
             continue
         kf_j = store.get_keyframe(j)
         S_j_w = Sim3.from_se3(kf_j.T_c_w @ T_w_c) @ S_c_w
-        checks.append(check_keyframe(store, kf_j, S_j_w, window, th)[0])
+        checks.append(check_keyframe(store if window_store is None else window_store, kf_j, S_j_w, window, th)[0])
     return checks
 
 
@@ -308,14 +310,17 @@ def advance_pending(
     coincidences_needed: int,
     max_misses: int,
     refine: Callable[[KeyFrame, Sim3, WindowProjection], str] | None = None,
+    window_store: MapStore | None = None,
 ) -> PendingStep:
     """ORB-SLAM3's confirmation of a pending loop by the next keyframe (NewDetectCommonRegions with
     mnLoopNumCoincidences > 0): carry the hypothesis to ``kf`` with the tracked motion and check it there.
     refine: ORB-SLAM3 DetectAndReffineSim3FromLastKF's further checks on a keyframe that passed the projection
     (the Sim3 re-optimised, more matches), returning why it fails ("" = it agrees); None: the projection only.
-    Updates ``pending`` in place (coincidences, misses, last agreeing keyframe)."""
+    ``store`` holds ``kf`` and the last agreeing keyframe, ``window_store`` the window's points (None: ``store``;
+    another map of the Atlas for a pending merge). Updates ``pending`` in place (coincidences, misses, last agreeing
+    keyframe)."""
     S_k_w = pending.predict(store, kf)
-    check, proj = check_keyframe(store, kf, S_k_w, pending.window, th)
+    check, proj = check_keyframe(store if window_store is None else window_store, kf, S_k_w, pending.window, th)
     if check.agrees and refine is not None:
         why = refine(kf, S_k_w, proj)
         if why:

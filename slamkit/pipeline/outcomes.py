@@ -134,7 +134,11 @@ class LoopOutcome:
     "agreed", "accepted", "missed" or "dropped". loop_kf_id: the loop keyframe of an accepted loop (its correction
     follows: ``LoopCloser.correct``). merge_candidates: place-recognition candidates in other maps of the Atlas
     (ORB-SLAM3 DetectNBestCandidates' merge candidates: the same machinery, a match in another map is a merge
-    candidate), reported but not acted upon yet (map merging is a later step).
+    candidate); merge_tried / merge_pending: their verification, recorded as ``tried`` / ``pending`` (each record also
+    names the candidate's ``map``); merge_kf_id / merge_map_id / merge_matches / merge_scale: an accepted merge (the
+    matched keyframe, its map, the refined matches, the Sim3's scale), merged by ``LoopCloser.merge``; after the merge
+    merge_imported_keyframes / merge_fused / merge_ba_outliers its counts and merge_transform the (4, 4) similarity
+    x_new = G x_old that moved the active map into the matched map's frame (None: no merge done).
     """
 
     kf_id: int
@@ -142,6 +146,16 @@ class LoopOutcome:
     consistent: list[int] = field(default_factory=list)
     tried: list[dict[str, object]] = field(default_factory=list)
     merge_candidates: list[int] = field(default_factory=list)
+    merge_tried: list[dict[str, object]] = field(default_factory=list)
+    merge_pending: dict[str, object] | None = None
+    merge_kf_id: int | None = None
+    merge_map_id: int | None = None
+    merge_matches: int = 0
+    merge_scale: float = 1.0
+    merge_imported_keyframes: int = 0
+    merge_fused: int = 0
+    merge_ba_outliers: int = 0
+    merge_transform: list[list[float]] | None = None
     pending: dict[str, object] | None = None
     loop_kf_id: int | None = None
     matches: int = 0

@@ -3,8 +3,8 @@ keyframe, so the final trajectory follows every later correction of the keyframe
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,6 +49,41 @@ class TrajectoryRecorder:
 
     def on_culled(self, culled: CulledKeyFrame) -> None:
         self._culled[culled.kf_id] = culled
+
+    def _live(self, kf_id: int) -> int:
+        """The keyframe a record's reference resolves to: ``kf_id`` itself, or the first keyframe up its culled
+        parents that was not culled."""
+        for _ in range(10_000):
+            culled = self._culled.get(kf_id)
+            if culled is None or culled.parent_id is None:
+                return kf_id
+            kf_id = culled.parent_id
+        return kf_id
+
+    def rescale(self, moved_kf_ids: Collection[int] | None, scale: float) -> None:
+        """A map merge moved the keyframes ``moved_kf_ids`` (None: every keyframe recorded here) by a similarity of
+        scale ``scale`` (slamkit/pipeline/map_merging.py): the frames recorded relative to them (directly or through
+        culled keyframes) and those culled keyframes' poses relative to their parents get their translations scaled,
+        so they stay where they were relative to the moved keyframes (a rigid move leaves relative poses as they
+        are; its scale does not)."""
+        if scale == 1.0:
+            return
+        for i in range(len(self._records)):  # tracking may append meanwhile (threaded runner): by index
+            rec = self._records[i]
+            if moved_kf_ids is None or self._live(rec.ref_kf_id) in moved_kf_ids:
+                T = rec.T_c_r.copy()
+                T[:3, 3] *= scale
+                self._records[i] = replace(rec, T_c_r=T)
+        for kf_id, culled in list(self._culled.items()):
+            if moved_kf_ids is None or self._live(kf_id) in moved_kf_ids:
+                T = culled.T_kf_parent.copy()
+                T[:3, 3] *= scale
+                self._culled[kf_id] = replace(culled, T_kf_parent=T)
+
+    def absorb(self, other: TrajectoryRecorder) -> None:
+        """Take over another recorder's frames and culled keyframes (its map was merged into this one's)."""
+        self._records.extend(other._records)
+        self._culled.update(other._culled)
 
     def _keyframe_pose(self, keyframe_poses: Mapping[int, F64], kf_id: int, depth: int = 0) -> F64 | None:
         """Current T_c_w of a keyframe, following culled keyframes to their parents."""

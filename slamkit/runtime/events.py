@@ -43,6 +43,7 @@ from slamkit.events import (
     LoopChecked,
     LoopClosed,
     MapCreated,
+    MapsMerged,
     MapSnapshot,
     PointsCulled,
     RunFinished,
@@ -354,6 +355,16 @@ class RunEvents:
                     essential_graph_edges=outcome.essential_graph_edges,
                     timings_ms=dict(outcome.timings_ms),
                 ),
+            )
+
+    def maps_merged(
+        self, kf_id: int, matched_kf_id: int, merged_map_id: int, into_map_id: int, T_new_old: np.ndarray
+    ) -> None:
+        """Loop closing merged the map ``merged_map_id`` into the active map (fired as the active map moves)."""
+        if self.dispatcher.wants("slamkit_maps_merged"):
+            self.dispatcher.emit(
+                "slamkit_maps_merged",
+                MapsMerged(self.run_id, merged_map_id, into_map_id, kf_id, matched_kf_id, T_new_old.copy()),
             )
 
     def finished(self, run: RunLog, exc: BaseException | None) -> None:

@@ -13,10 +13,12 @@ from typing import Any
 from tqdm import tqdm
 
 from slamkit.errors import ConfigError
+from slamkit.geometry.sim3 import Sim3
 from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.map.atlas import Atlas, MapChange
 from slamkit.pipeline.local_mapping import LocalMapper
-from slamkit.pipeline.loop_closing import LoopCloser
+from slamkit.pipeline.loop_closing import LoopCloser, MapMerge
+from slamkit.pipeline.loop_correction import pose_of_sim3, sim3_of_pose
 from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.outcomes import MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.tracking import Tracker
@@ -58,6 +60,19 @@ class SequentialRunner:
         self._run_events = RunEvents(None, "sequential", atlas)
         self._first_t: float | None = None  # timestamp of the run's first frame, s
         self._start = time.perf_counter()  # wall clock at the run's start (perf_counter), s
+        self._merge_G: Sim3 | None = None  # the last merge's move of the active map (x_new = G x_old)
+        if loop_closer is not None:
+            loop_closer.on_merge = self._on_merge
+
+    def _on_merge(self, merge: MapMerge) -> None:
+        """Loop closing moves the active map into another map's frame to merge them: the frames recorded relative to
+        the moved keyframes follow the move's scale; slamkit_maps_merged fires."""
+        self.recorder.rescale(merge.moved_kf_ids, merge.G.s)
+        self._merge_G = merge.G
+        self.log.maps_merged += 1
+        self._run_events.maps_merged(
+            merge.kf_id, merge.matched_kf_id, merge.merged_map_id, merge.into_map_id, merge.G.matrix()
+        )
 
     @property
     def store(self) -> MapStore:
@@ -153,6 +168,7 @@ class SequentialRunner:
         map_was_reset = map_change == MapChange.RESET
         log_tracking_outcome(self.log, self.recorder, out, map_change)
         self._run_events.map_events(out)
+        merges_before = self.log.maps_merged
         for kf in out.new_keyframes:
             if self.mapper is None:
                 raise RuntimeError(f"frame {out.frame_index}: a keyframe was made in a run without local mapping")
@@ -164,6 +180,10 @@ class SequentialRunner:
             if self.loop_closer is not None and self.store.has_keyframe(kf.id):
                 self.log.loops.append(self.loop_closer.step(kf))
                 self._run_events.loop_checked(self.log.loops[-1])
+        if self.log.maps_merged != merges_before and out.T_c_w is not None and self._merge_G is not None:
+            # a merge moved the map after this frame was tracked: its pose moves with the map (recorded below
+            # against its reference keyframe as it is now)
+            out.T_c_w = pose_of_sim3(sim3_of_pose(out.T_c_w) @ self._merge_G.inverse())
         ref, T_ref_w = None, None
         if out.state == TrackingState.OK and out.T_c_w is not None:
             ref = out.reference_kf_id

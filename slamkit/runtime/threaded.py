@@ -49,7 +49,7 @@ from slamkit.interfaces import Camera, Dataset, MapStore
 from slamkit.map.atlas import Atlas, MapChange
 from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.local_mapping import LocalMapper
-from slamkit.pipeline.loop_closing import LoopCloser
+from slamkit.pipeline.loop_closing import LoopCloser, MapMerge
 from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.tracking import Tracker
@@ -182,18 +182,34 @@ class ThreadedRunner:
         assert self.loop_closer is not None
         detection = self.loop_closer.detect(kf)  # culled meanwhile: the outcome says so
         outcome = detection.outcome
-        if detection.loop is not None:
+        if detection.loop is not None or detection.merge is not None:
             # a global BA still running from the last loop stops first (ORB-SLAM2 CorrectLoop: mbStopGBA); it may
             # be waiting to park local mapping itself, so not while local mapping is parked here
             self.loop_closer.abort_global_ba()
             try:
+                # a merge parks local mapping as a loop correction does (ORB-SLAM3 MergeLocal: RequestStop);
+                # tracking goes on, waiting only while the merge writes the map
                 with self._parked(self._mapping, finish_queue=True):
                     self.mapping_parks_for_loops += 1
-                    outcome = self.loop_closer.correct(detection)
+                    if detection.merge is not None:
+                        outcome = self.loop_closer.merge(detection)
+                    else:
+                        outcome = self.loop_closer.correct(detection)
             finally:
                 self.loop_closer.release(detection)
         self.log.loops.append(outcome)
         self._run_events.loop_checked(outcome)
+
+    def _on_merge(self, merge: MapMerge) -> None:
+        """Loop closing (its thread, the active map's write lock held) moves the active map into another map's frame
+        to merge them: the frames recorded relative to the moved keyframes follow the move's scale (a frame tracking
+        records meanwhile was tracked before the lock or after the move: at most that one is off);
+        slamkit_maps_merged is queued."""
+        self.recorder.rescale(merge.moved_kf_ids, merge.G.s)
+        self.log.maps_merged += 1
+        self._run_events.maps_merged(
+            merge.kf_id, merge.matched_kf_id, merge.merged_map_id, merge.into_map_id, merge.G.matrix()
+        )
 
     @contextlib.contextmanager
     def _parked(self, *workers: PipelineWorker[KeyFrame] | None, finish_queue: bool = False) -> Iterator[None]:
@@ -437,6 +453,7 @@ class ThreadedRunner:
             self._closing = PipelineWorker("loop-closing", self._close_loops, self._on_fault, nice)
             # the global BA after a loop runs in its own thread, parking local mapping to write its result
             self.loop_closer.park_mapping = lambda: self._parked(self._mapping, finish_queue=True)
+            self.loop_closer.on_merge = self._on_merge
         self._lower_optimizer_process_priority()
         return [w for w in (self._mapping, self._closing) if w is not None]
 

@@ -346,3 +346,131 @@ def test_a_candidate_whose_group_is_connected_to_the_current_keyframe_is_aborted
     assert closer._common_region(store.get_keyframe(current), cand, info) is None
     assert "connected to the current keyframe" in str(info["rejected"])
     assert "bow_matches" not in info  # aborted before any matching
+
+
+# ---- ORB-SLAM3 sec. III-A: merge detection (a common region in another map of the Atlas) -----------------------
+
+
+def two_map_closer(world: World, drift: np.ndarray, n_keyframes: int = 12) -> tuple[LoopCloser, Atlas, list[int]]:
+    """The world's map (place A) kept as map 0 of an Atlas; an active map 1 whose world is ``drift`` @ the true
+    world holds ``n_keyframes`` keyframes revisiting place A (more than ORB-SLAM3's 12-keyframe minimum before any
+    detection). Every keyframe of map 0 is in the keyframe database, as a run leaves them."""
+    atlas = Atlas(lambda ids: InMemoryMapStore(ids=ids), None, first=world.store)
+    closer = loop_closer(world)
+    closer.atlas = atlas
+    for k in world.store.keyframe_ids():
+        bow = world.store.get_keyframe(k).bow
+        assert bow is not None
+        closer.place.add(k, bow)
+    assert atlas.create_map() == 1
+    world.store = atlas.active
+    xs = np.linspace(-0.2, 0.3, n_keyframes)
+    ids = world.add_group([pose_at(float(x), 0.3) for x in xs], world.xyz_a, world.desc_a, drift)
+    for k in ids:
+        kf = atlas.active.get_keyframe(k)
+        atlas.active.set_keyframe_bow(k, closer.place.transform(kf.features.descriptors))
+    return closer, atlas, ids
+
+
+def test_a_revisit_of_another_maps_place_is_a_merge_with_the_maps_relative_pose(world: World) -> None:
+    """The active map's world is turned by 90 degrees and moved from map 0's (two maps' frames are unrelated: no
+    rotation bound applies): the merge candidates come from map 0 only, the common region is found there and three
+    covisible keyframes of the active map agree, so the merge is accepted with S_cw the current keyframe's true pose
+    in map 0's world; loop detection in the active map finds nothing."""
+    drift = np.eye(4)
+    drift[:3, :3] = so3_exp(np.array([0.0, 0.0, np.radians(90.0)]))
+    drift[:3, 3] = [3.0, -1.0, 0.5]
+    closer, atlas, ids = two_map_closer(world, drift)
+    current = atlas.active.get_keyframe(ids[-1])
+    detection = closer.detect(current)
+    out = detection.outcome
+    assert out.merge_candidates and {atlas.map_of(k) for k in out.merge_candidates} == {0}
+    merge = detection.merge
+    assert merge is not None, out.merge_tried
+    assert merge.map_id == 0 and merge.merge_kf_id in world.loop_ids
+    assert out.merge_kf_id == merge.merge_kf_id and out.merge_map_id == 0 and out.merge_matches == len(merge.matches)
+    assert np.allclose(merge.S_cw.to_se3(), pose_at(0.3, 0.3), atol=1e-3)
+    assert abs(merge.S_cw.s - 1.0) < 1e-3
+    assert len(merge.matches) >= 0.95 * (N_WALL + N_OTHER)
+    tried = out.merge_tried[[t["candidate"] for t in out.merge_tried].index(merge.merge_kf_id)]
+    assert tried["map"] == 0 and tried["agreeing"] == 3
+    assert detection.loop is None and out.loop_kf_id is None
+
+
+def test_no_merge_is_searched_in_an_active_map_of_too_few_keyframes(world: World) -> None:
+    """ORB-SLAM3 NewDetectCommonRegions: no common region is searched while the active map is small."""
+    closer, atlas, ids = two_map_closer(world, translation(np.array([1.0, 0.0, 0.0])), n_keyframes=10)
+    detection = closer.detect(atlas.active.get_keyframe(ids[-1]))
+    assert detection.merge is None and detection.outcome.merge_candidates == []
+
+
+def test_a_merge_a_single_covisible_confirms_waits_for_the_next_keyframes(world: World) -> None:
+    """One agreeing covisible keyframe keeps the merge pending (ORB-SLAM3 mnMergeNumCoincidences); the next
+    keyframes of the active map confirm it with the tracked motion, and the third agreeing keyframe accepts it."""
+    closer, atlas, ids = two_map_closer(world, translation(np.array([0.5, -0.4, 0.3])))
+    store = atlas.active
+    first = store.get_keyframe(ids[0])
+    window = loop_window(atlas.get(0), world.loop_ids[0])
+    closer._pending_merge = (
+        0,
+        PendingLoop(world.loop_ids[0], first.id, first.T_c_w.copy(), Sim3.from_se3(pose_at(-0.2, 0.3)), window, 1),
+    )
+    second = closer.detect(store.get_keyframe(ids[1]))
+    assert second.merge is None
+    assert second.outcome.merge_pending is not None and second.outcome.merge_pending["state"] == "agreed"
+    third = closer.detect(store.get_keyframe(ids[2]))
+    assert third.outcome.merge_pending is not None and third.outcome.merge_pending["state"] == "accepted"
+    assert third.merge is not None and third.merge.map_id == 0 and closer._pending_merge is None
+    xs = np.linspace(-0.2, 0.3, 12)
+    assert np.allclose(third.merge.S_cw.to_se3(), pose_at(float(xs[2]), 0.3), atol=1e-6)
+
+
+# ---- ORB-SLAM3 sec. III-B: map merging (LoopCloser.merge, slamkit/pipeline/map_merging.py) ---------------------
+
+
+def test_a_merge_welds_the_active_map_into_the_matched_maps_frame_and_scale(world: World) -> None:
+    """The active map revisits map 0's place in its own frame (turned, moved) and scale (half map 0's): the merge
+    moves it into map 0's frame and scale, takes map 0's keyframes and points in, fuses the duplicates (the revisit's
+    points are map 0's points), and leaves one map in the Atlas, the active one, with one spanning tree."""
+    drift = np.eye(4)
+    drift[:3, :3] = so3_exp(np.array([0.0, np.radians(30.0), np.radians(60.0)]))
+    drift[:3, 3] = [2.0, 1.0, -0.5]
+    closer, atlas, ids = two_map_closer(world, drift)
+    from slamkit.pipeline.map_merging import transform_map
+
+    with atlas.active.write():
+        transform_map(atlas.active, Sim3(0.5, np.eye(3), np.zeros(3)))  # the active map's scale: half map 0's
+    merges = []
+    closer.on_merge = merges.append
+    map0_kfs, map0_points = atlas.get(0).keyframe_ids(), atlas.get(0).point_ids()
+    out = closer.step(atlas.active.get_keyframe(ids[-1]))
+    assert out.merge_map_id == 0 and out.merge_transform is not None
+    assert atlas.map_ids() == [1] and atlas.active_id == 1
+    store = atlas.active
+    assert set(map0_kfs) | set(ids) == set(store.keyframe_ids())
+    assert [m.merged_map_id for m in merges] == [0] and merges[0].moved_kf_ids == frozenset(ids)
+    assert merges[0].G.s == pytest.approx(2.0, rel=1e-3)
+    # every keyframe of the merged map at its true pose (map 0's world is the true one), the revisit's scale undone
+    xs = np.linspace(-0.2, 0.3, 12)
+    for k, x in zip(ids, xs, strict=True):
+        assert np.allclose(store.get_keyframe(k).T_c_w, pose_at(float(x), 0.3), atol=1e-3), k
+    for k in map0_kfs:
+        assert np.allclose(store.get_keyframe(k).T_c_w, atlas.get(1).get_keyframe(k).T_c_w)
+    # duplicates fused: the revisit's features observe map 0's points, no point of the revisit's is left
+    assert store.point_ids() == map0_points
+    current = store.get_keyframe(ids[-1])
+    assert (np.sort(current.point_ids[current.point_ids >= 0]) == np.array(map0_points)).all()
+    for pid in map0_points:
+        assert np.allclose(store.get_point(pid).xyz_w, world.xyz_a[pid], atol=1e-6)
+    # one spanning tree over every keyframe: one root, no cycle
+    tree = store.spanning_tree
+    roots = [k for k in store.keyframe_ids() if tree.parent(k) is None]
+    assert len(roots) == 1
+    for k in store.keyframe_ids():
+        seen, j = set(), k
+        while tree.parent(j) is not None:
+            assert j not in seen
+            seen.add(j)
+            j = tree.parent(j)  # type: ignore[assignment]
+    assert (min(ids[-1], out.merge_kf_id), max(ids[-1], out.merge_kf_id)) in store.loop_edges()  # type: ignore[type-var]
+    assert not closer.pins.snapshot()  # the merge released the keyframe detection pinned
