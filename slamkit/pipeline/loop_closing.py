@@ -55,6 +55,7 @@ from slamkit.pipeline.loop_correction import (
 from slamkit.pipeline.loop_verification import (
     KeyframeCheck,
     PendingLoop,
+    PendingStep,
     VerificationThresholds,
     WindowProjection,
     advance_pending,
@@ -83,6 +84,16 @@ from slamkit.problems import Sim3Problem
 log = logging.getLogger("slamkit.loop")
 
 I64 = NDArray[np.int64]
+
+
+def pending_record(pending: PendingLoop, step: PendingStep) -> dict[str, object]:
+    """What loops.json says of a carried-over hypothesis (loop or merge) after this keyframe's check."""
+    return {
+        "state": step.state,
+        "check": step.check.as_dict(),
+        "coincidences": pending.coincidences,
+        "misses": pending.misses,
+    }
 
 
 @dataclass(frozen=True)
@@ -628,14 +639,7 @@ class LoopCloser:
             refine,
             window_store=merge_store,
         )
-        out.merge_pending = {
-            "merge_kf": pending.loop_kf_id,
-            "map": map_id,
-            "state": step.state,
-            "check": step.check.as_dict(),
-            "coincidences": pending.coincidences,
-            "misses": pending.misses,
-        }
+        out.merge_pending = {"merge_kf": pending.loop_kf_id, "map": map_id, **pending_record(pending, step)}
         if step.state == "dropped":
             self._pending_merge = None
         if step.state == "accepted":
@@ -1042,13 +1046,7 @@ class LoopCloser:
             cfg.verify_max_misses,
             self._refine_pending if cfg.geometric_verification else None,
         )
-        out.pending = {
-            "loop_kf": pending.loop_kf_id,
-            "state": step.state,
-            "check": step.check.as_dict(),
-            "coincidences": pending.coincidences,
-            "misses": pending.misses,
-        }
+        out.pending = {"loop_kf": pending.loop_kf_id, **pending_record(pending, step)}
         if step.state == "dropped":
             self._pending = None
         if step.state == "accepted":
