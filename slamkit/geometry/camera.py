@@ -146,6 +146,8 @@ class PinholeCamera(_CameraBase):
     """
 
     model = "pinhole"
+    #: ((intrinsics key), image_bounds()) of the last call: see ``image_bounds``.
+    _image_bounds_cache: tuple[tuple[Any, ...], tuple[float, float, float, float]] | None = None
     #: The pipeline matches and projects in the undistorted pinhole image (ORB-SLAM2/3 undistort keypoints).
     image_undistorted = True
 
@@ -264,7 +266,19 @@ class PinholeCamera(_CameraBase):
 
     def image_bounds(self) -> tuple[float, float, float, float]:
         """(min_u, max_u, min_v, max_v) px of the pipeline's image: the undistorted corners of the raw image
-        (ORB-SLAM ComputeImageBounds); the raw image's bounds when a corner has no undistortion."""
+        (ORB-SLAM ComputeImageBounds, once per camera); the raw image's bounds when a corner has no undistortion.
+
+        Computed once per set of intrinsics: every frame asks (the Newton undistortion of the corners cost ~4 ms
+        a frame), and the key makes a changed attribute recompute rather than return stale bounds."""
+        key = (self.width, self.height, self.fx, self.fy, self.cx, self.cy, self.dist.tobytes())
+        cached = self._image_bounds_cache
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        bounds = self._undistorted_corner_bounds()
+        self._image_bounds_cache = (key, bounds)
+        return bounds
+
+    def _undistorted_corner_bounds(self) -> tuple[float, float, float, float]:
         w, h = self.width, self.height
         corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]])
         und = self.undistort_points(corners)
