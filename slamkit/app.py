@@ -207,7 +207,14 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         )
     else:
         runner = SequentialRunner(
-            tracker, mapper, atlas, progress=progress, loop_closer=loop_closer, events=events, bad_frames=bad_frames
+            tracker,
+            mapper,
+            atlas,
+            progress=progress,
+            loop_closer=loop_closer,
+            events=events,
+            bad_frames=bad_frames,
+            record_reference=str(cfg.runner.get("record_reference", "tracked")),
         )
     return runner, dataset
 

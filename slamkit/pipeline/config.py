@@ -154,7 +154,8 @@ class LocalMappingConfig:
     ba_iterations_second: int = 10
     ba_update_normal_and_depth: bool = False
     ba_point_bad_max_observations: int = 1
-    new_map_points_culled: bool = False
+    new_map_points_culled: bool = True
+    new_map_points_culled_stereo: bool = False
     fuse_right_coordinate_gate: bool = False
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})

@@ -97,10 +97,12 @@ class LocalMapper:
     def _process_new_keyframe(self, kf: KeyFrame) -> None:
         """ORB-SLAM ProcessNewKeyFrame: insert the keyframe (a no-op for the keyframes of a new map, which
         initialisation inserted), describe it with a bag of words, update its covisibility connections. With
-        ``new_map_points_culled``, the points a keyframe of a new map was created with (it observes them already:
-        ORB-SLAM's ``IsInKeyFrame`` branch) join the recent points that VI-B's culling checks."""
+        ``new_map_points_culled`` (``new_map_points_culled_stereo`` for a stereo/RGB-D keyframe), the points a keyframe
+        of a new map was created with (it observes them already: ORB-SLAM's ``IsInKeyFrame`` branch) join the recent
+        points that VI-B's culling checks."""
         store = self.store
-        if not insert_keyframe(store, kf) and self.cfg.new_map_points_culled:
+        cull_own = self.cfg.new_map_points_culled_stereo if kf.features.bf > 0.0 else self.cfg.new_map_points_culled
+        if not insert_keyframe(store, kf) and cull_own:
             own = store.get_keyframe(kf.id).point_ids
             own = own[own >= 0]
             known = set(self.recent_points)

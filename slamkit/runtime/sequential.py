@@ -31,6 +31,8 @@ from slamkit.sensors import FrameData
 
 log = logging.getLogger("slamkit.runner")
 
+RECORD_REFERENCES = ("tracked", "mapped")  # runner.record_reference (SequentialRunner)
+
 
 class SequentialRunner:
     """Runs a dataset through tracking and local mapping, one frame at a time."""
@@ -44,10 +46,15 @@ class SequentialRunner:
         loop_closer: LoopCloser | None = None,
         events: EventDispatcher | None = None,
         bad_frames: str = "skip",
+        record_reference: str = "tracked",
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: tracking makes no keyframe).
         events: fires the plugins' lifecycle hooks (None: nobody listens). bad_frames: what to do with a frame
-        the dataset cannot read, "skip" (logged and reported) or "stop" (slamkit.runtime.source.readable_frames)."""
+        the dataset cannot read, "skip" (logged and reported) or "stop" (slamkit.runtime.source.readable_frames).
+        record_reference: the reference keyframe pose a frame's pose is recorded against (its T_c_r), "tracked"
+        (the pose tracking read, ORB-SLAM2/3 Tracking::Track's mlRelativeFramePoses and the threaded runner) or
+        "mapped" (the keyframe as it is after the frame's keyframes were mapped: a keyframe's own frame then carries
+        the inverse of its first local BA's correction)."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -55,6 +62,11 @@ class SequentialRunner:
         self.recorder = TrajectoryRecorder()
         self.progress = progress
         self.bad_frames = check_bad_frames_policy(bad_frames)
+        if record_reference not in RECORD_REFERENCES:
+            raise ConfigError(
+                f"runner.record_reference = {record_reference!r}: expected one of {', '.join(RECORD_REFERENCES)}"
+            )
+        self.record_reference = record_reference
         self.log = RunLog()
         self.events = events
         self._run_events = RunEvents(None, "sequential", atlas)
@@ -185,12 +197,18 @@ class SequentialRunner:
             # against its reference keyframe as it is now)
             out.T_c_w = pose_of_sim3(sim3_of_pose(out.T_c_w) @ self._merge_G.inverse())
         ref, T_ref_w = None, None
+        merged = self.log.maps_merged != merges_before
         if out.state == TrackingState.OK and out.T_c_w is not None:
             ref = out.reference_kf_id
             if ref is not None and self.store.has_keyframe(ref):
-                # the reference keyframe as it is after its mapping (and a loop correction), as slamkit has always
-                # recorded in this runner (the threaded runner records against out.T_ref_w, the pose tracking read)
-                T_ref_w = self.store.get_keyframe(ref).T_c_w
+                if self.record_reference == "tracked" and out.T_ref_w is not None and not merged:
+                    # ORB-SLAM2/3 (Tracking::Track): Tcr = mTcw * mpReferenceKF->GetPoseInverse() right after tracking,
+                    # before local mapping moves the keyframe (as the threaded runner records)
+                    T_ref_w = out.T_ref_w
+                else:
+                    # the reference keyframe as it is after its mapping (and a loop correction or a merge's move,
+                    # which out.T_c_w followed above)
+                    T_ref_w = self.store.get_keyframe(ref).T_c_w
                 self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref, T_ref_w)
         # after the frame's keyframes were mapped: its pose is recorded against its reference keyframe as it is now
         self._run_events.frame_tracked(out, map_was_reset, ref, T_ref_w, data.image, self.tracker.current_frame)
