@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf, read_write
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from slamkit.errors import ConfigError
 from slamkit.eval.outputs import PLUGIN_NAME as OUTPUTS_PLUGIN
@@ -61,12 +61,38 @@ def build_components(cfg: DictConfig, registry: ComponentRegistry) -> dict[str, 
         if node is None or "_target_" not in node:
             continue
         if kind == "dataset":
+            resolve_frontend(cfg)
             resolve_dataset_depth(cfg)
         if kind == "features" and "dataset" in built:
             camera_feature_settings(node, built["dataset"])
         # the optimizer may run in a worker process (optimizer.worker=process): the factory decides
         built[kind] = build_optimizer(node, registry) if kind == "optimizer" else registry.instantiate(kind, node)
     return built
+
+
+#: The monocular front end's target: the one a stereo dataset replaces (resolve_frontend).
+_MONOCULAR_FRONTEND = "slamkit.frontend.mono.MonocularFrontEnd"
+
+
+def resolve_frontend(cfg: DictConfig) -> None:
+    """The dataset's natural front end (issue 16 item 5): a dataset reading stereo pairs (``dataset.stereo: true``)
+    with the monocular front end runs ``frontend=stereo`` (conf/frontend/stereo.yaml), logged; written into ``cfg`` so
+    the run's config.yaml shows it. Any other front end is kept (``frontend=rgbd``, a third-party one). Depth maps
+    select nothing: a TUM RGB-D run stays monocular, reading every colour frame, unless ``frontend=rgbd`` is given
+    (docs/pipeline.md)."""
+    dataset, frontend = cfg.get("dataset"), cfg.get("frontend")
+    if dataset is None or frontend is None or dataset.get("stereo") is not True:
+        return
+    if str(frontend.get("_target_")) != _MONOCULAR_FRONTEND:
+        return
+    from importlib.resources import files
+
+    from slamkit.config import CONFIG_MODULE
+
+    node = OmegaConf.create(files(CONFIG_MODULE).joinpath("frontend", "stereo.yaml").read_text())
+    with read_write(cfg), open_dict(cfg):
+        cfg.frontend = node
+    log.info("dataset.stereo=true: running frontend=stereo (the dataset reads stereo pairs)")
 
 
 def resolve_dataset_depth(cfg: DictConfig) -> None:

@@ -8,7 +8,7 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.errors import ConfigError
+from slamkit.errors import ConfigError, DatasetError, FrameReadError
 from slamkit.interfaces import Camera
 from slamkit.io.orbslam_settings import OrbExtractorSettings
 from slamkit.sensors import FrameData, Trajectory
@@ -81,7 +81,14 @@ class SequenceDataset(ABC):
     def __getitem__(self, i: int) -> FrameData:
         if not 0 <= i < len(self):
             raise IndexError(f"{self.name}: frame {i} out of range [0, {len(self)})")
-        return self._load(int(self._selected[i]), i)
+        try:
+            return self._load(int(self._selected[i]), i)
+        except FrameReadError:
+            raise  # a missing or unreadable file: the runner skips the frame or stops (runner.bad_frames)
+        except DatasetError as exc:
+            # a file of this frame the run cannot use (a depth map or right image of another size than the
+            # calibration's): the message names the file; say which frame too
+            raise type(exc)(f"frame {i}: {exc}") from exc
 
     def __iter__(self) -> Iterator[FrameData]:
         for i in range(len(self)):

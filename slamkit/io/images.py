@@ -108,5 +108,5 @@ def load_depth(path: Path, scale: float, expected_size: tuple[int, int] | None =
             f"depth file {path} has shape {raw.shape} and type {raw.dtype}; expected a one-channel "
             "16-bit (or float32) depth image"
         )
-    check_size(path, raw.shape[1], raw.shape[0], expected_size, calib)
+    check_size(path, raw.shape[1], raw.shape[0], expected_size, calib, "depth file")
     return (raw.astype(np.float32) / np.float32(scale)).astype(np.float32)

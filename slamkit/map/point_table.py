@@ -29,8 +29,9 @@ SYNCED_ATTRIBUTES: tuple[tuple[str, int, type], ...] = (
 )
 
 #: Per-point counters kept only in the table (int64): frames that predicted the point visible / that matched it
-#: (ORB-SLAM VI-B, both start at 1), and the number of keyframes observing it.
-COUNTERS: tuple[str, ...] = ("n_visible", "n_found", "n_observations")
+#: (ORB-SLAM VI-B, both start at 1), the number of keyframes observing it, and ORB-SLAM's MapPoint::Observations()
+#: (``n_observations_orbslam``: an observation whose keypoint has a right coordinate, stereo or RGB-D, counts 2).
+COUNTERS: tuple[str, ...] = ("n_visible", "n_found", "n_observations", "n_observations_orbslam")
 
 #: Row states: never added, in the map, erased.
 ABSENT, PRESENT, ERASED = 0, 1, 2
@@ -38,7 +39,7 @@ ABSENT, PRESENT, ERASED = 0, 1, 2
 
 class PointTable:
     """Arrays by point id: xyz_w (cap, 3) m, normal_w (cap, 3), d_min_m / d_max_m (cap,) m, descriptor (cap, B),
-    n_visible / n_found / n_observations (cap,) int64, state (cap,) int8 (ABSENT, PRESENT, ERASED)."""
+    n_visible / n_found / n_observations / n_observations_orbslam (cap,) int64, state (cap,) int8 (ABSENT, PRESENT, ERASED)."""
 
     def __init__(self, capacity: int = 4096) -> None:
         self._capacity = max(int(capacity), 1)
@@ -69,7 +70,7 @@ class PointTable:
 
     def put(self, point_id: int, values: dict[str, Any]) -> None:
         """Write a new point's row: values maps every synced attribute name to the point's value; the counters
-        start at n_visible = n_found = 1, n_observations = 0."""
+        start at n_visible = n_found = 1, n_observations = n_observations_orbslam = 0."""
         descriptor = np.asarray(values["descriptor"])
         if self._descriptor_bytes is None:
             self._allocate(int(descriptor.shape[-1]))
@@ -84,6 +85,7 @@ class PointTable:
         self._arrays["n_visible"][point_id] = 1
         self._arrays["n_found"][point_id] = 1
         self._arrays["n_observations"][point_id] = 0
+        self._arrays["n_observations_orbslam"][point_id] = 0
         self._arrays["state"][point_id] = PRESENT
 
     def put_many(self, point_ids: NDArray[np.int64], values: dict[str, NDArray[Any]]) -> None:

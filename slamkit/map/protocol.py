@@ -156,8 +156,10 @@ class MapStore(Protocol):
     def point_rows(self, point_ids: I64, attribute: str) -> NDArray[Any]:
         """(K, ...) a copy of one attribute of K points that are all in the map, in one array operation:
         "xyz_w" (K, 3) m, "normal_w" (K, 3), "d_min_m" / "d_max_m" (K,) m, "descriptor" (K, B) uint8, and the
-        counters "n_visible" / "n_found" (K,) int64 (VI-B) and "n_observations" (K,) int64. Equal to the
-        entities' attributes after every mutation."""
+        counters "n_visible" / "n_found" (K,) int64 (VI-B), "n_observations" (K,) int64 and
+        "n_observations_orbslam" (K,) int64 (ORB-SLAM's MapPoint::Observations(): an observation whose keyframe
+        keypoint has a right coordinate, stereo or RGB-D, counts 2; optional: without it, a KeyError, the pipeline
+        counts from the observations). Equal to the entities' attributes after every mutation."""
         ...
 
     # ---- graphs (read) ----------------------------------------------------------------------------------

@@ -207,6 +207,14 @@ class InMemoryMapStore:
         self._observations[pid] = obs
         self._points[pid] = point
 
+    def _observation_weight(self, keyframe_id: int, feature_index: int) -> int:
+        """ORB-SLAM's MapPoint::AddObservation weight of keypoint ``feature_index`` of a keyframe of this map: 2 when
+        it has a right coordinate (stereo / RGB-D: ``nObs += 2`` when mvuRight[idx] >= 0), else 1."""
+        kf = self._keyframes.get(keyframe_id)
+        if kf is None or kf.features.bf <= 0.0:
+            return 1
+        return 2 if np.isfinite(kf.features.u_right_px[feature_index]) else 1
+
     def _forget_point(self, point_id: int) -> dict[int, int]:
         del self._points[point_id]
         self._table.erase(point_id)
@@ -229,6 +237,7 @@ class InMemoryMapStore:
                 continue
             if obs.pop(keyframe_id, None) is not None:
                 self._table.increment(pid, "n_observations", -1)
+                self._table.increment(pid, "n_observations_orbslam", -self._observation_weight(keyframe_id, idx))
             if not obs:
                 self._forget_point(pid)
             elif self._points[pid].ref_kf_id == keyframe_id:
@@ -246,6 +255,10 @@ class InMemoryMapStore:
         own = self._kf_point_ids[keyframe_id]
         if keyframe_id not in obs:
             self._table.increment(point_id, "n_observations", 1)
+        else:  # the keyframe observes it at another keypoint now: its weight may change
+            previous = self._observation_weight(keyframe_id, obs[keyframe_id])
+            self._table.increment(point_id, "n_observations_orbslam", -previous)
+        self._table.increment(point_id, "n_observations_orbslam", self._observation_weight(keyframe_id, feature_index))
         obs[keyframe_id] = feature_index
         own[feature_index] = point_id
 
@@ -254,6 +267,7 @@ class InMemoryMapStore:
         idx = obs.pop(keyframe_id, None)
         if idx is not None:
             self._table.increment(point_id, "n_observations", -1)
+            self._table.increment(point_id, "n_observations_orbslam", -self._observation_weight(keyframe_id, idx))
         own = self._kf_point_ids.get(keyframe_id)
         if idx is not None and own is not None and own[idx] == point_id:
             own[idx] = -1
@@ -360,6 +374,9 @@ class InMemoryMapStore:
             rows["n_visible"] = contents.n_visible
             rows["n_found"] = contents.n_found
             rows["n_observations"] = np.array([len(p.observations) for p in pts], np.int64)
+            rows["n_observations_orbslam"] = np.array(
+                [sum(self._observation_weight(k, i) for k, i in p.observations.items()) for p in pts], np.int64
+            )
             self._table.put_many(np.array([p.id for p in pts], np.int64), rows)
         for a, b, w in contents.covisibility.tolist():
             self._covisibility.set_edge(a, b, w)

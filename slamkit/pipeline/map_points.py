@@ -262,12 +262,22 @@ def create_depth_points(store: MapStore, kf: KeyFrame, min_points: int) -> list[
 
 
 def orbslam_observation_counts(store: MapStore, point_ids: Iterable[int]) -> I64:
-    """(P,) ORB-SLAM's MapPoint::Observations() of each point: its observations, a stereo/RGB-D one (the keypoint has
-    a right coordinate) counting twice (MapPoint::AddObservation: nObs += 2 when mvuRight[idx] >= 0)."""
+    """(P,) ORB-SLAM's MapPoint::Observations() of each point (all in the map): its observations, a stereo/RGB-D one
+    (the keypoint has a right coordinate) counting twice (MapPoint::AddObservation: nObs += 2 when mvuRight[idx] >= 0).
+
+    One array read of the store's ``n_observations_orbslam`` counter; a third-party store without that counter
+    (KeyError) is counted point by point from the observations."""
+    ids = np.asarray(point_ids if isinstance(point_ids, np.ndarray) else list(point_ids), np.int64)
+    if not ids.size:
+        return np.zeros(0, np.int64)
+    try:
+        return np.asarray(store.point_rows(ids, "n_observations_orbslam"), np.int64)
+    except KeyError:
+        pass
     out = []
-    for pid in point_ids:
+    for pid in ids.tolist():
         n = 0
-        for kf_id, idx in store.get_point(int(pid)).observations.items():
+        for kf_id, idx in store.get_point(pid).observations.items():
             n += 2 if np.isfinite(store.get_keyframe(kf_id).features.u_right_px[idx]) else 1
         out.append(n)
     return np.array(out, np.int64)

@@ -139,6 +139,14 @@ def assert_consistent(
     np.testing.assert_array_equal(
         store.point_rows(ids, "n_observations"), [len(store.get_point(p).observations) for p in pids]
     )
+    weighted = [
+        sum(
+            2 if np.isfinite(store.get_keyframe(k).features.u_right_px[i]) else 1
+            for k, i in store.get_point(p).observations.items()
+        )
+        for p in pids
+    ]
+    np.testing.assert_array_equal(store.point_rows(ids, "n_observations_orbslam"), weighted)
     if visible is not None and found is not None:
         np.testing.assert_array_equal(store.point_rows(ids, "n_visible"), [visible[p] for p in pids])
         np.testing.assert_array_equal(store.point_rows(ids, "n_found"), [found[p] for p in pids])
@@ -193,6 +201,41 @@ def test_observations_are_recorded_both_ways(store: MapStore) -> None:
     assert store.get_keyframe(k0).point_ids[5] == -1 and store.get_point(pid).ref_kf_id == k1
     store.remove_observation(pid, k2)  # fewer than two observations: the point is erased (EraseObservation)
     assert not store.has_point(pid) and store.get_keyframe(k1).point_ids[7] == -1
+    assert_consistent(store)
+
+
+def add_rgbd_keyframe(store: MapStore, with_right: np.ndarray) -> int:
+    """A keyframe whose keypoints ``with_right`` (N_FEATS,) bool have a depth and a right coordinate (RGB-D)."""
+    kf_id = store.new_keyframe_id()
+    obs = features(seed=kf_id)
+    depth = np.where(with_right, 2.0, np.nan).astype(np.float32)
+    obs = dataclasses.replace(obs, depth_m=depth, u_right_px=obs.uv_px[:, 0] - 40.0 / depth, bf=40.0, sensor="rgbd")
+    store.add_keyframe(KeyFrame(kf_id, kf_id, float(kf_id), np.eye(4), CAMERA, obs, np.full(N_FEATS, -1, np.int64)))
+    return kf_id
+
+
+def test_orbslam_observation_counter_weighs_stereo_observations_twice(store: MapStore) -> None:
+    """The counter "n_observations_orbslam" is ORB-SLAM's MapPoint::Observations(): 2 per observation at a keypoint with a right
+    coordinate, 1 otherwise, through adding, moving and removing observations, replacing points and keyframes."""
+    right = np.arange(N_FEATS) % 2 == 0  # even keypoints have a depth
+    a, b, c = (add_rgbd_keyframe(store, right) for _ in range(3))
+    p = add_point(store, {a: 0, b: 1, c: 2})  # 2 + 1 + 2
+    q = add_point(store, {a: 3, b: 4}, seed=1)  # 1 + 2
+    r = add_point(store, {a: 5, b: 7, c: 9}, seed=2)  # 1 + 1 + 1
+
+    def counts() -> list[int]:
+        ids = [pid for pid in (p, q, r) if store.has_point(pid)]
+        return store.point_rows(np.array(ids, np.int64), "n_observations_orbslam").tolist()
+
+    assert counts() == [5, 3, 3]
+    assert_consistent(store)
+    store.add_observation(r, c, 8)  # keyframe c now sees r at an even keypoint: 1 + 1 + 2
+    assert counts() == [5, 3, 4]
+    store.remove_observation(p, b)  # 2 + 2
+    assert counts() == [4, 3, 4]
+    store.replace_point(q, r)  # r gains nothing new from a and b (it has them), q goes
+    assert not store.has_point(q) and counts() == [4, 4]
+    store.remove_keyframe(c)  # p: 2 (a), r: 1 + 1
     assert_consistent(store)
 
 

@@ -470,7 +470,7 @@ class Tracker:
                 ref = store.get_keyframe(self.reference_kf_id)
                 ref_ids = ref.point_ids[store.has_points(ref.point_ids)]
                 if frame.features.bf > 0.0:  # stereo/RGB-D: ORB-SLAM's count, a stereo observation counting twice
-                    n_obs = orbslam_observation_counts(store, ref_ids.tolist())
+                    n_obs = orbslam_observation_counts(store, ref_ids)
                 else:
                     n_obs = store.point_rows(ref_ids, "n_observations") if ref_ids.size else np.zeros(0, np.int64)
                 n_ref = int(np.count_nonzero(n_obs >= reference_min_observations(n_kfs, self.cfg)))

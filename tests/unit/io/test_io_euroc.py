@@ -261,3 +261,11 @@ def test_malformed_sensor_yaml(root: Path, tmp_path: Path) -> None:
     )
     with pytest.raises(CalibrationError, match=r"cam0/sensor\.yaml: 'intrinsics' has 2 numbers; expected 4"):
         EurocDataset(root=seq)
+
+
+def test_stereo_settings_without_a_baseline_are_refused_naming_the_file(root: Path, shared_datasets: Path) -> None:
+    """Issue 16 (bad input): EuRoC stereo with an ORB-SLAM settings file that has neither LEFT/RIGHT rectification
+    blocks nor Camera.bf / Stereo.b (the monocular EuRoC file): refused before the first frame, naming the file."""
+    mono = shared_datasets / "calib/orb_slam2_examples/Monocular_EuRoC.yaml"
+    with pytest.raises(CalibrationError, match=r"Monocular_EuRoC\.yaml: stereo needs Camera\.bf \(or Stereo\.b\)"):
+        EurocDataset(root=root, stereo=True, settings=str(mono))

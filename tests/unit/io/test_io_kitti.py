@@ -133,3 +133,11 @@ def test_missing_calib_line_image_gap_and_bad_image(kitti: Path, tmp_path: Path)
         KittiDataset(root=root, sequence="07")
     with pytest.raises(DatasetError, match=r"KITTI sequence 99: folder .*sequences/99 does not exist"):
         KittiDataset(root=root, sequence="99")
+
+
+def test_stereo_settings_without_a_baseline_are_refused_naming_the_file(kitti: Path, shared_datasets: Path) -> None:
+    """Issue 16 (bad input): a stereo run given an ORB-SLAM settings file with no Camera.bf / Stereo.b (here the
+    monocular KITTI file) stops before the first frame, the message naming the file and the missing key."""
+    mono = shared_datasets / "calib/orb_slam2_examples/Monocular_KITTI04-12.yaml"
+    with pytest.raises(CalibrationError, match=r"Monocular_KITTI04-12\.yaml: stereo needs Camera\.bf \(or Stereo\.b\)"):
+        KittiDataset(root=kitti, sequence="01", stereo=True, settings=str(mono))

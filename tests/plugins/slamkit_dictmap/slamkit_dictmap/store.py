@@ -133,6 +133,14 @@ class DictMapStore:
             return np.array([self._counts[p][col] for p in ids], np.int64)
         if attribute == "n_observations":
             return np.array([len(self._obs[p]) for p in ids], np.int64)
+        if attribute == "n_observations_orbslam":  # a keypoint with a right coordinate counts 2 (ORB-SLAM)
+            return np.array(
+                [
+                    sum(2 if np.isfinite(self._kfs[k].features.u_right_px[i]) else 1 for k, i in self._obs[p].items())
+                    for p in ids
+                ],
+                np.int64,
+            )
         if attribute == "descriptor":
             width = next((len(p.descriptor) for p in self._pts.values()), 32)
             return np.array([self._pts[p].descriptor for p in ids], np.uint8).reshape(len(ids), width)
