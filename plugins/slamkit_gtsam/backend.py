@@ -317,7 +317,7 @@ class GtsamOptimizer:
 
     def optimize_pose(self, problem: PoseOnlyProblem) -> PoseOnlyResult:
         """ORB-SLAM PoseOptimization: ``rounds`` rounds of ``iterations_per_round`` LM iterations."""
-        validate_pose_problem(problem)
+        validate_pose_problem(problem, backend="gtsam")
         n = len(problem.xyz_w)
         pose_key = n
         point_noise = gtsam.noiseModel.Isotropic.Sigma(3, self.fixed_sigma)
