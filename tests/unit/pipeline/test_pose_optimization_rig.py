@@ -136,3 +136,18 @@ def test_cost_agrees_with_the_shared_cost_and_backends_refuse_the_rig() -> None:
     validate_pose_problem(problem, supports_rig=True)
     with pytest.raises(ProblemError, match="second-camera observations"):
         validate_pose_problem(problem, backend="scipy")
+
+
+@pytest.mark.parametrize(
+    "cam2", [CAM2, PinholeCamera(640, 480, 450.0, 450.0, 320.0, 240.0)], ids=["fisheye", "pinhole"]
+)
+def test_gtsam_backend_agrees(cam2: KannalaBrandtCamera | PinholeCamera) -> None:
+    gtsam_backend = pytest.importorskip("slamkit_gtsam.backend")
+    problem, T_true, bad = _problem(9, "both", outliers=0.1, cam2=cam2)
+    ours = optimize_pose(problem)
+    ref = gtsam_backend.GtsamOptimizer().optimize_pose(problem)
+    rot, pos = pose_errors(ref.T_c_w, T_true)
+    assert rot < 3e-3 and pos < 1e-2
+    assert pose_errors(ref.T_c_w, ours.T_c_w)[1] < 1e-4
+    assert np.array_equal(ref.inliers, ours.inliers)
+    assert not (ref.inliers & bad).any()
