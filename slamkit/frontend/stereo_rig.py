@@ -162,6 +162,8 @@ class StereoRigFrontEnd(MonocularFrontEnd):
     """
 
     uses_depth: ClassVar[bool] = False
+    #: Its records hold two cameras' keypoints (``Observations.n_left``): a consumer that does not read them refuses it.
+    two_cameras: ClassVar[bool] = True
 
     def __init__(
         self,
