@@ -121,6 +121,10 @@ class BundleProblem:
     robust: use the Huber kernel (delta = sqrt(chi2)).
     camera_model: "pinhole" or "kannala_brandt" for every keyframe; distortion: (K, 4) k1..k4 per keyframe of a
         Kannala-Brandt camera, None for pinhole ones.
+    camera_index: (E,) int, 0 or 1: which camera of a keyframe's rig made each observation; None: all camera 0.
+    T_c2_c1: (K, 4, 4) each keyframe's fixed rig extrinsic (camera 1 -> camera 2); intrinsics2: (K, 4);
+        camera_model2; distortion2: (K, 4) or None: the second cameras (needed when any camera_index is 1). A
+        second-camera observation is projected at T_c2_c1[k] @ T_c_w[k] (ORB-SLAM3 EdgeSE3ProjectXYZToBody).
     """
 
     T_c_w: F64
@@ -143,6 +147,11 @@ class BundleProblem:
     inertial: InertialTerms | None = None
     camera_model: str = CAMERA_PINHOLE
     distortion: F64 | None = None
+    camera_index: I64 | None = None
+    T_c2_c1: F64 | None = None
+    intrinsics2: F64 | None = None
+    camera_model2: str = CAMERA_PINHOLE
+    distortion2: F64 | None = None
 
 
 @dataclass

@@ -432,8 +432,10 @@ class GtsamOptimizer:
         As ORB-SLAM2's LocalBundleAdjustment, the second stage runs without the Huber kernel
         (``ba_robust_second_stage``, default false). Elimination: ``ba_ordering`` / ``ba_linear_solver``.
         """
-        validate_bundle_problem(problem, backend="gtsam")
+        validate_bundle_problem(problem, supports_rig=True, backend="gtsam")
         K, M = len(problem.T_c_w), len(problem.xyz_w)
+        E = len(problem.obs_pose)
+        second = np.zeros(E, dtype=bool) if problem.camera_index is None else np.asarray(problem.camera_index) == 1
         pose_key0 = M
         values = gtsam.Values()
         T_w_c = invert_rigid(problem.T_c_w)
@@ -451,7 +453,7 @@ class GtsamOptimizer:
 
         def graph_of(active: B, robust: bool) -> gtsam.NonlinearFactorGraph:
             g = self._reprojection_graph(
-                active,
+                active & ~second,
                 problem.obs_pose,
                 problem.obs_point,
                 problem.uv_px,
@@ -466,10 +468,23 @@ class GtsamOptimizer:
                 robust,
                 None if problem.distortion is None else np.asarray(problem.distortion),
             )
+            if (active & second).any():
+                self._add_second_camera_factors(
+                    g,
+                    active & second,
+                    problem.obs_pose,
+                    problem.obs_point,
+                    problem.uv_px,
+                    problem.level,
+                    np.asarray(problem.intrinsics2, np.float64),
+                    None if problem.distortion2 is None else np.asarray(problem.distortion2, np.float64),
+                    invert_rigid(np.asarray(problem.T_c2_c1, np.float64)),
+                    pose_key0,
+                    self._models(2, int(problem.level.max()) + 1, problem.scale_factor, problem.chi2_mono, robust),
+                )
             g.push_back(priors)
             return g
 
-        E = len(problem.obs_pose)
         gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
         points_in = np.ones(M, dtype=bool)
         run = self._run(

@@ -139,9 +139,10 @@ def pose_cost(problem: PoseOnlyProblem, T_c_w: F64, active: B | None = None) -> 
 
 
 def bundle_chi2(problem: BundleProblem, T_c_w: F64, xyz_w: F64) -> F64:
-    """(E,) chi2 of each observation at poses T_c_w (K, 4, 4) and points xyz_w (M, 3)."""
+    """(E,) chi2 of each observation at poses T_c_w (K, 4, 4) and points xyz_w (M, 3); an observation of a rig's
+    second camera (``camera_index`` 1) through the second camera at T_c2_c1[k] @ T_c_w[k]."""
     T = T_c_w[problem.obs_pose]
-    return _reprojection_chi2(
+    chi2 = _reprojection_chi2(
         T[:, :3, :3],
         T[:, :3, 3],
         xyz_w[problem.obs_point],
@@ -153,6 +154,25 @@ def bundle_chi2(problem: BundleProblem, T_c_w: F64, xyz_w: F64) -> F64:
         problem.scale_factor,
         None if problem.distortion is None else np.asarray(problem.distortion)[problem.obs_pose],
     )
+    if problem.camera_index is None or problem.T_c2_c1 is None or problem.intrinsics2 is None:
+        return chi2
+    second = np.flatnonzero(np.asarray(problem.camera_index) == 1)
+    if second.size:
+        k = problem.obs_pose[second]
+        T2 = np.asarray(problem.T_c2_c1, np.float64)[k] @ T_c_w[k]
+        chi2[second] = _reprojection_chi2(
+            T2[:, :3, :3],
+            T2[:, :3, 3],
+            xyz_w[problem.obs_point[second]],
+            problem.uv_px[second],
+            np.full(second.size, np.nan),
+            problem.level[second].astype(np.float64),
+            np.asarray(problem.intrinsics2, np.float64)[k],
+            np.zeros(second.size),
+            problem.scale_factor,
+            None if problem.distortion2 is None else np.asarray(problem.distortion2, np.float64)[k],
+        )
+    return chi2
 
 
 def bundle_cost(problem: BundleProblem, T_c_w: F64, xyz_w: F64, active: B | None = None) -> float:
