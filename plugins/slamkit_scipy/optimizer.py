@@ -94,7 +94,7 @@ class ScipyOptimizer:
 
     def optimize_pose(self, problem: PoseOnlyProblem) -> PoseOnlyResult:
         """Motion-only BA with ORB-SLAM's rounds of chi-square re-classification (slamkit_scipy.pose_only)."""
-        validate_pose_problem(problem, backend=self.name)
+        validate_pose_problem(problem, supports_rig=True, backend=self.name)
         result = optimize_pose(problem, self.settings, self.pose_behind_is_outlier)
         result.cost_initial = pose_cost(problem, problem.T_c_w_init)
         result.cost_final = pose_cost(problem, result.T_c_w, result.inliers)

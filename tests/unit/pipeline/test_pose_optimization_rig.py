@@ -151,3 +151,17 @@ def test_gtsam_backend_agrees(cam2: KannalaBrandtCamera | PinholeCamera) -> None
     assert pose_errors(ref.T_c_w, ours.T_c_w)[1] < 1e-4
     assert np.array_equal(ref.inliers, ours.inliers)
     assert not (ref.inliers & bad).any()
+
+
+@pytest.mark.parametrize(
+    "cam2", [CAM2, PinholeCamera(640, 480, 450.0, 450.0, 320.0, 240.0)], ids=["fisheye", "pinhole"]
+)
+def test_scipy_backend_matches_the_compiled_kernel(cam2: KannalaBrandtCamera | PinholeCamera) -> None:
+    from slamkit_scipy.optimizer import ScipyOptimizer
+
+    problem, _, _ = _problem(10, "both", outliers=0.1, cam2=cam2)
+    ours = optimize_pose(problem)
+    ref = ScipyOptimizer().optimize_pose(problem)
+    np.testing.assert_allclose(ours.T_c_w, ref.T_c_w, atol=1e-9)
+    np.testing.assert_array_equal(ours.inliers, ref.inliers)
+    assert ours.cost_final == pytest.approx(ref.cost_final, rel=1e-9)
