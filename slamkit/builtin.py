@@ -68,6 +68,12 @@ def slamkit_components() -> list[ComponentSpec]:
             description="rectified stereo: ORB in both images, ORB-SLAM2's row search, SAD refinement, depth = bf / d",
         ),
         ComponentSpec(
+            "frontend",
+            "stereo_rig",
+            "slamkit.frontend.stereo_rig.StereoRigFrontEnd",
+            description="non-rectified stereo (ORB-SLAM3): two cameras' keypoints as they are, matches by triangulation",
+        ),
+        ComponentSpec(
             "map",
             "memory",
             "slamkit.map.store.InMemoryMapStore",

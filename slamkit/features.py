@@ -67,6 +67,20 @@ class Observations(Features):
         below it is *close* (its depth is trusted); inf for a monocular sensor.
     sensor: "mono", "stereo" or "rgbd", the front end that built the record (ORB-SLAM2 switches a few search radii
         on it: mSensor).
+
+    Two cameras (a non-rectified stereo pair, ORB-SLAM3 sec. I-B; its Frame's second-camera constructor): the
+    record holds the keypoints of both images, camera 1's (the body camera, whose pose is the frame's T_c_w) first,
+    then camera 2's, each kept as it is in its own camera's pipeline image (``uv_undist_px``, ``bearing`` in its own
+    camera frame; no rectification):
+
+    n_left: ORB-SLAM3's Nleft, the number of camera 1's keypoints (indices [0, n_left)); camera 2's are
+        [n_left, N). -1 for a one-camera record (monocular, RGB-D, rectified stereo).
+    stereo_match: (N,) int64 or None, the index of the other camera's keypoint matched to this one by stereo
+        triangulation (ORB-SLAM3 mvLeftToRightMatch / mvRightToLeftMatch in one array of record indices), -1 for
+        none; None for a one-camera record.
+    xyz_c1: (N, 3) float64 m or None, the triangulated point of a stereo match in camera 1's frame at both of its
+        keypoints (ORB-SLAM3 mvStereo3Dpoints), NaN elsewhere; None for a one-camera record. ``depth_m`` of a
+        matched camera-1 keypoint is its z (ORB-SLAM3 mvDepth); camera 2's keypoints have no depth (NaN).
     """
 
     bearing: NDArray[np.float64]
@@ -75,6 +89,21 @@ class Observations(Features):
     bf: float = 0.0
     th_depth_m: float = float("inf")
     sensor: str = "mono"
+    n_left: int = -1
+    stereo_match: NDArray[np.int64] | None = None
+    xyz_c1: NDArray[np.float64] | None = None
+
+    @property
+    def two_cameras(self) -> bool:
+        """True for a record of a non-rectified pair (keypoints of two cameras, ``n_left`` >= 0)."""
+        return self.n_left >= 0
+
+    def camera_index(self) -> NDArray[np.int64]:
+        """(N,) int64: 0 for camera 1's keypoints, 1 for camera 2's (all 0 in a one-camera record)."""
+        out = np.zeros(len(self), np.int64)
+        if self.n_left >= 0:
+            out[self.n_left :] = 1
+        return out
 
     @staticmethod
     def monocular(features: Features, bearing: NDArray[np.float64]) -> Observations:

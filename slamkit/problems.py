@@ -14,6 +14,13 @@ u = fx theta_d x / r + cx, v = fy theta_d y / r + cy with r = |(x, y)|.
 Stereo/RGB-D observations add the rectified right image's u coordinate ``u_right_px`` (NaN for a monocular
 observation) and need ``bf`` = baseline * fx (m px); they exist for pinhole cameras only.
 
+A non-rectified stereo rig (ORB-SLAM3 sec. I-B) has a second camera rigidly attached to the body camera: a pose
+problem's ``camera_index`` says which camera saw each observation (0: the camera of ``T_c_w``, 1: the second one),
+and the second camera's observations are residuals of their own, projected through the second camera's model
+(``intrinsics2``, ``camera_model2``, ``distortion2``) at T_c2_c1 @ T_c_w (ORB-SLAM3
+EdgeSE3ProjectXYZOnlyPoseToBody with mTrl; the extrinsic ``T_c2_c1`` is fixed). They are 2-dof (no right
+coordinate: ``u_right_px`` NaN).
+
 Paper constants (defaults here) are the ORB-SLAM values; the pipeline passes the configured values.
 """
 
@@ -51,6 +58,9 @@ class PoseOnlyProblem:
     intrinsics: (4,) fx, fy, cx, cy; bf: baseline * fx (m px), needed only for stereo observations.
     camera_model: "pinhole" or "kannala_brandt" (see the module docstring); distortion: (4,) k1..k4 of a
         Kannala-Brandt camera, None for a pinhole one.
+    camera_index: (N,) int, 0 or 1: the camera of each observation in a two-camera rig; None: all camera 0.
+    T_c2_c1: (4, 4) the rig's fixed extrinsic (camera 1 -> camera 2), intrinsics2 (4,), camera_model2,
+        distortion2 (4,) or None: the second camera (needed when any camera_index is 1).
     rounds / iterations_per_round: ORB-SLAM runs 4 rounds of 10 LM iterations, reclassifying outliers
         with the chi-square gates between rounds (outliers of one round may return as inliers).
     """
@@ -69,6 +79,11 @@ class PoseOnlyProblem:
     iterations_per_round: int = 10
     camera_model: str = CAMERA_PINHOLE
     distortion: F64 | None = None
+    camera_index: I64 | None = None
+    T_c2_c1: F64 | None = None
+    intrinsics2: F64 | None = None
+    camera_model2: str = CAMERA_PINHOLE
+    distortion2: F64 | None = None
 
 
 @dataclass
@@ -106,6 +121,10 @@ class BundleProblem:
     robust: use the Huber kernel (delta = sqrt(chi2)).
     camera_model: "pinhole" or "kannala_brandt" for every keyframe; distortion: (K, 4) k1..k4 per keyframe of a
         Kannala-Brandt camera, None for pinhole ones.
+    camera_index: (E,) int, 0 or 1: which camera of a keyframe's rig made each observation; None: all camera 0.
+    T_c2_c1: (K, 4, 4) each keyframe's fixed rig extrinsic (camera 1 -> camera 2); intrinsics2: (K, 4);
+        camera_model2; distortion2: (K, 4) or None: the second cameras (needed when any camera_index is 1). A
+        second-camera observation is projected at T_c2_c1[k] @ T_c_w[k] (ORB-SLAM3 EdgeSE3ProjectXYZToBody).
     """
 
     T_c_w: F64
@@ -128,6 +147,11 @@ class BundleProblem:
     inertial: InertialTerms | None = None
     camera_model: str = CAMERA_PINHOLE
     distortion: F64 | None = None
+    camera_index: I64 | None = None
+    T_c2_c1: F64 | None = None
+    intrinsics2: F64 | None = None
+    camera_model2: str = CAMERA_PINHOLE
+    distortion2: F64 | None = None
 
 
 @dataclass

@@ -313,12 +313,58 @@ class GtsamOptimizer:
                 )
             )
 
+    @staticmethod
+    def _add_second_camera_factors(
+        graph: gtsam.NonlinearFactorGraph,
+        active: B,
+        pose_of_obs: I64,
+        point_key_of_obs: I64,
+        uv: F64,
+        level: I64,
+        intrinsics2: F64,
+        fisheye2: F64 | None,
+        T_c1_c2: F64,
+        pose_key0: int,
+        models: list[gtsam.noiseModel.Base],
+    ) -> None:
+        """One projection factor per active observation of a rig's second camera (ORB-SLAM3
+        EdgeSE3ProjectXYZToBody): the body pose is camera 1's (T_w_c1 in the values), the sensor sits at
+        body_P_sensor = T_c1_c2 of the observation's keyframe; intrinsics2 (P, 4), fisheye2 (P, 4) k1..k4 or None
+        (pinhole), T_c1_c2 (P, 4, 4) per pose."""
+        for e in np.flatnonzero(active):
+            pose = int(pose_of_obs[e])
+            fx, fy, cx, cy = intrinsics2[pose]
+            body_P_sensor = pose3_from_T(T_c1_c2[pose])
+            if fisheye2 is None:
+                graph.add(
+                    gtsam.GenericProjectionFactorCal3_S2(
+                        uv[e],
+                        models[int(level[e])],
+                        pose_key0 + pose,
+                        int(point_key_of_obs[e]),
+                        gtsam.Cal3_S2(fx, fy, 0.0, cx, cy),
+                        body_P_sensor,
+                    )
+                )
+            else:
+                graph.add(
+                    gtsam.GenericProjectionFactorCal3Fisheye(
+                        uv[e],
+                        models[int(level[e])],
+                        pose_key0 + pose,
+                        int(point_key_of_obs[e]),
+                        gtsam.Cal3Fisheye(fx, fy, 0.0, cx, cy, *(float(c) for c in fisheye2[pose])),
+                        body_P_sensor,
+                    )
+                )
+
     # ---- motion-only BA -----------------------------------------------------------------------------
 
     def optimize_pose(self, problem: PoseOnlyProblem) -> PoseOnlyResult:
         """ORB-SLAM PoseOptimization: ``rounds`` rounds of ``iterations_per_round`` LM iterations."""
-        validate_pose_problem(problem)
+        validate_pose_problem(problem, supports_rig=True, backend="gtsam")
         n = len(problem.xyz_w)
+        second = np.zeros(n, dtype=bool) if problem.camera_index is None else np.asarray(problem.camera_index) == 1
         pose_key = n
         point_noise = gtsam.noiseModel.Isotropic.Sigma(3, self.fixed_sigma)
         base_values = gtsam.Values()
@@ -335,7 +381,7 @@ class GtsamOptimizer:
             if inlier.sum() < _MIN_POSE_EDGES and iterations > 0:
                 break
             graph = self._reprojection_graph(
-                inlier,
+                inlier & ~second,
                 np.zeros(n, dtype=np.int64),
                 np.arange(n, dtype=np.int64),
                 problem.uv_px,
@@ -350,6 +396,20 @@ class GtsamOptimizer:
                 robust=True,
                 fisheye=None if problem.distortion is None else np.asarray(problem.distortion)[None, :],
             )
+            if second.any():
+                self._add_second_camera_factors(
+                    graph,
+                    inlier & second,
+                    np.zeros(n, dtype=np.int64),
+                    np.arange(n, dtype=np.int64),
+                    problem.uv_px,
+                    problem.level,
+                    np.asarray(problem.intrinsics2, np.float64)[None, :],
+                    None if problem.distortion2 is None else np.asarray(problem.distortion2, np.float64)[None, :],
+                    invert_rigid(np.asarray(problem.T_c2_c1, np.float64))[None, :, :],
+                    pose_key,
+                    self._models(2, int(problem.level.max()) + 1, problem.scale_factor, problem.chi2_mono, True),
+                )
             graph.push_back(points)
             # Each round restarts from the initial pose (ORB-SLAM resets the vertex estimate per round).
             run = self._run(graph, gtsam.Values(base_values), problem.iterations_per_round)
@@ -372,8 +432,10 @@ class GtsamOptimizer:
         As ORB-SLAM2's LocalBundleAdjustment, the second stage runs without the Huber kernel
         (``ba_robust_second_stage``, default false). Elimination: ``ba_ordering`` / ``ba_linear_solver``.
         """
-        validate_bundle_problem(problem, backend="gtsam")
+        validate_bundle_problem(problem, supports_rig=True, backend="gtsam")
         K, M = len(problem.T_c_w), len(problem.xyz_w)
+        E = len(problem.obs_pose)
+        second = np.zeros(E, dtype=bool) if problem.camera_index is None else np.asarray(problem.camera_index) == 1
         pose_key0 = M
         values = gtsam.Values()
         T_w_c = invert_rigid(problem.T_c_w)
@@ -391,7 +453,7 @@ class GtsamOptimizer:
 
         def graph_of(active: B, robust: bool) -> gtsam.NonlinearFactorGraph:
             g = self._reprojection_graph(
-                active,
+                active & ~second,
                 problem.obs_pose,
                 problem.obs_point,
                 problem.uv_px,
@@ -406,10 +468,23 @@ class GtsamOptimizer:
                 robust,
                 None if problem.distortion is None else np.asarray(problem.distortion),
             )
+            if (active & second).any():
+                self._add_second_camera_factors(
+                    g,
+                    active & second,
+                    problem.obs_pose,
+                    problem.obs_point,
+                    problem.uv_px,
+                    problem.level,
+                    np.asarray(problem.intrinsics2, np.float64),
+                    None if problem.distortion2 is None else np.asarray(problem.distortion2, np.float64),
+                    invert_rigid(np.asarray(problem.T_c2_c1, np.float64)),
+                    pose_key0,
+                    self._models(2, int(problem.level.max()) + 1, problem.scale_factor, problem.chi2_mono, robust),
+                )
             g.push_back(priors)
             return g
 
-        E = len(problem.obs_pose)
         gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
         points_in = np.ones(M, dtype=bool)
         run = self._run(

@@ -25,7 +25,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from slamkit.interfaces import AbortToken
-from slamkit.problems import BundleProblem, BundleResult
+from slamkit.problems import CAMERA_KANNALA_BRANDT, BundleProblem, BundleResult
 from slamkit_scipy.kernels import (
     ba_back_substitute,
     ba_cost,
@@ -41,6 +41,7 @@ from slamkit_scipy.reprojection import (
     make_observations,
     residuals,
 )
+from slamkit_scipy.rig_kernels import rig_chi2, rig_cost, rig_linearize
 from slamkit_scipy.robust import huber_cost, inv_sigma2
 
 F64 = NDArray[np.float64]
@@ -55,6 +56,50 @@ class BAState:
     xyz_w: F64
 
 
+@dataclass
+class RigTerms:
+    """Per-observation camera of a problem with a two-camera rig (slamkit_scipy.rig_kernels): cam (E, 8) fx, fy, cx,
+    cy, k1..k4 of the observing camera; fish (E,) bool, Kannala-Brandt; Rx (E, 3, 3), tx (E, 3): the body camera ->
+    observing camera transform (identity for camera 1, T_c2_c1 of the keyframe for camera 2)."""
+
+    cam: F64
+    fish: NDArray[np.bool_]
+    Rx: F64
+    tx: F64
+
+    def subset(self, keep: NDArray[np.int64] | NDArray[np.bool_]) -> RigTerms:
+        return RigTerms(
+            np.ascontiguousarray(self.cam[keep]),
+            np.ascontiguousarray(self.fish[keep]),
+            np.ascontiguousarray(self.Rx[keep]),
+            np.ascontiguousarray(self.tx[keep]),
+        )
+
+
+def rig_terms(problem: BundleProblem, obs: Observations) -> RigTerms | None:
+    """The RigTerms of a problem with second-camera observations (``camera_index`` 1), else None. ``obs`` holds
+    camera 1's intrinsics and k1..k4 per observation; the second camera's replace them on its observations."""
+    if problem.camera_index is None:
+        return None
+    second = np.asarray(problem.camera_index) == 1
+    if not second.any():
+        return None
+    obs_pose = np.asarray(problem.obs_pose, dtype=np.int64)
+    E = obs_pose.size
+    cam = obs.cam()
+    k2 = obs_pose[second]
+    cam[second, :4] = np.asarray(problem.intrinsics2, np.float64)[k2]
+    cam[second, 4:] = 0.0 if problem.distortion2 is None else np.asarray(problem.distortion2, np.float64)[k2]
+    fish = np.full(E, obs.kb is not None)
+    fish[second] = problem.camera_model2 == CAMERA_KANNALA_BRANDT
+    Rx = np.broadcast_to(np.eye(3), (E, 3, 3)).copy()
+    tx = np.zeros((E, 3))
+    T21 = np.asarray(problem.T_c2_c1, np.float64)[k2]
+    Rx[second] = T21[:, :3, :3]
+    tx[second] = T21[:, :3, 3]
+    return RigTerms(cam, fish, Rx, tx)
+
+
 def _camera_points(state: BAState, obs_pose: I64, obs_point: I64) -> F64:
     T = state.T_c_w[obs_pose]
     X = state.xyz_w[obs_point]
@@ -62,8 +107,29 @@ def _camera_points(state: BAState, obs_pose: I64, obs_point: I64) -> F64:
     return out
 
 
-def observation_chi2(state: BAState, obs_pose: I64, obs_point: I64, obs: Observations) -> tuple[F64, F64]:
-    """(E,) chi2 and (E,) depth (m) of every observation at ``state``."""
+def observation_chi2(
+    state: BAState, obs_pose: I64, obs_point: I64, obs: Observations, rig: RigTerms | None = None
+) -> tuple[F64, F64]:
+    """(E,) chi2 and (E,) depth (m) of every observation at ``state`` (in the camera that saw it, with a rig)."""
+    if rig is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out: tuple[F64, F64] = rig_chi2(
+                np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+                np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+                state.xyz_w,
+                obs_pose,
+                obs_point,
+                obs.uvr,
+                obs.stereo,
+                obs.intr,
+                obs.bf,
+                obs.info,
+                rig.cam,
+                rig.fish,
+                rig.Rx,
+                rig.tx,
+            )
+        return out
     p_c = _camera_points(state, obs_pose, obs_point)
     with np.errstate(divide="ignore", invalid="ignore"):
         chi2 = chi2_of(residuals(p_c, obs), obs)
@@ -73,10 +139,18 @@ def observation_chi2(state: BAState, obs_pose: I64, obs_point: I64, obs: Observa
 class _Stage:
     """Structure of one optimization stage: which observations, poses and points take part."""
 
-    def __init__(self, problem: BundleProblem, obs: Observations, active: NDArray[np.bool_], robust: bool) -> None:
+    def __init__(
+        self,
+        problem: BundleProblem,
+        obs: Observations,
+        active: NDArray[np.bool_],
+        robust: bool,
+        rig: RigTerms | None = None,
+    ) -> None:
         self.robust = robust
         e = np.flatnonzero(active)
         self.obs = obs.subset(e)
+        self.rig = None if rig is None else rig.subset(e)
         self.cam = self.obs.cam()  # (E, 8) for the fisheye kernels
         self.obs_pose = np.asarray(problem.obs_pose, dtype=np.int64)[e]
         self.obs_point = np.asarray(problem.obs_point, dtype=np.int64)[e]
@@ -151,6 +225,27 @@ class BundleSolver:
     def cost(self, state: BAState) -> float:
         st = self.st
         o = st.obs
+        if st.rig is not None:
+            return float(
+                rig_cost(
+                    np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+                    np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+                    state.xyz_w,
+                    st.obs_pose,
+                    st.obs_point,
+                    o.uvr,
+                    o.stereo,
+                    o.intr,
+                    o.bf,
+                    o.info,
+                    o.delta,
+                    st.robust,
+                    st.rig.cam,
+                    st.rig.fish,
+                    st.rig.Rx,
+                    st.rig.tx,
+                )
+            )
         return float(
             ba_cost(
                 np.ascontiguousarray(state.T_c_w[:, :3, :3]),
@@ -173,26 +268,50 @@ class BundleSolver:
     def linearize(self, state: BAState) -> tuple[_System, F64, float, float]:
         st = self.st
         o = st.obs
-        U, V, W, gc, gp, f = ba_linearize(
-            np.ascontiguousarray(state.T_c_w[:, :3, :3]),
-            np.ascontiguousarray(state.T_c_w[:, :3, 3]),
-            state.xyz_w,
-            st.obs_pose,
-            st.obs_point,
-            st.c,
-            st.p,
-            o.uvr,
-            o.stereo,
-            o.intr,
-            o.bf,
-            o.info,
-            o.delta,
-            st.robust,
-            st.nc,
-            st.np_,
-            st.cam,
-            o.kb is not None,
-        )
+        if st.rig is not None:
+            U, V, W, gc, gp, f = rig_linearize(
+                np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+                np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+                state.xyz_w,
+                st.obs_pose,
+                st.obs_point,
+                st.c,
+                st.p,
+                o.uvr,
+                o.stereo,
+                o.intr,
+                o.bf,
+                o.info,
+                o.delta,
+                st.robust,
+                st.nc,
+                st.np_,
+                st.rig.cam,
+                st.rig.fish,
+                st.rig.Rx,
+                st.rig.tx,
+            )
+        else:
+            U, V, W, gc, gp, f = ba_linearize(
+                np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+                np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+                state.xyz_w,
+                st.obs_pose,
+                st.obs_point,
+                st.c,
+                st.p,
+                o.uvr,
+                o.stereo,
+                o.intr,
+                o.bf,
+                o.info,
+                o.delta,
+                st.robust,
+                st.nc,
+                st.np_,
+                st.cam,
+                o.kb is not None,
+            )
         g = np.concatenate([gc.ravel(), gp.ravel()])
         hmax = max(
             float(np.max(np.diagonal(U, axis1=1, axis2=2), initial=0.0)),
@@ -273,26 +392,29 @@ def bundle_adjust(
         problem.chi2_stereo,
         kb,
     )
+    rig = rig_terms(problem, obs)
     state = BAState(np.array(problem.T_c_w, dtype=np.float64), np.array(problem.xyz_w, dtype=np.float64))
     n_obs = obs_pose.size
 
     def report_cost(s: BAState, keep: NDArray[np.bool_]) -> float:
-        chi2, _ = observation_chi2(s, obs_pose[keep], obs_point[keep], obs.subset(keep))
+        chi2, _ = observation_chi2(
+            s, obs_pose[keep], obs_point[keep], obs.subset(keep), None if rig is None else rig.subset(keep)
+        )
         return float(np.sum(huber_cost(chi2, obs.delta[keep]) if problem.robust else chi2))
 
     all_obs = np.ones(n_obs, dtype=bool)
     cost_initial = report_cost(state, all_obs)
-    solver = BundleSolver(_Stage(problem, obs, all_obs, problem.robust), dense_max)
+    solver = BundleSolver(_Stage(problem, obs, all_obs, problem.robust, rig), dense_max)
     out = levenberg_marquardt(
         state, solver.linearize, solver.solve, solver.retract, solver.cost, problem.iterations_first, settings, abort
     )
     state, iterations, aborted = out.x, out.iterations, out.aborted
     excluded = np.zeros(n_obs, dtype=bool)
     if not aborted and problem.iterations_second > 0:
-        chi2, depth = observation_chi2(state, obs_pose, obs_point, obs)
+        chi2, depth = observation_chi2(state, obs_pose, obs_point, obs, rig)
         excluded = ~((chi2 <= obs.chi2_max) & (depth > 0.0))
         if np.any(~excluded):
-            stage2 = _Stage(problem, obs, ~excluded, problem.robust and robust_second_stage)
+            stage2 = _Stage(problem, obs, ~excluded, problem.robust and robust_second_stage, rig)
             solver = BundleSolver(stage2, dense_max)
             out = levenberg_marquardt(
                 state,
@@ -306,7 +428,7 @@ def bundle_adjust(
             )
             state, aborted = out.x, out.aborted
             iterations += out.iterations
-    chi2, depth = observation_chi2(state, obs_pose, obs_point, obs)
+    chi2, depth = observation_chi2(state, obs_pose, obs_point, obs, rig)
     outlier = excluded | ~((chi2 <= obs.chi2_max) & (depth > 0.0))
     return BundleResult(
         T_c_w=state.T_c_w,

@@ -94,7 +94,7 @@ class ScipyOptimizer:
 
     def optimize_pose(self, problem: PoseOnlyProblem) -> PoseOnlyResult:
         """Motion-only BA with ORB-SLAM's rounds of chi-square re-classification (slamkit_scipy.pose_only)."""
-        validate_pose_problem(problem)
+        validate_pose_problem(problem, supports_rig=True, backend=self.name)
         result = optimize_pose(problem, self.settings, self.pose_behind_is_outlier)
         result.cost_initial = pose_cost(problem, problem.T_c_w_init)
         result.cost_final = pose_cost(problem, result.T_c_w, result.inliers)
@@ -102,7 +102,7 @@ class ScipyOptimizer:
 
     def bundle_adjust(self, problem: BundleProblem, abort: AbortToken | None = None) -> BundleResult:
         """Local/global BA (slamkit_scipy.bundle); ``abort`` is checked before every LM iteration."""
-        validate_bundle_problem(problem, backend=self.name)
+        validate_bundle_problem(problem, supports_rig=True, backend=self.name)
         result = bundle_adjust(problem, self.settings, abort, self.ba_robust_second_stage, self.ba_dense_max)
         result.cost_initial = bundle_cost(problem, problem.T_c_w, problem.xyz_w)
         result.cost_final = bundle_cost(problem, result.T_c_w, result.xyz_w, ~result.outlier)

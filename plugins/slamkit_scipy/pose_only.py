@@ -10,11 +10,12 @@ e->setRobustKernel(0)``). A point behind the camera is an outlier whatever its c
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
+from slamkit.problems import CAMERA_KANNALA_BRANDT, PoseOnlyProblem, PoseOnlyResult
 from slamkit_scipy.lie import se3_exp_batch
 from slamkit_scipy.lm import LMSettings, levenberg_marquardt
 from slamkit_scipy.reprojection import (
@@ -25,6 +26,7 @@ from slamkit_scipy.reprojection import (
     projection_jacobian,
     residuals,
 )
+from slamkit_scipy.rig_kernels import rig_chi2, rig_linearize
 from slamkit_scipy.robust import huber_cost, huber_weight, inv_sigma2
 
 F64 = NDArray[np.float64]
@@ -75,8 +77,95 @@ def retract_pose(T: F64, h: F64) -> F64:
     return out
 
 
+@dataclass
+class _Rig:
+    """A pose problem's observations of a two-camera rig as rig_kernels reads them: cam (N, 8), fish (N,),
+    Rx (N, 3, 3), tx (N, 3) (the body camera -> observing camera transform per observation)."""
+
+    cam: F64
+    fish: NDArray[np.bool_]
+    Rx: F64
+    tx: F64
+
+    @staticmethod
+    def of(problem: PoseOnlyProblem, obs: Observations) -> _Rig | None:
+        if problem.camera_index is None or not (np.asarray(problem.camera_index) == 1).any():
+            return None
+        second = np.asarray(problem.camera_index) == 1
+        n = second.size
+        cam = obs.cam()
+        cam[second, :4] = np.asarray(problem.intrinsics2, np.float64)
+        cam[second, 4:] = 0.0 if problem.distortion2 is None else np.asarray(problem.distortion2, np.float64)
+        fish = np.full(n, obs.kb is not None)
+        fish[second] = problem.camera_model2 == CAMERA_KANNALA_BRANDT
+        T21 = np.asarray(problem.T_c2_c1, np.float64)
+        Rx = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+        tx = np.zeros((n, 3))
+        Rx[second] = T21[:3, :3]
+        tx[second] = T21[:3, 3]
+        return _Rig(cam, fish, Rx, tx)
+
+    def subset(self, keep: NDArray[np.bool_]) -> _Rig:
+        return _Rig(self.cam[keep], self.fish[keep], self.Rx[keep], self.tx[keep])
+
+    def chi2_depth(self, T: F64, X: F64, obs: Observations) -> tuple[F64, F64]:
+        n = X.shape[0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out: tuple[F64, F64] = rig_chi2(
+                np.ascontiguousarray(T[None, :3, :3]),
+                np.ascontiguousarray(T[None, :3, 3]),
+                np.ascontiguousarray(X),
+                np.zeros(n, np.int64),
+                np.arange(n, dtype=np.int64),
+                obs.uvr,
+                obs.stereo,
+                obs.intr,
+                obs.bf,
+                obs.info,
+                self.cam,
+                self.fish,
+                self.Rx,
+                self.tx,
+            )
+        return out
+
+    def cost(self, T: F64, *, X: F64, obs: Observations, robust: bool) -> float:
+        chi2, _ = self.chi2_depth(T, X, obs)
+        return float(np.sum(huber_cost(chi2, obs.delta) if robust else chi2))
+
+    def linearize(
+        self, T: F64, *, X: F64, obs: Observations, robust: bool
+    ) -> tuple[tuple[F64, F64], F64, float, float]:
+        n = X.shape[0]
+        U, _, _, gc, _, f = rig_linearize(
+            np.ascontiguousarray(T[None, :3, :3]),
+            np.ascontiguousarray(T[None, :3, 3]),
+            np.ascontiguousarray(X),
+            np.zeros(n, np.int64),
+            np.arange(n, dtype=np.int64),
+            np.zeros(n, np.int64),
+            np.full(n, -1, np.int64),
+            obs.uvr,
+            obs.stereo,
+            obs.intr,
+            obs.bf,
+            obs.info,
+            obs.delta,
+            robust,
+            1,
+            0,
+            self.cam,
+            self.fish,
+            self.Rx,
+            self.tx,
+        )
+        H, g = U[0], gc[0]
+        return (H, g), g, float(f), float(np.max(np.diag(H), initial=0.0))
+
+
 def optimize_pose(problem: PoseOnlyProblem, settings: LMSettings, stop_behind: bool = True) -> PoseOnlyResult:
-    """Solve a validated PoseOnlyProblem; see the module docstring for ORB-SLAM's round structure."""
+    """Solve a validated PoseOnlyProblem; see the module docstring for ORB-SLAM's round structure. Observations of a
+    rig's second camera (``camera_index`` 1) go through slamkit_scipy.rig_kernels."""
     n = problem.xyz_w.shape[0]
     X_all = np.asarray(problem.xyz_w, dtype=np.float64)
     intr = np.broadcast_to(np.asarray(problem.intrinsics, dtype=np.float64), (n, 4))
@@ -91,6 +180,9 @@ def optimize_pose(problem: PoseOnlyProblem, settings: LMSettings, stop_behind: b
         None if problem.distortion is None else np.broadcast_to(np.asarray(problem.distortion, np.float64), (n, 4)),
     )
     T0 = np.array(problem.T_c_w_init, dtype=np.float64)
+    rig_all = _Rig.of(problem, obs_all)
+    if rig_all is not None:
+        return _optimize_rig_pose(problem, settings, stop_behind, X_all, obs_all, rig_all, T0)
     cost_initial = robust_cost(T0, X_all, obs_all, True)
     inlier = np.ones(n, dtype=bool)
     T = T0
@@ -119,6 +211,49 @@ def optimize_pose(problem: PoseOnlyProblem, settings: LMSettings, stop_behind: b
         if not np.any(inlier):
             break
     cost_final = robust_cost(T, X_all[inlier], obs_all.subset(inlier), True)
+    return PoseOnlyResult(
+        T_c_w=T, inliers=inlier, cost_initial=cost_initial, cost_final=cost_final, iterations=total_iters
+    )
+
+
+def _optimize_rig_pose(
+    problem: PoseOnlyProblem,
+    settings: LMSettings,
+    stop_behind: bool,
+    X_all: F64,
+    obs_all: Observations,
+    rig_all: _Rig,
+    T0: F64,
+) -> PoseOnlyResult:
+    """optimize_pose's rounds for a problem with second-camera observations (depth checked in the observing camera)."""
+    n = X_all.shape[0]
+    cost_initial = rig_all.cost(T0, X=X_all, obs=obs_all, robust=True)
+    inlier = np.ones(n, dtype=bool)
+    T = T0
+    total_iters = 0
+    for it in range(problem.rounds):
+        robust = it < 2
+        X = X_all[inlier]
+        obs = obs_all.subset(inlier)
+        rig = rig_all.subset(inlier)
+        outcome = levenberg_marquardt(
+            T0.copy(),
+            functools.partial(rig.linearize, X=X, obs=obs, robust=robust),
+            _solve6,
+            retract_pose,
+            functools.partial(rig.cost, X=X, obs=obs, robust=robust),
+            problem.iterations_per_round,
+            settings,
+        )
+        T = outcome.x
+        total_iters += outcome.iterations
+        chi2, depth = rig_all.chi2_depth(T, X_all, obs_all)
+        inlier = chi2 <= obs_all.chi2_max
+        if stop_behind:
+            inlier &= depth > 0.0
+        if not np.any(inlier):
+            break
+    cost_final = rig_all.subset(inlier).cost(T, X=X_all[inlier], obs=obs_all.subset(inlier), robust=True)
     return PoseOnlyResult(
         T_c_w=T, inliers=inlier, cost_initial=cost_initial, cost_final=cost_final, iterations=total_iters
     )

@@ -90,9 +90,10 @@ def _reprojection_chi2(
 
 
 def pose_chi2(problem: PoseOnlyProblem, T_c_w: F64) -> F64:
-    """(N,) chi2 of each observation of a motion-only problem at pose T_c_w (4, 4)."""
+    """(N,) chi2 of each observation of a motion-only problem at pose T_c_w (4, 4); an observation of a rig's second
+    camera (``camera_index`` 1) is projected through the second camera at T_c2_c1 @ T_c_w."""
     n = len(problem.xyz_w)
-    return _reprojection_chi2(
+    chi2 = _reprojection_chi2(
         np.broadcast_to(T_c_w[:3, :3], (n, 3, 3)),
         np.broadcast_to(T_c_w[:3, 3], (n, 3)),
         problem.xyz_w,
@@ -104,6 +105,25 @@ def pose_chi2(problem: PoseOnlyProblem, T_c_w: F64) -> F64:
         problem.scale_factor,
         None if problem.distortion is None else np.broadcast_to(problem.distortion, (n, 4)),
     )
+    if problem.camera_index is None or problem.T_c2_c1 is None or problem.intrinsics2 is None:
+        return chi2
+    second = np.asarray(problem.camera_index) == 1
+    m = int(second.sum())
+    if m:
+        T2 = np.asarray(problem.T_c2_c1, np.float64) @ T_c_w
+        chi2[second] = _reprojection_chi2(
+            np.broadcast_to(T2[:3, :3], (m, 3, 3)),
+            np.broadcast_to(T2[:3, 3], (m, 3)),
+            problem.xyz_w[second],
+            problem.uv_px[second],
+            np.full(m, np.nan),
+            problem.level[second].astype(np.float64),
+            np.broadcast_to(problem.intrinsics2, (m, 4)),
+            np.zeros(m),
+            problem.scale_factor,
+            None if problem.distortion2 is None else np.broadcast_to(problem.distortion2, (m, 4)),
+        )
+    return chi2
 
 
 def _gates(u_right: F64, chi2_mono: float, chi2_stereo: float) -> F64:
@@ -119,9 +139,10 @@ def pose_cost(problem: PoseOnlyProblem, T_c_w: F64, active: B | None = None) -> 
 
 
 def bundle_chi2(problem: BundleProblem, T_c_w: F64, xyz_w: F64) -> F64:
-    """(E,) chi2 of each observation at poses T_c_w (K, 4, 4) and points xyz_w (M, 3)."""
+    """(E,) chi2 of each observation at poses T_c_w (K, 4, 4) and points xyz_w (M, 3); an observation of a rig's
+    second camera (``camera_index`` 1) through the second camera at T_c2_c1[k] @ T_c_w[k]."""
     T = T_c_w[problem.obs_pose]
-    return _reprojection_chi2(
+    chi2 = _reprojection_chi2(
         T[:, :3, :3],
         T[:, :3, 3],
         xyz_w[problem.obs_point],
@@ -133,6 +154,25 @@ def bundle_chi2(problem: BundleProblem, T_c_w: F64, xyz_w: F64) -> F64:
         problem.scale_factor,
         None if problem.distortion is None else np.asarray(problem.distortion)[problem.obs_pose],
     )
+    if problem.camera_index is None or problem.T_c2_c1 is None or problem.intrinsics2 is None:
+        return chi2
+    second = np.flatnonzero(np.asarray(problem.camera_index) == 1)
+    if second.size:
+        k = problem.obs_pose[second]
+        T2 = np.asarray(problem.T_c2_c1, np.float64)[k] @ T_c_w[k]
+        chi2[second] = _reprojection_chi2(
+            T2[:, :3, :3],
+            T2[:, :3, 3],
+            xyz_w[problem.obs_point[second]],
+            problem.uv_px[second],
+            np.full(second.size, np.nan),
+            problem.level[second].astype(np.float64),
+            np.asarray(problem.intrinsics2, np.float64)[k],
+            np.zeros(second.size),
+            problem.scale_factor,
+            None if problem.distortion2 is None else np.asarray(problem.distortion2, np.float64)[k],
+        )
+    return chi2
 
 
 def bundle_cost(problem: BundleProblem, T_c_w: F64, xyz_w: F64, active: B | None = None) -> float:

@@ -212,13 +212,49 @@ def _inertial(problem: str, inertial: object, supports_inertial: bool, backend: 
         )
 
 
-def validate_pose_problem(problem: PoseOnlyProblem) -> None:
+def _second_camera(
+    p: str, problem: PoseOnlyProblem | BundleProblem, n: int, u_right: F64, supports_rig: bool, backend: str
+) -> None:
+    """A two-camera rig's fields: camera_index (N,) of 0 / 1; with any 1, a backend that supports it, a rigid
+    T_c2_c1, intrinsics2, a known camera_model2 with its distortion2, and no right coordinate on those observations
+    (a pose problem: one of each; a bundle problem: one per keyframe)."""
+    if problem.camera_index is None:
+        return
+    which = _int_array(p, "camera_index", problem.camera_index, (n,))
+    if not np.isin(which, (0, 1)).all():
+        i = int(np.argmax(~np.isin(which, (0, 1))))
+        raise ProblemError(f"{p}.camera_index[{i}] = {which[i]}: expected 0 (the pose's camera) or 1 (the second)")
+    second = which == 1
+    if not second.any():
+        return
+    if not supports_rig:
+        raise ProblemError(
+            f"{p}.camera_index: the problem has second-camera observations (a non-rectified stereo rig), which the "
+            f"{backend} backend does not support yet; use the compiled pose optimization "
+            "(pipeline.tracking.pose_optimization=compiled)"
+        )
+    if problem.T_c2_c1 is None or problem.intrinsics2 is None:
+        raise ProblemError(f"{p}: second-camera observations need T_c2_c1 and intrinsics2")
+    if isinstance(problem, BundleProblem):
+        K = len(problem.T_c_w)
+        _transforms(p, "T_c2_c1", problem.T_c2_c1, K, scaled=False)
+        _intrinsics(p, "intrinsics2", problem.intrinsics2, (K, 4))
+        shape: tuple[int, ...] = (K, 4)
+    else:
+        _transform(p, "T_c2_c1", problem.T_c2_c1, scaled=False)
+        _intrinsics(p, "intrinsics2", problem.intrinsics2, (4,))
+        shape = (4,)
+    _camera_model(p, problem.camera_model2, problem.distortion2, shape, np.where(second, u_right, np.nan))
+
+
+def validate_pose_problem(problem: PoseOnlyProblem, *, supports_rig: bool = False, backend: str = "this") -> None:
     """Check a motion-only BA problem; raise ProblemError naming the first defect.
 
     Requires at least one observation, finite arrays of matching lengths (u_right_px may be NaN = monocular),
     a rigid T_c_w_init, fx, fy > 0, bf > 0 when any observation is stereo, a known camera model (k1..k4 for
     Kannala-Brandt, which has no stereo observations), and at least one point in front of
-    the initial camera (points behind it are allowed: they end up classified as outliers).
+    the initial camera (points behind it are allowed: they end up classified as outliers). Observations of a second
+    camera (``camera_index`` 1) need ``supports_rig`` and the second camera's fields (no right coordinate).
     """
     p = "PoseOnlyProblem"
     T = _transform(p, "T_c_w_init", problem.T_c_w_init, scaled=False)
@@ -235,6 +271,7 @@ def validate_pose_problem(problem: PoseOnlyProblem) -> None:
         raise ProblemError(f"{p}.bf = {problem.bf!r}: expected a finite number >= 0")
     _stereo(p, u_right, np.full(n, bf))
     _camera_model(p, problem.camera_model, problem.distortion, (4,), u_right)
+    _second_camera(p, problem, n, u_right, supports_rig, backend)
     _positive(p, "scale_factor", problem.scale_factor)
     _positive(p, "chi2_mono", problem.chi2_mono)
     _positive(p, "chi2_stereo", problem.chi2_stereo)
@@ -248,7 +285,9 @@ def validate_pose_problem(problem: PoseOnlyProblem) -> None:
         )
 
 
-def validate_bundle_problem(problem: BundleProblem, *, supports_inertial: bool = False, backend: str = "this") -> None:
+def validate_bundle_problem(
+    problem: BundleProblem, *, supports_inertial: bool = False, supports_rig: bool = False, backend: str = "this"
+) -> None:
     """Check a bundle-adjustment problem; raise ProblemError naming the first defect.
 
     Requires K >= 1 poses, M >= 1 points and E >= 1 observations, finite arrays of consistent shapes, rigid
@@ -256,7 +295,8 @@ def validate_bundle_problem(problem: BundleProblem, *, supports_inertial: bool =
     camera model (k1..k4 per keyframe for Kannala-Brandt, which has no stereo observations), every
     free pose and free point observed at least once, every point in front (initial guess) of at least one
     camera observing it, at least one fixed variable (a fixed pose or point: otherwise the gauge is free), and
-    no inertial terms unless ``supports_inertial``.
+    no inertial terms unless ``supports_inertial``, and second-camera observations (``camera_index`` 1) only with
+    ``supports_rig`` and the rig's fields.
     """
     p = "BundleProblem"
     _inertial(p, problem.inertial, supports_inertial, backend)
@@ -287,6 +327,7 @@ def validate_bundle_problem(problem: BundleProblem, *, supports_inertial: bool =
     _in_range(p, "obs_point", obs_point, M, "xyz_w")
     _stereo(p, u_right, bf[obs_pose])
     _camera_model(p, problem.camera_model, problem.distortion, (K, 4), u_right)
+    _second_camera(p, problem, E, u_right, supports_rig, backend)
     _positive(p, "scale_factor", problem.scale_factor)
     _positive(p, "chi2_mono", problem.chi2_mono)
     _positive(p, "chi2_stereo", problem.chi2_stereo)

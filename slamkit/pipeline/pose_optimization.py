@@ -20,6 +20,10 @@ in for ``Optimizer.optimize_pose``. Camera models: the pinhole of the undistorte
 fisheye pixels, ``problem.distortion`` = k1..k4). Stereo/RGB-D observations (finite ``u_right_px``, pinhole only)
 add the right-coordinate residual u - bf / z - u_right (3 dof, chi-square gate ``chi2_stereo`` = 7.815; ORB-SLAM2
 EdgeStereoSE3ProjectXYZOnlyPose) with the same information 1 / scale_factor^(2 level).
+A two-camera rig (non-rectified stereo, ORB-SLAM3 EdgeSE3ProjectXYZOnlyPoseToBody): an observation of the second
+camera (``problem.camera_index`` 1) is projected through its own model at T_2 = T_c2_c1 T (fixed extrinsic); its
+Jacobian is the second camera's own left-perturbation Jacobian times the adjoint of T_c2_c1, since
+T_c2_c1 exp(xi) T = exp(Ad(T_c2_c1) xi) T_c2_c1 T. Its depth check is in the second camera.
 """
 
 from __future__ import annotations
@@ -118,11 +122,19 @@ def _cost(
     stereo: NDArray[np.bool_],
     ur: F64,
     bf: float,
+    which: NDArray[np.int64],
+    T21: F64,
+    cam2: F64,
+    fisheye2: bool,
 ) -> float:  # pragma: no cover - numba
     f = 0.0
+    T2 = T21 @ T
     for i in range(X.shape[0]):
         if use[i]:
-            x, _, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
+            if which[i] == 1:
+                x, _, z, ru, rv = _residual(T2, X, uv, cam2, fisheye2, i)
+            else:
+                x, _, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
             e2 = ru * ru + rv * rv
             if stereo[i]:
                 rr = _right_residual(x, z, cam, ur, bf, i)
@@ -145,6 +157,33 @@ def _kb_jacobian_rows(x: float, y: float, z: float, cam: F64, J: F64) -> None:  
 
 
 @numba.njit(cache=True, nogil=True)
+def _second_camera_rows(
+    x: float, y: float, z: float, cam2: F64, fisheye2: bool, Ad21: F64, J: F64
+) -> None:  # pragma: no cover - numba
+    """J (2, 6) = d r / d xi of a second-camera observation at its camera point (x, y, z): the second camera's own
+    left-perturbation rows (cross(p_2, a), a) times Ad(T_c2_c1) (6, 6)."""
+    J2 = np.zeros((2, 6))
+    if fisheye2:
+        _kb_jacobian_rows(x, y, z, cam2, J2)
+    else:
+        fx, fy = cam2[0], cam2[1]
+        iz = 1.0 / z
+        iz2 = iz * iz
+        a00, a02 = fx * iz, -fx * x * iz2
+        a11, a12 = fy * iz, -fy * y * iz2
+        J2[0, 0], J2[0, 1], J2[0, 2] = y * a02, z * a00 - x * a02, -y * a00
+        J2[0, 3], J2[0, 4], J2[0, 5] = a00, 0.0, a02
+        J2[1, 0], J2[1, 1], J2[1, 2] = y * a12 - z * a11, -x * a12, x * a11
+        J2[1, 3], J2[1, 4], J2[1, 5] = 0.0, a11, a12
+    for r in range(2):
+        for a in range(6):
+            s = 0.0
+            for b in range(6):
+                s += J2[r, b] * Ad21[b, a]
+            J[r, a] = s
+
+
+@numba.njit(cache=True, nogil=True)
 def _linearize(
     T: F64,
     X: F64,
@@ -158,6 +197,11 @@ def _linearize(
     stereo: NDArray[np.bool_],
     ur: F64,
     bf: float,
+    which: NDArray[np.int64],
+    T21: F64,
+    cam2: F64,
+    fisheye2: bool,
+    Ad21: F64,
 ) -> tuple[F64, F64, float]:  # pragma: no cover - numba
     """H = sum J^T w J (6, 6), g = sum J^T w r (6,), robust cost; w = info * rho'(chi2) (IRLS). A stereo
     observation (``stereo[i]``) adds the right-coordinate row (u_r = fx x / z + cx - bf / z) with the same
@@ -167,10 +211,14 @@ def _linearize(
     g = np.zeros(6)
     J = np.zeros((2, 6))
     f = 0.0
+    T2 = T21 @ T
     for i in range(X.shape[0]):
         if not use[i]:
             continue
-        x, y, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
+        if which[i] == 1:
+            x, y, z, ru, rv = _residual(T2, X, uv, cam2, fisheye2, i)
+        else:
+            x, y, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
         rr = 0.0
         if stereo[i]:
             rr = _right_residual(x, z, cam, ur, bf, i)
@@ -181,7 +229,9 @@ def _linearize(
         if robust and chi2 > delta[i] * delta[i]:
             w *= delta[i] / np.sqrt(max(chi2, 1e-300))
         f += _rho(chi2, delta[i], robust)
-        if fisheye:
+        if which[i] == 1:
+            _second_camera_rows(x, y, z, cam2, fisheye2, Ad21, J)
+        elif fisheye:
             _kb_jacobian_rows(x, y, z, cam, J)
         else:
             iz = 1.0 / z
@@ -257,6 +307,11 @@ def _levenberg_marquardt(
     stereo: NDArray[np.bool_],
     ur: F64,
     bf: float,
+    which: NDArray[np.int64],
+    T21: F64,
+    cam2: F64,
+    fisheye2: bool,
+    Ad21: F64,
     iterations: int,
     tau: float,
     max_trials: int,
@@ -272,7 +327,9 @@ def _levenberg_marquardt(
     f = 0.0
     for _ in range(iterations):
         if stale:
-            H, g, f = _linearize(T, X, uv, info, delta, use, cam, fisheye, robust, stereo, ur, bf)
+            H, g, f = _linearize(
+                T, X, uv, info, delta, use, cam, fisheye, robust, stereo, ur, bf, which, T21, cam2, fisheye2, Ad21
+            )
             stale = False
         if lam < 0.0:
             hmax = 0.0
@@ -293,7 +350,9 @@ def _levenberg_marquardt(
             if predicted <= rel_tol * f:
                 break  # the model promises less than the tolerance: converged
             T_new = _exp_times(h, T)
-            f_new = _cost(T_new, X, uv, info, delta, use, cam, fisheye, robust, stereo, ur, bf)
+            f_new = _cost(
+                T_new, X, uv, info, delta, use, cam, fisheye, robust, stereo, ur, bf, which, T21, cam2, fisheye2
+            )
             rho = (f - f_new) / predicted if predicted > 0.0 else -1.0
             if rho > 0.0 and np.isfinite(f_new):
                 lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
@@ -323,6 +382,11 @@ def _optimize_pose_kernel(
     stereo: NDArray[np.bool_],
     ur: F64,
     bf: float,
+    which: NDArray[np.int64],
+    T21: F64,
+    cam2: F64,
+    fisheye2: bool,
+    Ad21: F64,
     rounds: int,
     iterations: int,
     tau: float,
@@ -332,7 +396,7 @@ def _optimize_pose_kernel(
     n = X.shape[0]
     delta = np.sqrt(chi2_max)
     inlier = np.ones(n, np.bool_)
-    cost_initial = _cost(T0, X, uv, info, delta, inlier, cam, fisheye, True, stereo, ur, bf)
+    cost_initial = _cost(T0, X, uv, info, delta, inlier, cam, fisheye, True, stereo, ur, bf, which, T21, cam2, fisheye2)
     T = T0.copy()
     total = 0
     for it in range(rounds):
@@ -349,6 +413,11 @@ def _optimize_pose_kernel(
             stereo,
             ur,
             bf,
+            which,
+            T21,
+            cam2,
+            fisheye2,
+            Ad21,
             iterations,
             tau,
             max_trials,
@@ -356,8 +425,12 @@ def _optimize_pose_kernel(
         )
         total += done
         any_in = False
+        T2 = T21 @ T
         for i in range(n):
-            x, _, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
+            if which[i] == 1:
+                x, _, z, ru, rv = _residual(T2, X, uv, cam2, fisheye2, i)
+            else:
+                x, _, z, ru, rv = _residual(T, X, uv, cam, fisheye, i)
             if stereo[i]:
                 rr = _right_residual(x, z, cam, ur, bf, i)
                 inlier[i] = (info[i] * (ru * ru + rv * rv + rr * rr) <= chi2_max[i]) and z > 0.0
@@ -366,8 +439,50 @@ def _optimize_pose_kernel(
             any_in = any_in or inlier[i]
         if not any_in:
             break
-    cost_final = _cost(T, X, uv, info, delta, inlier, cam, fisheye, True, stereo, ur, bf)
+    cost_final = _cost(T, X, uv, info, delta, inlier, cam, fisheye, True, stereo, ur, bf, which, T21, cam2, fisheye2)
     return T, inlier, total, cost_initial, cost_final
+
+
+def _adjoint(T: F64) -> F64:
+    """(6, 6) Ad(T) for twists xi = [omega, v]: T exp(xi) = exp(Ad(T) xi) T, Ad = [[R, 0], [hat(t) R, R]]."""
+    R, t = T[:3, :3], T[:3, 3]
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, 3:] = R
+    Ad[3:, :3] = tx @ R
+    return Ad
+
+
+def _second_camera(
+    problem: PoseOnlyProblem, n: int, cam: F64, fisheye: bool
+) -> tuple[NDArray[np.int64], F64, F64, bool]:
+    """(which (N,) int64, T_c2_c1 (4, 4), cam2 (8,), fisheye2) of a two-camera problem; for a one-camera problem all
+    zeros, the identity and the first camera (the kernel never reads them then)."""
+    if problem.camera_index is None:
+        return np.zeros(n, np.int64), np.eye(4), cam, fisheye
+    which = np.ascontiguousarray(problem.camera_index, np.int64).reshape(-1)
+    if which.shape != (n,) or not np.isin(which, (0, 1)).all():
+        raise ValueError(f"pose problem: camera_index must be (N,) = ({n},) of 0 / 1; got {which.shape}")
+    if not (which == 1).any():
+        return which, np.eye(4), cam, fisheye
+    if problem.T_c2_c1 is None or problem.intrinsics2 is None:
+        raise ValueError("pose problem: second-camera observations need T_c2_c1 and intrinsics2")
+    if np.isfinite(np.asarray(problem.u_right_px)[which == 1]).any():
+        raise ValueError("pose problem: a second-camera observation has a right coordinate; expected NaN")
+    fisheye2 = problem.camera_model2 == CAMERA_KANNALA_BRANDT
+    if problem.camera_model2 not in (CAMERA_PINHOLE, CAMERA_KANNALA_BRANDT):
+        raise ValueError(f"pose problem: camera_model2 {problem.camera_model2!r} is not supported here")
+    cam2 = np.zeros(8)
+    cam2[:4] = np.asarray(problem.intrinsics2, np.float64)
+    if fisheye2:
+        if problem.distortion2 is None or np.shape(problem.distortion2) != (4,):
+            raise ValueError("pose problem: a kannala_brandt second camera needs distortion2 k1..k4 of shape (4,)")
+        cam2[4:] = np.asarray(problem.distortion2, np.float64)
+    T21 = np.ascontiguousarray(problem.T_c2_c1, np.float64)
+    if T21.shape != (4, 4) or not np.all(np.isfinite(T21)):
+        raise ValueError("pose problem: T_c2_c1 must be a finite (4, 4) transform")
+    return which, T21, cam2, fisheye2
 
 
 def optimize_pose(problem: PoseOnlyProblem) -> PoseOnlyResult:
@@ -409,6 +524,7 @@ def optimize_pose(problem: PoseOnlyProblem) -> PoseOnlyResult:
         if problem.distortion is None or np.shape(problem.distortion) != (4,):
             raise ValueError("pose problem: a kannala_brandt problem needs distortion k1..k4 of shape (4,)")
         cam[4:] = np.asarray(problem.distortion, np.float64)
+    which, T21, cam2, fisheye2 = _second_camera(problem, n, cam, fisheye)
     T, inliers, iterations, c0, c1 = _optimize_pose_kernel(
         T0,
         X,
@@ -420,6 +536,11 @@ def optimize_pose(problem: PoseOnlyProblem) -> PoseOnlyResult:
         stereo,
         ur,
         bf,
+        which,
+        T21,
+        cam2,
+        fisheye2,
+        _adjoint(T21),
         int(problem.rounds),
         int(problem.iterations_per_round),
         LM_TAU,

@@ -14,11 +14,13 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from slamkit.errors import ConfigError
-from slamkit.geometry.camera import PinholeCamera
+from slamkit.geometry.camera import KannalaBrandtCamera, PinholeCamera
+from slamkit.geometry.so3 import so3_exp
 from slamkit.io.base import SequenceDataset
 from slamkit.io.synthetic.imu import BodyKinematics, ImuNoise, ImuStream, body_kinematics, simulate_imu
 from slamkit.io.synthetic.render import MIP_LEVELS, PixelNoise, PlaneRenderer, RenderOutput
@@ -75,9 +77,12 @@ class SyntheticDataset(SequenceDataset):
     """A rendered sequence of scene ``scene`` (see ``slamkit.io.synthetic.scenes.SCENES``).
 
     Camera: pinhole ``width`` x ``height`` px with fx, fy (px) and principal point cx, cy (default: the
-    image centre, (width - 1) / 2, (height - 1) / 2). ``color``/``depth``/``stereo``/``imu`` switch the
-    optional FrameData fields on. Stereo: a rectified right camera with the same intrinsics at
-    ``baseline_m`` along the left camera's x axis (T_l_r translation (baseline_m, 0, 0)).
+    image centre, (width - 1) / 2, (height - 1) / 2), or with ``camera_model`` "kannala_brandt" a fisheye camera
+    with the same intrinsics and ``kb_k`` = k1..k4 (images rendered through a wide pinhole view, then remapped
+    through the fisheye model: see ``_FisheyeRemap``; depth follows with nearest-neighbour sampling).
+    ``color``/``depth``/``stereo``/``imu`` switch the optional FrameData fields on. Stereo: a right camera with the
+    same intrinsics at ``baseline_m`` along the left camera's x axis (T_l_r translation (baseline_m, 0, 0)), turned
+    ``stereo_yaw_deg`` about its y axis (outwards for positive values; 0: a rectified pair, for a pinhole camera).
     IMU: ``imu_rate_hz`` samples of the body frame (pose of the camera in it: ``T_b_c``, default
     DEFAULT_T_B_C) with noise densities imu_* (0 = exact). pixel_noise_std: Gaussian image noise, grey
     levels (geometry stays exact). texels_per_m: texture density override (default: the scene's).
@@ -92,8 +97,8 @@ class SyntheticDataset(SequenceDataset):
     ``frame_times_s`` (raw frames' timestamps).
     """
 
-    # Narrower than the Dataset protocol: this dataset always has a pinhole camera and ground truth.
-    camera: PinholeCamera
+    # Narrower than the Dataset protocol: this dataset always has ground truth.
+    camera: PinholeCamera | KannalaBrandtCamera
     ground_truth: Trajectory
 
     def __init__(
@@ -123,6 +128,9 @@ class SyntheticDataset(SequenceDataset):
         texels_per_m: float | None = None,
         skip: Sequence[int] | None = None,
         max_frames: int | None = None,
+        camera_model: str = "pinhole",
+        kb_k: Sequence[float] | None = None,
+        stereo_yaw_deg: float = 0.0,
     ) -> None:
         if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
             raise ConfigError(f"dataset.seed: expected an integer, got {seed!r}")
@@ -139,7 +147,7 @@ class SyntheticDataset(SequenceDataset):
             raise ConfigError(f"dataset.duration_s={duration} at fps={self.fps} gives no frame")
         self.frame_times_s = np.arange(n_raw, dtype=np.float64) / self.fps  # i / fps exactly, as doubles
 
-        self.camera = PinholeCamera(
+        pinhole = PinholeCamera(
             width,
             height,
             fx,
@@ -147,6 +155,16 @@ class SyntheticDataset(SequenceDataset):
             (width - 1) / 2.0 if cx is None else cx,
             (height - 1) / 2.0 if cy is None else cy,
         )
+        self._fisheye: _FisheyeRemap | None = None
+        if camera_model == "pinhole":
+            self.camera = pinhole
+        elif camera_model == "kannala_brandt":
+            if kb_k is None:
+                raise ConfigError("dataset.kb_k: missing; expected k1..k4 for camera_model=kannala_brandt")
+            self.camera = KannalaBrandtCamera(width, height, fx, fy, pinhole.cx, pinhole.cy, k=list(kb_k))
+            self._fisheye = _FisheyeRemap(self.camera)
+        else:
+            raise ConfigError(f"dataset.camera_model: expected 'pinhole' or 'kannala_brandt', got {camera_model!r}")
         self.color, self.depth, self.stereo, self.imu = bool(color), bool(depth), bool(stereo), bool(imu)
         self.pixel_noise_std = _number(pixel_noise_std, "pixel_noise_std", non_negative=True)
         self._pixel_noise = PixelNoise(self.pixel_noise_std)
@@ -155,6 +173,8 @@ class SyntheticDataset(SequenceDataset):
             self.camera_right = self.camera
             self.T_l_r = np.eye(4)
             self.T_l_r[0, 3] = b
+            yaw = _number(stereo_yaw_deg, "stereo_yaw_deg")
+            self.T_l_r[:3, :3] = so3_exp(np.array([0.0, math.radians(yaw), 0.0]))
         else:
             self.camera_right, self.T_l_r = None, None
 
@@ -184,7 +204,11 @@ class SyntheticDataset(SequenceDataset):
         else:
             self.T_b_c = None
 
-        self.renderer = PlaneRenderer(world, TextureBank(self.seed, MIP_LEVELS), self.camera.K, width, height)
+        if self._fisheye is None:
+            self.renderer = PlaneRenderer(world, TextureBank(self.seed, MIP_LEVELS), self.camera.K, width, height)
+        else:
+            f = self._fisheye
+            self.renderer = PlaneRenderer(world, TextureBank(self.seed, MIP_LEVELS), f.K_wide, f.width, f.height)
         self._setup_selection(skip, max_frames)
 
     def prepare_playback(self) -> None:
@@ -205,7 +229,12 @@ class SyntheticDataset(SequenceDataset):
 
     def render_raw(self, raw_index: int, labels: bool = False) -> RenderOutput:
         """Noise-free render of raw frame ``raw_index`` (grey, colour if enabled, depth, optional labels)."""
-        return self.renderer.render(self._T_w_c[raw_index], grey=True, color=self.color, labels=labels)
+        return self._render(self._T_w_c[raw_index], color=self.color, labels=labels)
+
+    def _render(self, T_w_c: F64, color: bool, labels: bool = False) -> RenderOutput:
+        """The camera's view at T_w_c (4, 4): the renderer's pinhole image, or its remap through the fisheye."""
+        out = self.renderer.render(T_w_c, grey=True, color=color, labels=labels)
+        return out if self._fisheye is None else self._fisheye.apply(out)
 
     def _noisy(self, image: NDArray[np.uint8], raw_index: int, stream: int) -> NDArray[np.uint8]:
         rng = np.random.default_rng([self.seed & 0xFFFFFFFF, raw_index, stream])
@@ -221,10 +250,10 @@ class SyntheticDataset(SequenceDataset):
 
     def _load(self, raw_index: int, out_index: int) -> FrameData:
         T_w_c = self._T_w_c[raw_index]
-        left = self.renderer.render(T_w_c, grey=True, color=self.color)
+        left = self._render(T_w_c, color=self.color)
         right = None
         if self.T_l_r is not None:
-            right_view = self.renderer.render(T_w_c @ self.T_l_r, grey=True, color=False)
+            right_view = self._render(T_w_c @ self.T_l_r, color=False)
             assert right_view.grey is not None
             right = self._noisy(right_view.grey, raw_index, _STREAM_RIGHT)
         assert left.grey is not None
@@ -239,3 +268,53 @@ class SyntheticDataset(SequenceDataset):
             T_w_c_gt=T_w_c.copy(),
             source=f"{self.name} (seed {self.seed}) frame {raw_index}",
         )
+
+
+class _FisheyeRemap:
+    """Images of a Kannala-Brandt camera from a wide pinhole render: every fisheye pixel's bearing (the camera's
+    ``unproject``) is looked up in a pinhole view with the same centre and fx, fy (so the centre keeps its
+    resolution) large enough for the rays up to ``max_angle_deg`` from the axis; rays beyond it are black, depth 0.
+
+    K_wide: (3, 3) the pinhole render's intrinsics; width / height: its size, px; map_u / map_v: (H, W) float32
+    pinhole coordinates of each fisheye pixel (cv2.remap).
+    """
+
+    def __init__(self, camera: KannalaBrandtCamera, max_angle_deg: float = 70.0) -> None:
+        h, w = camera.height, camera.width
+        vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+        b = camera.unproject(np.stack([uu.ravel(), vv.ravel()], axis=1))
+        cos_max = math.cos(math.radians(max_angle_deg))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ok = np.isfinite(b).all(axis=1) & (b[:, 2] >= cos_max)
+            x = np.where(ok, b[:, 0] / b[:, 2], np.nan)
+            y = np.where(ok, b[:, 1] / b[:, 2], np.nan)
+        half_x = float(np.nanmax(np.abs(x))) * camera.fx + 2.0
+        half_y = float(np.nanmax(np.abs(y))) * camera.fy + 2.0
+        self.width, self.height = int(2 * math.ceil(half_x)), int(2 * math.ceil(half_y))
+        cx, cy = (self.width - 1) / 2.0, (self.height - 1) / 2.0
+        self.K_wide = np.array([[camera.fx, 0.0, cx], [0.0, camera.fy, cy], [0.0, 0.0, 1.0]])
+        self.map_u = np.where(ok, camera.fx * x + cx, -10.0).reshape(h, w).astype(np.float32)
+        self.map_v = np.where(ok, camera.fy * y + cy, -10.0).reshape(h, w).astype(np.float32)
+
+    def apply(self, view: RenderOutput) -> RenderOutput:
+        """The fisheye image of a pinhole render (grey and colour bilinear, depth and labels nearest)."""
+
+        def remap(img: NDArray[Any] | None, interpolation: int) -> NDArray[Any] | None:
+            if img is None or img.size == 0:
+                return img
+            return cv2.remap(img, self.map_u, self.map_v, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+        labels = view.labels
+        if labels is not None and labels.size:
+            lab = cv2.remap(
+                labels.astype(np.float32),
+                self.map_u,
+                self.map_v,
+                cv2.INTER_NEAREST,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=-1,
+            )
+            labels = np.asarray(lab, np.int32)
+        depth = remap(view.depth_m, cv2.INTER_NEAREST)
+        assert depth is not None
+        return RenderOutput(remap(view.grey, cv2.INTER_LINEAR), remap(view.color, cv2.INTER_LINEAR), depth, labels)

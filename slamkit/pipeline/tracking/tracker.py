@@ -47,6 +47,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.errors import ConfigError
 from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
@@ -114,6 +115,15 @@ class Tracker:
         active map must have keyframes; tracking never makes a keyframe and never resets or replaces the map."""
         self.cfg = cfg
         self.max_frames = max_frames_of(cfg, fps)  # ORB-SLAM mMaxFrames (frames)
+        if getattr(frontend, "two_cameras", False):
+            # a non-rectified pair's record (frontend=stereo_rig) holds two cameras' keypoints; tracking, local
+            # mapping and the bundle problems do not read it yet (issue 16 item 3: the front end and the
+            # motion-only BA with the second camera are in, docs/pipeline.md "Non-rectified stereo")
+            raise ConfigError(
+                f"frontend: {type(frontend).__name__} gives two-camera records (non-rectified stereo), which the "
+                "tracking pipeline does not run yet; rectify the pair instead (frontend=stereo with dataset.settings "
+                "holding ORB-SLAM's LEFT/RIGHT rectification blocks)"
+            )
         self.frontend = frontend
         self.optimizer = optimizer
         self.optimize_pose = pose_optimizer or motion_only_ba
