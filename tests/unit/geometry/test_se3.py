@@ -62,8 +62,8 @@ def test_act_composes_and_matches_the_matrix(a: SE3, b: SE3, pts: F64) -> None:
     np.testing.assert_allclose((a @ b).act(pts), a.act(b.act(pts)), atol=1e-10)
     homog = np.c_[pts, np.ones(7)] @ a.matrix().T
     np.testing.assert_allclose(a.act(pts), homog[:, :3], atol=1e-12)
-    np.testing.assert_allclose(a.act(pts[3]), a.act(pts)[3])
-    np.testing.assert_allclose(transform_points(a.matrix(), pts), a.act(pts))
+    np.testing.assert_allclose(a.act(pts[3]), a.act(pts)[3], atol=1e-12)
+    np.testing.assert_allclose(transform_points(a.matrix(), pts), a.act(pts), atol=1e-12)
 
 
 @settings(max_examples=50, deadline=None)
