@@ -344,8 +344,9 @@ class InMemoryMapStore:
         self._first_keyframe = contents.first_keyframe_id
         self._epoch = int(contents.epoch)
 
-    def add_contents(self, contents: MapContents, roots_parent: int | None = None) -> None:
-        check_contents(contents, self._ids)
+    def add_contents(self, contents: MapContents, roots_parent: int | None = None, checked: bool = False) -> None:
+        if not checked:
+            check_contents(contents, self._ids)
         taken = [kf.id for kf in contents.keyframes if kf.id in self._keyframes or kf.id in self._erased_keyframes]
         pids = np.array([p.id for p in contents.points], np.int64)
         if pids.size and (any(int(p) in self._points for p in pids.tolist()) or self._table.state(pids).any()):

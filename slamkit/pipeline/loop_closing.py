@@ -39,7 +39,7 @@ from slamkit.geometry.sim3_ransac import ransac_sim3
 from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
-from slamkit.map.mapfile_contents import read_map_contents
+from slamkit.map.mapfile_contents import check_contents, read_map_contents
 from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of, run_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
@@ -405,6 +405,7 @@ class LoopCloser:
         # takes the map mutex to set them): the other map's contents with its tree re-rooted at the matched keyframe,
         # and where the move takes the active map (local mapping is parked, tracking adds nothing: they stay valid)
         contents = rooted_at(read_map_contents(other), merge.merge_kf_id)
+        check_contents(contents, store.ids)  # MapStore.add_contents's check, done here instead of under the lock
         with store.read():
             # x_other = G x_active: the current keyframe's camera sees the same point as T_c_w x_active and S_cw x_other
             G = merge.S_cw.inverse() @ sim3_of_pose(kf.T_c_w)
@@ -419,7 +420,7 @@ class LoopCloser:
             if self.on_merge is not None:
                 self.on_merge(MapMerge(kf.id, merge.merge_kf_id, merge.map_id, self.atlas.active_id, moved, G))
             before_links = {k: set(store.covisibility.neighbors(k)) for k in current_window}
-            imported = import_map(store, contents, kf.id, merge.matches)
+            imported = import_map(store, contents, kf.id, merge.matches, checked=True)
             self.atlas.absorb(merge.map_id)
             fused = 0
             for k in current_window:

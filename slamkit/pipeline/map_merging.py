@@ -175,15 +175,18 @@ def rooted_at(contents: MapContents, root: int) -> MapContents:
     return replace(contents, tree=tree)
 
 
-def import_map(store: MapStore, contents: MapContents, current_kf_id: int, matches: Mapping[int, int]) -> list[int]:
+def import_map(
+    store: MapStore, contents: MapContents, current_kf_id: int, matches: Mapping[int, int], checked: bool = False
+) -> list[int]:
     """Put another map's entities (``contents``, read with ``read_map_contents`` and re-rooted at the matched keyframe
     with ``rooted_at``; ids unique across the Atlas) into ``store`` at once (``MapStore.add_contents``, under the
     write lock), in the frame they have: keyframes, points with their counters, covisibility edges with their weights,
     the spanning tree hung under the current keyframe (ORB-SLAM3 MergeLocal2: ``mpMergeMatchedKF->ChangeParent(
     mpCurrentKF)``), loop edges. Then the detection's ``matches`` (current keyframe's feature -> the other map's point
     id): the current keyframe's point there is replaced by the other map's (MapPoint::Replace) or the feature
-    observes it. Returns the imported keyframe ids (ascending)."""
-    store.add_contents(contents, roots_parent=current_kf_id)
+    observes it. checked: ``contents`` passed ``check_contents`` already (before the write lock). Returns the
+    imported keyframe ids (ascending)."""
+    store.add_contents(contents, roots_parent=current_kf_id, checked=checked)
     current = store.get_keyframe(current_kf_id)
     for feat, pid in sorted(matches.items()):
         if not store.has_point(pid):

@@ -308,6 +308,8 @@ class Tracker:
         self._lost_since_s = None
         self._new_map_pending = False  # a session's map, if still to be made, is this one
         self._loaded_map_id = None
+        with self._moved_lock:
+            self._moved_scale = 1.0  # moves of the previous map do not concern the new one
         self.refiner = PoseRefiner(self.cfg, self.store, self.optimize_pose)  # reads the (new) active map's points
         self.state = TrackingState.NOT_INITIALIZED
         self._init_frame_index = None

@@ -303,9 +303,10 @@ class DictMapStore:
         self._first = contents.first_keyframe_id
         self._epoch = int(contents.epoch)
 
-    def add_contents(self, contents: MapContents, roots_parent: int | None = None) -> None:
+    def add_contents(self, contents: MapContents, roots_parent: int | None = None, checked: bool = False) -> None:
         """Another map's entities and graphs added (MapStore.add_contents)."""
-        check_contents(contents, self._ids)
+        if not checked:
+            check_contents(contents, self._ids)
         if any(kf.id in self._used_kf_ids for kf in contents.keyframes) or any(
             p.id in self._used_point_ids for p in contents.points
         ):
