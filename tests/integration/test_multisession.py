@@ -75,20 +75,20 @@ def _second_session(
 def test_a_second_session_starts_a_new_map_or_goes_on_in_the_loaded_one(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> None:
-    """Frames 0..49 mapped and saved; frames 50..69 as a second session: with ``new_map`` it initialises a map of its
+    """Frames 0..39 mapped and saved; frames 40..54 as a second session: with ``new_map`` it initialises a map of its
     own and the loaded one stays in the Atlas untouched; with the default its first frame relocalizes in the loaded
     map, the session goes on in it (no new map) and its poses are in the first session's frame."""
     tmp = tmp_path_factory.mktemp("short")
-    first, first_dir = _first_session(50, str(tmp))
+    first, first_dir = _first_session(40, str(tmp))
     n_kfs = map_file_info(first).n_keyframes
-    runner, _ = _second_session(first, 50, "new_map", "sequential", tmp / "new", None, "dataset.max_frames=20")
+    runner, _ = _second_session(first, 40, "new_map", "sequential", tmp / "new", None, "dataset.max_frames=15")
     atlas, log = runner.atlas, runner.log
     assert atlas.map_ids() == [0, 1] and atlas.active_id == 1 and log.new_maps == 1
     assert atlas.get(0).n_keyframes() == n_kfs, "the loaded map is kept as it was"
     assert runner.tracker.relocalizations == 0, "ORB-SLAM3: a new session never relocalizes in a loaded map"
     assert atlas.active.n_keyframes() >= 2 and log.tracking[-1].state == TrackingState.OK
     runner, dataset = _second_session(
-        first, 50, "reloc_or_new_map", "sequential", tmp / "reloc", None, "dataset.max_frames=20"
+        first, 40, "reloc_or_new_map", "sequential", tmp / "reloc", None, "dataset.max_frames=15"
     )
     atlas, log = runner.atlas, runner.log
     assert log.tracking[0].method == "relocalization" and log.tracking[0].state == TrackingState.OK
