@@ -30,8 +30,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from slamkit.errors import SlamkitError
 from slamkit.events import (
     FrameSkipped,
@@ -151,17 +149,6 @@ def write_outputs(out_dir: Path, record: RunRecord) -> dict[str, Any]:
         write_trajectory(map_dir / "keyframes.tum", map_keyframes, "tum")
         _write_frames_csv(map_dir / "frames.csv", [o for o in record.tracking if o.map_id == snap.map_id])
         metrics["maps"].append(map_metrics(snap, map_frames, map_keyframes, gt))
-    # which maps merged (a multi-session run: a loaded map merged into the session's; docs/atlas.md)
-    metrics["merges"] = [
-        {
-            "merged_map_id": m.merged_map_id,
-            "into_map_id": m.into_map_id,
-            "kf_id": m.kf_id,
-            "matched_kf_id": m.matched_kf_id,
-            "scale": float(np.cbrt(np.linalg.det(np.asarray(m.T_into_merged)[:3, :3]))),
-        }
-        for m in record.merges
-    ]
     metrics["status"] = finished.status
     metrics["seed"] = int(started.config["seed"]) if "seed" in started.config else None
     if finished.error:
