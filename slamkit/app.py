@@ -198,6 +198,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         pose_optimizer=_pose_optimizer(pipeline.tracking.pose_optimization, components["optimizer"]),
         fps=float(dataset.fps),
         localization_only=localization,
+        session_start=mapfile_run.session_start(map_node),
     )
     kind = str(cfg.runner.get("kind", "sequential"))
     if kind not in RUNNER_KINDS:

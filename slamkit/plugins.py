@@ -25,8 +25,9 @@ from slamkit.hookspecs import ComponentSpec
 from slamkit.interfaces import KIND_PROTOCOLS
 
 #: Keys of a component group's composed node that configure the run, not the component: taken out before it is
-#: built (``map.save`` / ``map.load``: saved maps, read by slamkit/map/mapfile_run.py).
-RUN_KEYS: dict[str, tuple[str, ...]] = {"map": ("save", "load")}
+#: built (``map.save`` / ``map.load`` / ``map.session_start``: saved maps and sessions, read by
+#: slamkit/map/mapfile_run.py).
+RUN_KEYS: dict[str, tuple[str, ...]] = {"map": ("save", "load", "session_start")}
 
 
 @dataclass(frozen=True)

@@ -1,12 +1,12 @@
 """``map.save=FILE`` and ``map.load=FILE`` in a run (issue 17 item 3): what app.py calls.
 
 ``map.load=FILE``: the run starts with the Atlas saved in FILE (every map, the active one active, ids going on from
-the saved ones, keyframes in the keyframe database), and tracking starts lost on it, so the first frames relocalize
-against the loaded active map (ORB-SLAM V-C) instead of initialising a new one. Deviation from ORB-SLAM3: its
-System::LoadAtlas is followed by Atlas::CreateNewMap, and the new map joins the old ones only by map merging
-(issue 17 item 2, not built yet); slamkit relocalizes in the loaded map first. When relocalization keeps failing,
-the lost policy acts as on any map (pipeline/lost.py: after ``time_recently_lost_s`` a new map starts and the loaded
-one stays in the Atlas; a loaded map of at most ``reset_lost_map_max_keyframes`` keyframes would be reset).
+the saved ones, keyframes in the keyframe database): a new session (issue 17 item 5). ``map.session_start`` says how
+it starts (slamkit/pipeline/tracking/tracker.py, docs/atlas.md "Multi-session"): ``reloc_or_new_map`` (default) a new
+map for the session, as ORB-SLAM3's System::LoadAtlas + Atlas::CreateNewMap, unless a frame relocalizes in the loaded
+active map while that new map is being initialised; ``new_map`` ORB-SLAM3's exactly; ``relocalize`` the loaded
+active map is the session's (tracking starts lost on it; the lost policy of pipeline/lost.py applies). A new map
+joins the loaded ones by map merging when the camera comes back to their ground.
 
 ``map.save=FILE`` (``true``: ``map.slamkit`` in the run directory): the Atlas is written when the run ends; also
 when it fails or is interrupted after it made a map (it keeps what it has; a run that fails before its first
@@ -22,6 +22,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from slamkit.errors import ConfigError
 from slamkit.interfaces import Camera, PlaceRecognizer
 from slamkit.map.atlas import Atlas, StoreFactory
 from slamkit.map.mapfile import RUN_DIR_FILE_NAME, load_atlas, save_atlas
@@ -29,11 +30,25 @@ from slamkit.map.mapfile import RUN_DIR_FILE_NAME, load_atlas, save_atlas
 log = logging.getLogger("slamkit")
 
 #: The ``map`` node's keys that configure saving and loading, not the store.
-FILE_KEYS = ("save", "load")
+FILE_KEYS = ("save", "load", "session_start")
+
+
+#: How a session on a loaded Atlas starts (``map.session_start``; slamkit/pipeline/tracking/tracker.py).
+SESSION_STARTS = ("reloc_or_new_map", "new_map", "relocalize")
+
+
+def session_start(map_node: Mapping[str, Any]) -> str:
+    """``map.session_start`` (default ``reloc_or_new_map``): how a session on a loaded Atlas starts (Tracker);
+    ConfigError for another value."""
+    value = map_node.get("session_start")
+    start = "reloc_or_new_map" if value in (None, "") else str(value)
+    if start not in SESSION_STARTS:
+        raise ConfigError(f"map.session_start = {start!r}: expected one of {', '.join(SESSION_STARTS)}")
+    return start
 
 
 def store_node(map_node: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``map`` node without ``save`` / ``load``: what the store component is built from."""
+    """The ``map`` node without ``save`` / ``load`` / ``session_start``: what the store component is built from."""
     return {str(k): v for k, v in map_node.items() if k not in FILE_KEYS}
 
 
@@ -90,4 +105,4 @@ def saving_map(
                  info.size_bytes)  # fmt: skip
 
 
-__all__ = ["FILE_KEYS", "run_atlas", "save_path", "saving_map", "store_node"]
+__all__ = ["FILE_KEYS", "SESSION_STARTS", "run_atlas", "save_path", "saving_map", "session_start", "store_node"]

@@ -265,3 +265,15 @@ class MapStore(Protocol):
         caller builds the allocator from the saved one). ValueError, before anything changes, when the store is not
         empty or ``contents`` is inconsistent (``mapfile_contents.check_contents``)."""
         ...
+
+    def add_contents(self, contents: MapContents, roots_parent: int | None = None, checked: bool = False) -> None:
+        """Add another map's entities to this one at once (map merging, slamkit/pipeline/map_merging.py), as they are
+        in ``contents`` (ids issued by this store's allocator, none of them in this map nor erased from it): the
+        keyframes with their point_ids and bags of words, the points with their observations (by keyframes of
+        ``contents``) and visible/found counters, the covisibility edges with their weights, the spanning-tree
+        parents, where a root of ``contents`` gets ``roots_parent`` (a keyframe of this map; None: it stays a root),
+        and the loop edges. This map's first keyframe and epoch stay. Afterwards the reads answer for both maps'
+        entities as each answered before. ValueError, before anything changes, when ``contents`` is inconsistent
+        (``mapfile_contents.check_contents``; ``checked``: the caller ran it already, against this map's allocator, e.g.
+        before taking the write lock), an id is taken or ``roots_parent`` is not in this map."""
+        ...

@@ -351,6 +351,33 @@ class InMemoryMapStore:
         if self._keyframes or self._points or self._erased_keyframes or not self._table.is_empty():
             raise ValueError("restore: the map is not empty (a saved map is restored into a new store)")
         check_contents(contents, self._ids)
+        self._put_entities(contents)
+        for kf_id, parent in contents.tree.items():
+            self._tree.add(kf_id, parent)
+        self._loop_edges = {(min(a, b), max(a, b)) for a, b in contents.loop_edges}
+        self._first_keyframe = contents.first_keyframe_id
+        self._epoch = int(contents.epoch)
+
+    def add_contents(self, contents: MapContents, roots_parent: int | None = None, checked: bool = False) -> None:
+        if not checked:
+            check_contents(contents, self._ids)
+        taken = [kf.id for kf in contents.keyframes if kf.id in self._keyframes or kf.id in self._erased_keyframes]
+        pids = np.array([p.id for p in contents.points], np.int64)
+        if pids.size and (any(int(p) in self._points for p in pids.tolist()) or self._table.state(pids).any()):
+            taken.append(-1)
+        if taken:
+            raise ValueError("add_contents: ids of the contents are already in this map or were erased from it")
+        if roots_parent is not None and roots_parent not in self._keyframes:
+            raise ValueError(f"add_contents: the roots' parent {roots_parent} is not a keyframe of this map")
+        self._put_entities(contents)
+        for kf_id, parent in contents.tree.items():
+            self._tree.add(kf_id, roots_parent if parent is None else parent)
+        self._loop_edges |= {(min(a, b), max(a, b)) for a, b in contents.loop_edges}
+        if self._origin is not None and contents.keyframes:
+            self._origin = min(self._origin, min(kf.id for kf in contents.keyframes))
+
+    def _put_entities(self, contents: MapContents) -> None:
+        """The keyframes, points (observations, counters) and covisibility edges of checked ``contents``."""
         for kf in contents.keyframes:
             own = np.array(kf.point_ids, np.int64)
             restored = KeyFrame(kf.id, kf.frame_index, kf.timestamp_s, kf.T_c_w, kf.camera, kf.features, own, kf.bow)
@@ -380,11 +407,6 @@ class InMemoryMapStore:
             self._table.put_many(np.array([p.id for p in pts], np.int64), rows)
         for a, b, w in contents.covisibility.tolist():
             self._covisibility.set_edge(a, b, w)
-        for kf_id, parent in contents.tree.items():
-            self._tree.add(kf_id, parent)
-        self._loop_edges = {(min(a, b), max(a, b)) for a, b in contents.loop_edges}
-        self._first_keyframe = contents.first_keyframe_id
-        self._epoch = int(contents.epoch)
 
 
 if TYPE_CHECKING:  # mypy checks that the class implements the protocol

@@ -39,7 +39,7 @@ from slamkit.geometry.sim3_ransac import ransac_sim3
 from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
-from slamkit.map.mapfile_contents import read_map_contents
+from slamkit.map.mapfile_contents import check_contents, read_map_contents
 from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of, run_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
@@ -69,9 +69,11 @@ from slamkit.pipeline.loop_verification import (
     verification_window,
 )
 from slamkit.pipeline.map_merging import (
+    apply_moved_map,
     import_map,
     merge_essential_graph_problem,
-    transform_map,
+    moved_map,
+    rooted_at,
     welding_bundle,
     welding_window,
     window_points,
@@ -394,23 +396,31 @@ class LoopCloser:
         cfg = self.cfg
         store = self.store
         other = self.atlas.get(merge.map_id)  # not the active map: nobody changes it
+        t_prepare = time.perf_counter()
         n_window, tries = cfg.merge_window_keyframes, cfg.merge_window_max_tries
         # ORB-SLAM3 MergeLocal: the windows of the two maps, before anything moves
         merge_window = welding_window(other, merge.merge_kf_id, n_window, tries)
         merge_points = window_points(other, merge_window)
-        contents = read_map_contents(other)
+        # prepared before the write lock (ORB-SLAM3 MergeLocal computes the corrected poses and positions first, then
+        # takes the map mutex to set them): the other map's contents with its tree re-rooted at the matched keyframe,
+        # and where the move takes the active map (local mapping is parked, tracking adds nothing: they stay valid)
+        contents = rooted_at(read_map_contents(other), merge.merge_kf_id)
+        check_contents(contents, store.ids)  # MapStore.add_contents's check, done here instead of under the lock
+        with store.read():
+            # x_other = G x_active: the current keyframe's camera sees the same point as T_c_w x_active and S_cw x_other
+            G = merge.S_cw.inverse() @ sim3_of_pose(kf.T_c_w)
+            moved_to = moved_map(store, G)
+        out.timings_ms["merge_prepare_ms"] = (time.perf_counter() - t_prepare) * 1e3
         t_lock = time.perf_counter()
         with store.write():
             store.update_connections(kf.id)  # ORB-SLAM3: mpCurrentKF->UpdateConnections()
             current_window = welding_window(store, kf.id, n_window, tries)
             moved = frozenset(store.keyframe_ids())
-            # x_other = G x_active: the current keyframe's camera sees the same point as T_c_w x_active and S_cw x_other
-            G = merge.S_cw.inverse() @ sim3_of_pose(kf.T_c_w)
-            transform_map(store, G)
+            apply_moved_map(store, moved_to, G)
             if self.on_merge is not None:
                 self.on_merge(MapMerge(kf.id, merge.merge_kf_id, merge.map_id, self.atlas.active_id, moved, G))
             before_links = {k: set(store.covisibility.neighbors(k)) for k in current_window}
-            imported = import_map(store, contents, kf.id, merge.merge_kf_id, merge.matches)
+            imported = import_map(store, contents, kf.id, merge.matches, checked=True)
             self.atlas.absorb(merge.map_id)
             fused = 0
             for k in current_window:

@@ -7,18 +7,21 @@ The steps, each a function here, run by ``LoopCloser.merge`` with local mapping 
 1. **The welding windows** (:func:`welding_window`): the current keyframe and its covisible keyframes, the matched
    keyframe and its covisible keyframes (ORB-SLAM3 numTemporalKFs = 15, widened through the best covisibles of the
    window at most nMaxTries = 3 times).
-2. **The active map into the matched map's frame** (:func:`transform_map`): every keyframe and point of the active
-   map moved by the similarity the detection measured (a Sim3 for monocular: the scale too). ORB-SLAM3 moves the
+2. **The active map into the matched map's frame** (:func:`moved_map` computed under the read lock,
+   :func:`apply_moved_map` written under the write lock, as ORB-SLAM3 computes mTcwMerge / mPosMerge before it takes
+   the map mutex): every keyframe and point of the active map moved by the similarity the detection measured (a Sim3
+   for monocular: the scale too). ORB-SLAM3 moves the
    welding window first and the rest of the map after the welding BA by the same similarity, so the result is the
    same as moving the whole map at once, which is what slamkit does (one write).
 3. **The matched map's entities into the active map's store** (:func:`import_map`): ORB-SLAM3's visual MergeLocal
    moves the current map's entities into the matched map and makes it active; its MergeLocal2 (the inertial one)
    moves the matched map's entities into the current map, as slamkit does. The store tracking and local mapping hold
    stays theirs (no reference to swap); the merged map keeps the active map's id and the matched map's world frame,
-   and the matched map leaves the Atlas. The detection's matches are fused first (the current keyframe's duplicates
-   replaced by the matched map's points), so every imported keyframe, added in breadth-first order of the matched
-   map's spanning tree from the matched keyframe, finds its parent among keyframes already in the map (the tree of
-   the merged map has no cycle; ORB-SLAM3 re-roots the absorbed tree at the matched keyframe the same way).
+   and the matched map leaves the Atlas. The other map's contents are read and its spanning tree re-rooted at the
+   matched keyframe before the write lock (:func:`rooted_at`); under it they go in at once
+   (``MapStore.add_contents``: covisibility weights as saved, the matched keyframe hung under the current one, as
+   ORB-SLAM3 re-roots the absorbed tree), then the detection's matches are fused (the current keyframe's duplicates
+   replaced by the matched map's points).
 4. **Duplicate fusion** (ORB-SLAM3 SearchAndFuse): the points of the matched keyframe's window projected into the
    current window, the incoming point winning; then the connections of both windows are updated.
 5. **Welding BA** (:func:`welding_bundle`, ORB-SLAM3 ``Optimizer::LocalBundleAdjustment(pMainKF, vpAdjustKF,
@@ -31,15 +34,14 @@ The steps, each a function here, run by ``LoopCloser.merge`` with local mapping 
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.sim3 import Sim3
 from slamkit.interfaces import MapStore
-from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.mapfile_contents import MapContents
 from slamkit.pipeline.bundle import BundleSnapshot, snapshot_bundle
 from slamkit.pipeline.fusion import replace_point
@@ -82,64 +84,109 @@ def window_points(store: MapStore, kf_ids: Iterable[int]) -> list[int]:
     )
 
 
-def transform_map(store: MapStore, G_new_old: Sim3) -> None:
-    """Move the whole map by the similarity x_new = G x_old of its world frame (under the write lock): keyframe poses
-    T_i_new = [R, t / s] of the Sim3 T_i_old G^-1 (the map absorbs the scale, as in ORB-SLAM), point positions
-    G x, normals R_G n, scale-invariance distances s_G d."""
+@dataclass(frozen=True)
+class MovedMap:
+    """A map's keyframes and points as a similarity moves them (``moved_map``), computed before the write that
+    applies them (``apply_moved_map``). kf_ids (K,) with T_c_w (K, 4, 4) their new poses; point_ids (P,) with xyz_w
+    (P, 3) m, normal_w (P, 3) and the scale-invariance distances d_min_m / d_max_m (P,) m in the new frame."""
+
+    kf_ids: list[int]
+    T_c_w: F64
+    point_ids: NDArray[np.int64]
+    xyz_w: F64
+    normal_w: F64
+    d_min_m: F64
+    d_max_m: F64
+
+
+def moved_map(store: MapStore, G_new_old: Sim3) -> MovedMap:
+    """Where the similarity x_new = G x_old of its world frame takes the map (read under the read lock; nothing is
+    written): keyframe poses T_i_new = [R, t / s] of the Sim3 T_i_old G^-1 (the map absorbs the scale, as in
+    ORB-SLAM), point positions G x, normals R_G n, scale-invariance distances s_G d."""
     G_inv = G_new_old.inverse()
     kf_ids = store.keyframe_ids()
-    if kf_ids:
-        poses = np.stack([pose_of_sim3(sim3_of_pose(store.get_keyframe(k).T_c_w) @ G_inv) for k in kf_ids])
-        store.set_keyframe_poses(kf_ids, poses)
+    poses = (
+        np.stack([pose_of_sim3(sim3_of_pose(store.get_keyframe(k).T_c_w) @ G_inv) for k in kf_ids])
+        if kf_ids
+        else np.zeros((0, 4, 4))
+    )
     pids = np.array(store.point_ids(), np.int64)
-    if not pids.size:
-        return
     M = G_new_old.matrix()
-    xyz = store.point_rows(pids, "xyz_w").reshape(-1, 3)
-    store.assign_points(pids, "xyz_w", xyz @ M[:3, :3].T + M[:3, 3])
-    store.assign_points(pids, "normal_w", store.point_rows(pids, "normal_w").reshape(-1, 3) @ G_new_old.R.T)
-    for name in ("d_min_m", "d_max_m"):
-        store.assign_points(pids, name, store.point_rows(pids, name) * G_new_old.s)
+    if not pids.size:
+        empty = np.zeros((0, 3))
+        return MovedMap(kf_ids, poses, pids, empty, empty, np.zeros(0), np.zeros(0))
+    xyz = store.point_rows(pids, "xyz_w").reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
+    normal = store.point_rows(pids, "normal_w").reshape(-1, 3) @ G_new_old.R.T
+    d_min = store.point_rows(pids, "d_min_m") * G_new_old.s
+    d_max = store.point_rows(pids, "d_max_m") * G_new_old.s
+    return MovedMap(kf_ids, poses, pids, xyz, normal, d_min, d_max)
 
 
-def _tree_order(contents: MapContents, root: int) -> list[int]:
-    """The keyframes of ``contents``, breadth first over its spanning tree's edges (either direction) from ``root``,
-    children by id; keyframes the tree does not reach follow in id order."""
-    links: dict[int, list[int]] = {}
-    for child, parent in contents.tree.items():
-        if parent is not None:
-            links.setdefault(child, []).append(parent)
-            links.setdefault(parent, []).append(child)
-    order, seen, todo = [], {root}, deque([root])
-    while todo:
-        k = todo.popleft()
-        order.append(k)
-        for j in sorted(links.get(k, [])):
-            if j not in seen:
-                seen.add(j)
-                todo.append(j)
-    order += [kf.id for kf in contents.keyframes if kf.id not in seen]
-    return order
+def apply_moved_map(store: MapStore, moved: MovedMap, G_new_old: Sim3) -> None:
+    """Write ``moved`` (under the write lock). Entities that came or went since it was computed (none while local
+    mapping is parked: tracking adds none) are left out or moved here by ``G_new_old``."""
+    if moved.kf_ids:
+        keep = [i for i, k in enumerate(moved.kf_ids) if store.has_keyframe(k)]
+        store.set_keyframe_poses([moved.kf_ids[i] for i in keep], moved.T_c_w[keep])
+    late_kfs = sorted(set(store.keyframe_ids()) - set(moved.kf_ids))
+    if late_kfs:
+        G_inv = G_new_old.inverse()
+        store.set_keyframe_poses(
+            late_kfs, np.stack([pose_of_sim3(sim3_of_pose(store.get_keyframe(k).T_c_w) @ G_inv) for k in late_kfs])
+        )
+    if moved.point_ids.size:
+        live = store.has_points(moved.point_ids)
+        pids = moved.point_ids[live]
+        store.assign_points(pids, "xyz_w", moved.xyz_w[live])
+        store.assign_points(pids, "normal_w", moved.normal_w[live])
+        store.assign_points(pids, "d_min_m", moved.d_min_m[live])
+        store.assign_points(pids, "d_max_m", moved.d_max_m[live])
+    late = np.setdiff1d(np.array(store.point_ids(), np.int64), moved.point_ids)
+    if late.size:
+        M = G_new_old.matrix()
+        store.assign_points(late, "xyz_w", store.point_rows(late, "xyz_w").reshape(-1, 3) @ M[:3, :3].T + M[:3, 3])
+        store.assign_points(late, "normal_w", store.point_rows(late, "normal_w").reshape(-1, 3) @ G_new_old.R.T)
+        for name in ("d_min_m", "d_max_m"):
+            store.assign_points(late, name, store.point_rows(late, name) * G_new_old.s)
+
+
+def transform_map(store: MapStore, G_new_old: Sim3) -> None:
+    """Move the whole map by the similarity x_new = G x_old of its world frame (under the write lock): ``moved_map``
+    then ``apply_moved_map``."""
+    apply_moved_map(store, moved_map(store, G_new_old), G_new_old)
+
+
+def rooted_at(contents: MapContents, root: int) -> MapContents:
+    """``contents`` with its spanning tree re-rooted at the keyframe ``root``: the chain from it up to the old root
+    turned around (ORB-SLAM3 MergeLocal / MergeLocal2 rebuild the essential graph so: the matched keyframe's old parent
+    becomes its child, and so on up the tree), so ``root`` is the tree's root, which ``MapStore.add_contents`` then
+    hangs under the current keyframe. Pure data: computed before the write lock."""
+    tree = dict(contents.tree)
+    if root not in tree:
+        return contents
+    chain = [root]
+    up = tree[root]
+    while up is not None and up not in chain:
+        chain.append(up)
+        up = tree.get(up)
+    for child, parent in zip(chain[1:], chain[:-1], strict=True):
+        tree[child] = parent
+    tree[root] = None
+    return replace(contents, tree=tree)
 
 
 def import_map(
-    store: MapStore, contents: MapContents, current_kf_id: int, matched_kf_id: int, matches: Mapping[int, int]
+    store: MapStore, contents: MapContents, current_kf_id: int, matches: Mapping[int, int], checked: bool = False
 ) -> list[int]:
-    """Put another map's entities (``contents``, read with ``read_map_contents``; ids unique across the Atlas) into
-    ``store`` (under its write lock), in the frame they have. First the points (with their visible/found counters),
-    then the detection's ``matches`` (current keyframe's feature -> the other map's point id): the current
-    keyframe's point there is replaced by the other map's (MapPoint::Replace) or the feature observes it; then the
-    keyframes, breadth first over the other map's spanning tree from ``matched_kf_id``, each connected
-    (``update_connections``) as it arrives, so its parent is a keyframe already in the map; then the loop edges.
-    Returns the imported keyframe ids in that order."""
-    for p in contents.points:
-        store.add_point(
-            MapPoint(p.id, p.xyz_w, p.descriptor, p.ref_kf_id, p.first_kf_id, p.normal_w, p.d_min_m, p.d_max_m)
-        )
-    if contents.points:
-        ids = np.array([p.id for p in contents.points], np.int64)
-        store.increase_visible(np.repeat(ids, np.maximum(contents.n_visible - 1, 0)))
-        store.increase_found(np.repeat(ids, np.maximum(contents.n_found - 1, 0)))
+    """Put another map's entities (``contents``, read with ``read_map_contents`` and re-rooted at the matched keyframe
+    with ``rooted_at``; ids unique across the Atlas) into ``store`` at once (``MapStore.add_contents``, under the
+    write lock), in the frame they have: keyframes, points with their counters, covisibility edges with their weights,
+    the spanning tree hung under the current keyframe (ORB-SLAM3 MergeLocal2: ``mpMergeMatchedKF->ChangeParent(
+    mpCurrentKF)``), loop edges. Then the detection's ``matches`` (current keyframe's feature -> the other map's point
+    id): the current keyframe's point there is replaced by the other map's (MapPoint::Replace) or the feature
+    observes it. checked: ``contents`` passed ``check_contents`` already (before the write lock). Returns the
+    imported keyframe ids (ascending)."""
+    store.add_contents(contents, roots_parent=current_kf_id, checked=checked)
     current = store.get_keyframe(current_kf_id)
     for feat, pid in sorted(matches.items()):
         if not store.has_point(pid):
@@ -150,18 +197,7 @@ def import_map(
                 replace_point(store, store.get_point(existing), store.get_point(pid), refresh=False)
         elif current_kf_id not in store.get_point(pid).observations:
             store.add_observation(pid, current_kf_id, feat)
-    by_id = {kf.id: kf for kf in contents.keyframes}
-    order = _tree_order(contents, matched_kf_id) if matched_kf_id in by_id else [kf.id for kf in contents.keyframes]
-    for k in order:
-        kf = by_id[k]
-        point_ids = np.array(kf.point_ids, np.int64)
-        store.add_keyframe(
-            KeyFrame(kf.id, kf.frame_index, kf.timestamp_s, kf.T_c_w, kf.camera, kf.features, point_ids, kf.bow)
-        )
-        store.update_connections(k)
-    for a, b in contents.loop_edges:
-        store.add_loop_edge(a, b)
-    return order
+    return [kf.id for kf in contents.keyframes]
 
 
 def welding_bundle(
@@ -204,8 +240,12 @@ def merge_essential_graph_problem(
 
 
 __all__ = [
+    "MovedMap",
+    "apply_moved_map",
     "import_map",
     "merge_essential_graph_problem",
+    "moved_map",
+    "rooted_at",
     "transform_map",
     "welding_bundle",
     "welding_window",

@@ -81,8 +81,11 @@ class TrajectoryRecorder:
                 self._culled[kf_id] = replace(culled, T_kf_parent=T)
 
     def absorb(self, other: TrajectoryRecorder) -> None:
-        """Take over another recorder's frames and culled keyframes (its map was merged into this one's)."""
+        """Take over another recorder's frames and culled keyframes (its map was merged into this one's); the frames
+        stay in time order (the absorbed map's are usually the earlier ones: a trajectory file's timestamps must not
+        decrease)."""
         self._records.extend(other._records)
+        self._records.sort(key=lambda rec: rec.timestamp_s)  # stable: equal times keep their order
         self._culled.update(other._culled)
 
     def _keyframe_pose(self, keyframe_poses: Mapping[int, F64], kf_id: int, depth: int = 0) -> F64 | None:

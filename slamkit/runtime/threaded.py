@@ -206,6 +206,7 @@ class ThreadedRunner:
         records meanwhile was tracked before the lock or after the move: at most that one is off);
         slamkit_maps_merged is queued."""
         self.recorder.rescale(merge.moved_kf_ids, merge.G.s)
+        self.tracker.map_moved(merge.G.s)  # the motion model's velocity follows the move's scale
         self.log.maps_merged += 1
         self._run_events.maps_merged(
             merge.kf_id, merge.matched_kf_id, merge.merged_map_id, merge.into_map_id, merge.G.matrix()

@@ -475,6 +475,46 @@ def test_restore_refuses_a_map_that_is_not_empty_or_contents_that_do_not_fit(mak
     assert fresh.n_keyframes() == 0 and fresh.n_points() == 0
 
 
+def test_add_contents_puts_another_map_in_at_once(make_store: StoreFactory) -> None:
+    """MapStore.add_contents (map merging): another map of the same allocator goes in with its entities, counters,
+    covisibility weights, spanning tree (its root hung under the given keyframe) and loop edges; this map's own
+    reads, first keyframe and epoch are unchanged; taken ids or an unknown parent are refused before any change."""
+    into = make_store()
+    own = busy_map(into)
+    other = make_store(ids=into.ids)
+    busy_map(other)
+    before = read_map_contents(into)
+    incoming = read_map_contents(other)
+    root = incoming.first_keyframe_id
+    assert root is not None and incoming.tree[root] is None
+    parent = own[0]
+    into.add_contents(incoming, roots_parent=parent)
+    assert_consistent(into)
+    assert_tree_has_no_cycle(into)
+    assert into.keyframe_ids() == sorted([*before.tree, *incoming.tree])
+    assert into.spanning_tree.parent(root) == parent and root in into.spanning_tree.children(parent)
+    for kf in other.keyframe_ids():
+        assert into.covisibility.neighbors(kf) == other.covisibility.neighbors(kf)
+        assert into.get_keyframe(kf).point_ids.tolist() == other.get_keyframe(kf).point_ids.tolist()
+        if kf != root:
+            assert into.spanning_tree.parent(kf) == other.spanning_tree.parent(kf)
+    pids = np.array(other.point_ids(), np.int64)
+    for name in ("n_visible", "n_found", "n_observations", "xyz_w"):
+        np.testing.assert_array_equal(into.point_rows(pids, name), other.point_rows(pids, name))
+    assert set(into.loop_edges()) == {*before.loop_edges, *incoming.loop_edges}
+    assert into.origin_keyframe_id() == min(before.tree) and into.epoch == before.epoch
+    for kf in before.tree:
+        assert into.spanning_tree.parent(kf) == before.tree[kf]
+    n_kfs, n_points = into.n_keyframes(), into.n_points()
+    with pytest.raises(ValueError):
+        into.add_contents(incoming)  # every id is taken now
+    third = make_store(ids=into.ids)
+    busy_map(third)
+    with pytest.raises(ValueError):
+        into.add_contents(read_map_contents(third), roots_parent=10**6)
+    assert (into.n_keyframes(), into.n_points()) == (n_kfs, n_points)
+
+
 def test_the_min_shared_threshold_is_the_configured_one(make_store: StoreFactory) -> None:
     store = make_store(covisibility_min_shared=25)
     k = [add_keyframe(store, 0.1 * i) for i in range(3)]

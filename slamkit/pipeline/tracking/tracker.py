@@ -34,6 +34,19 @@ mode); slamkit does not make them yet, so every match is a map point and mbVO on
 One deliberate difference: a relocalization from LOST clears mbVO (ORB-SLAM2 leaves it as it was, so the frame after a
 lost spell skipped TrackLocalMap).
 
+A new session on a loaded Atlas (``map.load=FILE``; ``session_start``, docs/atlas.md "Multi-session"). ORB-SLAM3's
+System::LoadAtlas is followed by Atlas::CreateNewMap: the new session initialises a new map, which joins the loaded
+ones only by map merging (its relocalization searches the active map only, so it never relocalizes in a loaded map).
+``session_start``:
+
+- ``"new_map"``: exactly that;
+- ``"reloc_or_new_map"`` (the app's default): the same, except that while the new map is being initialised each frame
+  first tries to relocalize in the loaded active map (V-C, then the local map as on any lost frame); the first success
+  ends the attempt and the session goes on in the loaded map (no map is made). The first initialisation that makes a
+  map ends it too: the new map becomes the active one (``Atlas.create_map``; the loaded one stays in the Atlas);
+- ``"relocalize"``: the loaded active map is the session's map: tracking starts lost on it and relocalizes (a new map
+  only after ``time_recently_lost_s`` of failure, the lost policy; the behaviour before multi-session).
+
 Deterministic given the rng (the initializer's RANSAC).
 """
 
@@ -41,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 import time
 from collections.abc import Callable
 
@@ -51,6 +65,7 @@ from slamkit.errors import ConfigError
 from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
+from slamkit.map.mapfile_run import SESSION_STARTS
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, ImageBounds
 from slamkit.pipeline.initialization import (
@@ -105,6 +120,7 @@ class Tracker:
         pose_optimizer: Callable[[PoseOnlyProblem], PoseOnlyResult] | None = None,
         fps: float = 30.0,
         localization_only: bool = False,
+        session_start: str = "relocalize",
     ) -> None:
         """frontend: turns each packet into the frame's observation record (it holds the feature extractors).
         pose_optimizer: motion-only BA of tracking; default the compiled one of
@@ -112,7 +128,11 @@ class Tracker:
         cheaper and GIL-free); pass ``optimizer.optimize_pose`` to run it through the optimizer backend.
         fps: the camera's frame rate (Hz), ORB-SLAM's mMaxFrames unless ``keyframe_max_frames`` sets it.
         localization_only: ORB-SLAM's localization mode (``mode=localization``, see the module docstring): the Atlas's
-        active map must have keyframes; tracking never makes a keyframe and never resets or replaces the map."""
+        active map must have keyframes; tracking never makes a keyframe and never resets or replaces the map.
+        session_start: what a session does on an Atlas whose active map has keyframes (a loaded map): "new_map",
+        "reloc_or_new_map" or "relocalize" (module docstring; ignored in localization mode, which relocalizes)."""
+        if session_start not in SESSION_STARTS:
+            raise ValueError(f"session_start={session_start!r}: expected one of {', '.join(SESSION_STARTS)}")
         self.cfg = cfg
         self.max_frames = max_frames_of(cfg, fps)  # ORB-SLAM mMaxFrames (frames)
         if getattr(frontend, "two_cameras", False):
@@ -137,10 +157,22 @@ class Tracker:
         self.place = place  # bag of words: reference-keyframe matching and relocalization (ORB-SLAM V-B, V-C)
         self.refiner = PoseRefiner(cfg, self.store, self.optimize_pose)
         self.relocalizations = 0
-        # an Atlas whose active map already has keyframes (a saved map, map.load=FILE): relocalize in it first
-        self.state = TrackingState.LOST if self.store.n_keyframes() else TrackingState.NOT_INITIALIZED
-        if localization_only and self.state != TrackingState.LOST:
+        # an Atlas whose active map already has keyframes (a saved map, map.load=FILE): relocalize in it first, or
+        # initialise a new map for the session (``session_start``, module docstring)
+        loaded = self.store.n_keyframes() > 0
+        if localization_only and not loaded:
             raise ValueError("localization only: the active map has no keyframe to localize against")
+        self.session_start = "relocalize" if localization_only or not loaded else session_start
+        #: the loaded map the session may still relocalize in while its own new map is not initialised
+        self._loaded_map_id: int | None = None
+        if self.session_start == "relocalize":
+            self.state = TrackingState.LOST if loaded else TrackingState.NOT_INITIALIZED
+        else:
+            self.state = TrackingState.NOT_INITIALIZED
+            if self.session_start == "reloc_or_new_map":
+                self._loaded_map_id = self.atlas.active_id
+        #: the session's new map is still to be made (Atlas.create_map) when its initialisation succeeds
+        self._new_map_pending = self.session_start != "relocalize"
         self.init = MonocularInitialization(cfg, initializer, rng)
         self.rng = rng  # the initializer's RANSAC and the relocalization's PnP RANSAC
         self.last_frame: Frame | None = None
@@ -155,6 +187,9 @@ class Tracker:
         self._bounds: dict[int, ImageBounds] = {}
         self._last_T_l_r: F64 | None = None
         self._frame_bow: BowDescription | None = None
+        # the scale of the map moves (merges) since the motion model's velocity was last brought up to date
+        self._moved_scale = 1.0
+        self._moved_lock = threading.Lock()
 
     @property
     def store(self) -> MapStore:
@@ -174,17 +209,35 @@ class Tracker:
         default: idle, for a tracker stepped without a local mapping thread)."""
         t0 = time.perf_counter()
         initializing = self.state == TrackingState.NOT_INITIALIZED
+        timings: dict[str, float] = {}
+        if initializing and self._loaded_map_id is not None:
+            # a new session on a loaded map: relocalization there first, with the tracking extractor
+            frame = self._frame(data, camera, False, timings)
+            outcome = self._relocalize_in_loaded_map(frame, timings, mapping)
+            if outcome.state == TrackingState.OK:
+                timings["track_ms"] = (time.perf_counter() - t0) * 1e3
+                outcome.timings_ms.update(timings)
+                return outcome
+            self.state = TrackingState.NOT_INITIALIZED  # the frame goes to the new map's initialisation
+            self._lost_since_s = None
+            self.velocity = None
         # ORB-SLAM extracts twice the features on frames used for monocular initialisation (the front end's job),
         # and ORB-SLAM3 goes on with that extractor for a while after initialising (_init_extractor_window)
-        features = self.frontend.observe(data, camera, initializing or self._in_init_extractor_window(data.index))
-        t1 = time.perf_counter()
-        frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
-        self.current_frame = frame
-        timings = {"extract_ms": (t1 - t0) * 1e3}
+        frame = self._frame(data, camera, initializing or self._in_init_extractor_window(data.index), timings)
         outcome = self._initialize(frame) if initializing else self._track(frame, timings, mapping)
         timings["track_ms"] = (time.perf_counter() - t0) * 1e3
         outcome.timings_ms.update(timings)
         return outcome
+
+    def _frame(self, data: FrameData, camera: Camera, initializing: bool, timings: dict[str, float]) -> Frame:
+        """The frame of ``data`` (features by the initialisation extractor when ``initializing``); the extraction's
+        time is added to ``timings["extract_ms"]``."""
+        t0 = time.perf_counter()
+        features = self.frontend.observe(data, camera, initializing)
+        timings["extract_ms"] = timings.get("extract_ms", 0.0) + (time.perf_counter() - t0) * 1e3
+        frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
+        self.current_frame = frame
+        return frame
 
     def _in_init_extractor_window(self, frame_index: int) -> bool:
         """Whether a frame of a tracked map still gets the initialisation extractor: with
@@ -212,6 +265,40 @@ class Tracker:
             timings_ms=dict(outcome.timings_ms),
         )
 
+    def map_moved(self, scale: float) -> None:
+        """A map merge moved the active map by a similarity of scale ``scale`` (x_new = G x_old, ``MapMerge.G.s``;
+        called by the runner, from the loop-closing thread under the map's write lock in the threaded runner). The
+        motion model's velocity T_cur_last and the last frame's pose relative to its reference keyframe were measured
+        in the old scale: their translations are multiplied by ``scale`` at the next frame, under the map's read lock
+        (so a frame tracked before the move and one tracked after it both get it right). ORB-SLAM3's visual MergeLocal
+        leaves the tracker's velocity as it is (its MergeLocal2 calls Tracking::UpdateFrameIMU with scale 1): a
+        monocular merge of scale far from 1 then loses a frame or two (docs/BENCHMARKS.md, "Map merging")."""
+        with self._moved_lock:
+            self._moved_scale *= float(scale)
+
+    def _apply_map_moves(self) -> None:
+        """Bring the velocity and the last frame's relative pose to the scale of the map moves since the last frame
+        (``map_moved``); the caller holds the map's read lock."""
+        with self._moved_lock:
+            scale, self._moved_scale = self._moved_scale, 1.0
+        if scale == 1.0:
+            return
+        last = self.last_frame
+        if self._last_T_l_r is None and last is not None and last.ref_kf_id is not None:
+            # the last frame became the keyframe the merge moved (a merge follows a keyframe): its pose is that
+            # keyframe's (ORB-SLAM UpdateLastFrame: Tlr of a keyframe's own frame is the identity), not the old one
+            ref = last.ref_kf_id
+            if self.store.has_keyframe(ref):
+                kf = self.store.get_keyframe(ref)
+                if kf.frame_index == last.index and kf.timestamp_s == last.timestamp_s:
+                    self._last_T_l_r = np.eye(4)
+        for name in ("velocity", "_last_T_l_r"):
+            T = getattr(self, name)
+            if T is not None:
+                T = T.copy()
+                T[:3, 3] *= scale
+                setattr(self, name, T)
+
     def reset(self) -> None:
         """Erase the active map's keyframes (from the map and the keyframe database) and start initialising again
         (ORB-SLAM3 ResetActiveMap). Called by the runner when an outcome asks for it (``lost_decision ==
@@ -229,6 +316,10 @@ class Tracker:
     def _restart(self) -> None:
         """Tracking's state after the active map was reset or replaced: initialise again."""
         self._lost_since_s = None
+        self._new_map_pending = False  # a session's map, if still to be made, is this one
+        self._loaded_map_id = None
+        with self._moved_lock:
+            self._moved_scale = 1.0  # moves of the previous map do not concern the new one
         self.refiner = PoseRefiner(self.cfg, self.store, self.optimize_pose)  # reads the (new) active map's points
         self.state = TrackingState.NOT_INITIALIZED
         self._init_frame_index = None
@@ -236,6 +327,42 @@ class Tracker:
         self.last_frame = None
         self.velocity = None
         self.reference_kf_id = None
+
+    # ---- a new session on a loaded Atlas ------------------------------------------------------------------
+
+    def _relocalize_in_loaded_map(
+        self, frame: Frame, timings: dict[str, float], mapping: MappingState
+    ) -> TrackingOutcome:
+        """A frame of a session on a loaded Atlas whose own map is not initialised yet (``reloc_or_new_map``):
+        relocalization in the loaded active map, then its local map, as on any lost frame of it. On success the
+        session goes on in that map (no new map is made); else the caller hands the frame to the new map's
+        initialisation."""
+        self.state = TrackingState.LOST
+        outcome = self._track(frame, timings, mapping)
+        if outcome.state == TrackingState.OK:
+            log.info(
+                "frame %d relocalized in the loaded map %d: the session goes on in it (no new map)",
+                frame.index,
+                self.atlas.active_id,
+            )
+            self._loaded_map_id = None
+            self._new_map_pending = False
+            self.init.reset()
+        return outcome
+
+    def _make_session_map(self) -> None:
+        """The session's own map, made when its initialisation is about to write it (ORB-SLAM3 LoadAtlas +
+        CreateNewMap): the loaded active map stays in the Atlas, to be joined by map merging."""
+        if not self._new_map_pending:
+            return
+        loaded = self.atlas.active_id
+        self.atlas.create_map()
+        self.refiner = PoseRefiner(self.cfg, self.store, self.optimize_pose)
+        self._new_map_pending = False
+        self._loaded_map_id = None
+        log.info(
+            "a new map %d starts for this session; the loaded map %d stays in the Atlas", self.atlas.active_id, loaded
+        )
 
     # ---- initialisation ------------------------------------------------------------------------
 
@@ -257,6 +384,7 @@ class Tracker:
             return outcome
         ref = self.init.reference
         assert ref is not None
+        self._make_session_map()
         made = create_initial_map(
             self.store, self.optimizer, ref, frame, matches[0], matches[1], attempt.result, self.cfg
         )
@@ -297,6 +425,7 @@ class Tracker:
             outcome.message = f"only {n} features (stereo initialisation needs > {self.cfg.stereo_init_min_features})"
             return outcome
         frame.T_c_w = np.eye(4)
+        self._make_session_map()
         kf = create_stereo_initial_map(self.store, frame)
         frame.point_ids = kf.point_ids.copy()
         frame.ref_kf_id = kf.id
@@ -324,6 +453,7 @@ class Tracker:
         store = self.store
         t0 = time.perf_counter()
         with store.read():
+            self._apply_map_moves()
             method = "lost"
             ok = False
             why: list[str] = []  # what failed, for the frame's message when tracking is lost

@@ -16,7 +16,7 @@ import pytest
 from mapfile_atlas import FISHEYE, RecordingPlace, build_atlas, new_store
 from slamkit_dbow.recognizer import DbowPlaceRecognizer
 
-from slamkit.errors import MapFileError
+from slamkit.errors import ConfigError, MapFileError
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.map import mapfile
 from slamkit.map.atlas import Atlas
@@ -244,11 +244,22 @@ def test_map_info_command(saved: Path, capsys: pytest.CaptureFixture[str]) -> No
 def test_map_save_keys_and_store_node(tmp_path: Path) -> None:
     from slamkit.map import mapfile_run
 
-    node = {"_target_": "slamkit.map.store.InMemoryMapStore", "covisibility_min_shared": 15, "save": None, "load": None}
+    node = {
+        "_target_": "slamkit.map.store.InMemoryMapStore",
+        "covisibility_min_shared": 15,
+        "save": None,
+        "load": None,
+        "session_start": "new_map",
+    }
     assert mapfile_run.store_node(node) == {
         "_target_": "slamkit.map.store.InMemoryMapStore",
         "covisibility_min_shared": 15,
     }
+    # map.session_start: how a session on a loaded Atlas starts (docs/atlas.md "Multi-session")
+    assert mapfile_run.session_start(node) == "new_map"
+    assert mapfile_run.session_start({}) == "reloc_or_new_map"
+    with pytest.raises(ConfigError, match=r"map\.session_start"):
+        mapfile_run.session_start({"session_start": "resume"})
     assert mapfile_run.save_path(node, tmp_path) is None
     assert mapfile_run.save_path({"save": True}, tmp_path) == tmp_path / "map.slamkit"
     assert mapfile_run.save_path({"save": "x/m.slamkit"}, tmp_path) == Path("x/m.slamkit")

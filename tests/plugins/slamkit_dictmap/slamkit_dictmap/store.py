@@ -306,6 +306,25 @@ class DictMapStore:
         if self._used_kf_ids or self._used_point_ids:
             raise ValueError("restore: the map is not empty")
         check_contents(contents, self._ids)
+        self._put(contents, None)
+        self._loops = {(min(a, b), max(a, b)) for a, b in contents.loop_edges}
+        self._first = contents.first_keyframe_id
+        self._epoch = int(contents.epoch)
+
+    def add_contents(self, contents: MapContents, roots_parent: int | None = None, checked: bool = False) -> None:
+        """Another map's entities and graphs added (MapStore.add_contents)."""
+        if not checked:
+            check_contents(contents, self._ids)
+        if any(kf.id in self._used_kf_ids for kf in contents.keyframes) or any(
+            p.id in self._used_point_ids for p in contents.points
+        ):
+            raise ValueError("add_contents: ids already used in this map")
+        if roots_parent is not None and roots_parent not in self._kfs:
+            raise ValueError(f"add_contents: {roots_parent} is not a keyframe of this map")
+        self._put(contents, roots_parent)
+        self._loops |= {(min(a, b), max(a, b)) for a, b in contents.loop_edges}
+
+    def _put(self, contents: MapContents, roots_parent: int | None) -> None:
         for kf in contents.keyframes:
             matches = np.array(kf.point_ids, np.int64)
             entity = KeyFrame(kf.id, kf.frame_index, kf.timestamp_s, kf.T_c_w, kf.camera, kf.features, matches, kf.bow)
@@ -325,7 +344,4 @@ class DictMapStore:
         for a, b, w in contents.covisibility.tolist():
             self._graph.set_edge(a, b, w)
         for k, parent in contents.tree.items():
-            self._tree.add(k, parent)
-        self._loops = {(min(a, b), max(a, b)) for a, b in contents.loop_edges}
-        self._first = contents.first_keyframe_id
-        self._epoch = int(contents.epoch)
+            self._tree.add(k, roots_parent if parent is None else parent)
