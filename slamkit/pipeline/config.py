@@ -173,7 +173,7 @@ class LoopClosingConfig:
     sim3_ransac_probability: float = 0.99
     min_inliers_after_sim3_opt: int = 20
     min_loop_matches: int = 40
-    global_ba: bool = False
+    global_ba: bool = True
     global_ba_iterations: int = 10
     geometric_verification: bool = True
     verify_covisible_keyframes: int = 5
