@@ -37,10 +37,6 @@ def _camera_points(T: F64, X: F64) -> F64:
     return out
 
 
-def _cost_at(T: F64, *, X: F64, obs: Observations, robust: bool) -> float:
-    return robust_cost(T, X, obs, robust)
-
-
 def robust_cost(T: F64, X: F64, obs: Observations, robust: bool) -> float:
     """Sum of Huber (or plain) chi2 of the observations at pose T (4, 4)."""
     chi2 = chi2_of(residuals(_camera_points(T, X), obs), obs)
@@ -163,6 +159,27 @@ class _Rig:
         return (H, g), g, float(f), float(np.max(np.diag(H), initial=0.0))
 
 
+class _OneCamera:
+    """The pose's observations all in the problem's one camera: the same interface as _Rig, on the one-camera
+    residuals (slamkit_scipy.reprojection), so optimize_pose runs one loop of rounds for both."""
+
+    def subset(self, keep: NDArray[np.bool_]) -> _OneCamera:
+        return self
+
+    def chi2_depth(self, T: F64, X: F64, obs: Observations) -> tuple[F64, F64]:
+        """(chi2 (N,), depth (N,) m in the camera) at pose T."""
+        p_c = _camera_points(T, X)
+        return chi2_of(residuals(p_c, obs), obs), p_c[:, 2]
+
+    def linearize(
+        self, T: F64, *, X: F64, obs: Observations, robust: bool
+    ) -> tuple[tuple[F64, F64], F64, float, float]:
+        return linearize_pose(T, X=X, obs=obs, robust=robust)
+
+    def cost(self, T: F64, *, X: F64, obs: Observations, robust: bool) -> float:
+        return robust_cost(T, X, obs, robust)
+
+
 def optimize_pose(problem: PoseOnlyProblem, settings: LMSettings, stop_behind: bool = True) -> PoseOnlyResult:
     """Solve a validated PoseOnlyProblem; see the module docstring for ORB-SLAM's round structure. Observations of a
     rig's second camera (``camera_index`` 1) go through slamkit_scipy.rig_kernels."""
@@ -180,10 +197,8 @@ def optimize_pose(problem: PoseOnlyProblem, settings: LMSettings, stop_behind: b
         None if problem.distortion is None else np.broadcast_to(np.asarray(problem.distortion, np.float64), (n, 4)),
     )
     T0 = np.array(problem.T_c_w_init, dtype=np.float64)
-    rig_all = _Rig.of(problem, obs_all)
-    if rig_all is not None:
-        return _optimize_rig_pose(problem, settings, stop_behind, X_all, obs_all, rig_all, T0)
-    cost_initial = robust_cost(T0, X_all, obs_all, True)
+    model_all: _Rig | _OneCamera = _Rig.of(problem, obs_all) or _OneCamera()
+    cost_initial = model_all.cost(T0, X=X_all, obs=obs_all, robust=True)
     inlier = np.ones(n, dtype=bool)
     T = T0
     total_iters = 0
@@ -191,69 +206,25 @@ def optimize_pose(problem: PoseOnlyProblem, settings: LMSettings, stop_behind: b
         robust = it < 2
         X = X_all[inlier]
         obs = obs_all.subset(inlier)
-
+        model = model_all.subset(inlier)
         outcome = levenberg_marquardt(
             T0.copy(),  # every round restarts from the initial pose (ORB-SLAM resets vSE3's estimate)
-            functools.partial(linearize_pose, X=X, obs=obs, robust=robust),
+            functools.partial(model.linearize, X=X, obs=obs, robust=robust),
             _solve6,
             retract_pose,
-            functools.partial(_cost_at, X=X, obs=obs, robust=robust),
+            functools.partial(model.cost, X=X, obs=obs, robust=robust),
             problem.iterations_per_round,
             settings,
         )
         T = outcome.x
         total_iters += outcome.iterations
-        p_c = _camera_points(T, X_all)
-        chi2 = chi2_of(residuals(p_c, obs_all), obs_all)
-        inlier = chi2 <= obs_all.chi2_max
-        if stop_behind:
-            inlier &= p_c[:, 2] > 0.0
-        if not np.any(inlier):
-            break
-    cost_final = robust_cost(T, X_all[inlier], obs_all.subset(inlier), True)
-    return PoseOnlyResult(
-        T_c_w=T, inliers=inlier, cost_initial=cost_initial, cost_final=cost_final, iterations=total_iters
-    )
-
-
-def _optimize_rig_pose(
-    problem: PoseOnlyProblem,
-    settings: LMSettings,
-    stop_behind: bool,
-    X_all: F64,
-    obs_all: Observations,
-    rig_all: _Rig,
-    T0: F64,
-) -> PoseOnlyResult:
-    """optimize_pose's rounds for a problem with second-camera observations (depth checked in the observing camera)."""
-    n = X_all.shape[0]
-    cost_initial = rig_all.cost(T0, X=X_all, obs=obs_all, robust=True)
-    inlier = np.ones(n, dtype=bool)
-    T = T0
-    total_iters = 0
-    for it in range(problem.rounds):
-        robust = it < 2
-        X = X_all[inlier]
-        obs = obs_all.subset(inlier)
-        rig = rig_all.subset(inlier)
-        outcome = levenberg_marquardt(
-            T0.copy(),
-            functools.partial(rig.linearize, X=X, obs=obs, robust=robust),
-            _solve6,
-            retract_pose,
-            functools.partial(rig.cost, X=X, obs=obs, robust=robust),
-            problem.iterations_per_round,
-            settings,
-        )
-        T = outcome.x
-        total_iters += outcome.iterations
-        chi2, depth = rig_all.chi2_depth(T, X_all, obs_all)
+        chi2, depth = model_all.chi2_depth(T, X_all, obs_all)  # depth in the observing camera
         inlier = chi2 <= obs_all.chi2_max
         if stop_behind:
             inlier &= depth > 0.0
         if not np.any(inlier):
             break
-    cost_final = rig_all.subset(inlier).cost(T, X=X_all[inlier], obs=obs_all.subset(inlier), robust=True)
+    cost_final = model_all.subset(inlier).cost(T, X=X_all[inlier], obs=obs_all.subset(inlier), robust=True)
     return PoseOnlyResult(
         T_c_w=T, inliers=inlier, cost_initial=cost_initial, cost_final=cost_final, iterations=total_iters
     )
