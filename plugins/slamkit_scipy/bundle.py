@@ -268,50 +268,28 @@ class BundleSolver:
     def linearize(self, state: BAState) -> tuple[_System, F64, float, float]:
         st = self.st
         o = st.obs
+        shared = (  # the arguments both kernels take; each adds its camera models
+            np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+            np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+            state.xyz_w,
+            st.obs_pose,
+            st.obs_point,
+            st.c,
+            st.p,
+            o.uvr,
+            o.stereo,
+            o.intr,
+            o.bf,
+            o.info,
+            o.delta,
+            st.robust,
+            st.nc,
+            st.np_,
+        )
         if st.rig is not None:
-            U, V, W, gc, gp, f = rig_linearize(
-                np.ascontiguousarray(state.T_c_w[:, :3, :3]),
-                np.ascontiguousarray(state.T_c_w[:, :3, 3]),
-                state.xyz_w,
-                st.obs_pose,
-                st.obs_point,
-                st.c,
-                st.p,
-                o.uvr,
-                o.stereo,
-                o.intr,
-                o.bf,
-                o.info,
-                o.delta,
-                st.robust,
-                st.nc,
-                st.np_,
-                st.rig.cam,
-                st.rig.fish,
-                st.rig.Rx,
-                st.rig.tx,
-            )
+            U, V, W, gc, gp, f = rig_linearize(*shared, st.rig.cam, st.rig.fish, st.rig.Rx, st.rig.tx)
         else:
-            U, V, W, gc, gp, f = ba_linearize(
-                np.ascontiguousarray(state.T_c_w[:, :3, :3]),
-                np.ascontiguousarray(state.T_c_w[:, :3, 3]),
-                state.xyz_w,
-                st.obs_pose,
-                st.obs_point,
-                st.c,
-                st.p,
-                o.uvr,
-                o.stereo,
-                o.intr,
-                o.bf,
-                o.info,
-                o.delta,
-                st.robust,
-                st.nc,
-                st.np_,
-                st.cam,
-                o.kb is not None,
-            )
+            U, V, W, gc, gp, f = ba_linearize(*shared, st.cam, o.kb is not None)
         g = np.concatenate([gc.ravel(), gp.ravel()])
         hmax = max(
             float(np.max(np.diagonal(U, axis1=1, axis2=2), initial=0.0)),
