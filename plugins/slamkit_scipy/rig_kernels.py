@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.optim.kannala_brandt import kb_jacobian, kb_project
+from slamkit_scipy.kernels import _accumulate_block
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -209,27 +210,9 @@ def rig_linearize(
         ci = c[e]
         pi = p_idx[e]
         if ci >= 0:
-            for i in range(6):
-                gi = 0.0
-                for a in range(rows):
-                    gi += Jc[a, i] * r[a]
-                gc[ci, i] += w * gi
-                for jj in range(i, 6):
-                    s = 0.0
-                    for a in range(rows):
-                        s += Jc[a, i] * Jc[a, jj]
-                    U[ci, i, jj] += w * s
+            _accumulate_block(Jc, r, rows, w, gc[ci], U[ci])
         if pi >= 0:
-            for i in range(3):
-                gi = 0.0
-                for a in range(rows):
-                    gi += Jp[a, i] * r[a]
-                gp[pi, i] += w * gi
-                for jj in range(i, 3):
-                    s = 0.0
-                    for a in range(rows):
-                        s += Jp[a, i] * Jp[a, jj]
-                    V[pi, i, jj] += w * s
+            _accumulate_block(Jp, r, rows, w, gp[pi], V[pi])
         if ci >= 0 and pi >= 0:
             for i in range(6):
                 for jj in range(3):
