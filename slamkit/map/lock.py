@@ -16,7 +16,10 @@ class ReadWriteLock:
     points into ~25 neighbours, one short write each) does not hold tracking off for the whole series. Without
     the hand-over the writing thread, which still holds the GIL when it releases, re-took the lock before the
     woken reader ran: tracking waited up to 70 ms for its read lock in real-time runs of the synthetic room.
-    Not re-entrant: a thread holding the write lock must not take it again.
+    Reads are re-entrant: a thread holding the read lock may take it again (tracking holds it for the whole of a
+    frame, as ORB-SLAM's Tracking::Track holds mMutexMapUpdate, and the steps inside take it too); a nested read
+    does not wait for a waiting writer, which would wait for the outer read: a deadlock. Writes are not
+    re-entrant: a thread holding the write lock must not take it again, nor a read.
     """
 
     def __init__(self) -> None:
@@ -28,9 +31,18 @@ class ReadWriteLock:
         # True from a writer's release (with readers waiting) until those readers are done: a read phase
         # that writers wait out.
         self._read_turn = False
+        self._held = threading.local()  # .depth: how many reads this thread holds (re-entrant reads)
 
     @contextmanager
     def read(self) -> Iterator[None]:
+        depth = getattr(self._held, "depth", 0)
+        if depth:  # this thread already reads: no wait (a writer waiting for the outer read would deadlock)
+            self._held.depth = depth + 1
+            try:
+                yield
+            finally:
+                self._held.depth = depth
+            return
         with self._cond:
             self._readers_waiting += 1
             try:
@@ -44,9 +56,11 @@ class ReadWriteLock:
             finally:
                 self._readers_waiting -= 1
             self._readers += 1
+        self._held.depth = 1
         try:
             yield
         finally:
+            self._held.depth = 0
             with self._cond:
                 self._readers -= 1
                 if self._readers == 0:

@@ -99,14 +99,19 @@ class MovedMap:
     d_max_m: F64
 
 
+def moved_pose(T_c_w: F64, G_new_old: Sim3) -> F64:
+    """(4, 4) T_c_w of a camera after the similarity x_new = G x_old moved its world frame: [R, t / s] of the Sim3
+    T_c_w G^-1 (the map absorbs the scale, as in ORB-SLAM)."""
+    return pose_of_sim3(sim3_of_pose(T_c_w) @ G_new_old.inverse())
+
+
 def moved_map(store: MapStore, G_new_old: Sim3) -> MovedMap:
     """Where the similarity x_new = G x_old of its world frame takes the map (read under the read lock; nothing is
     written): keyframe poses T_i_new = [R, t / s] of the Sim3 T_i_old G^-1 (the map absorbs the scale, as in
     ORB-SLAM), point positions G x, normals R_G n, scale-invariance distances s_G d."""
-    G_inv = G_new_old.inverse()
     kf_ids = store.keyframe_ids()
     poses = (
-        np.stack([pose_of_sim3(sim3_of_pose(store.get_keyframe(k).T_c_w) @ G_inv) for k in kf_ids])
+        np.stack([moved_pose(store.get_keyframe(k).T_c_w, G_new_old) for k in kf_ids])
         if kf_ids
         else np.zeros((0, 4, 4))
     )
@@ -130,9 +135,8 @@ def apply_moved_map(store: MapStore, moved: MovedMap, G_new_old: Sim3) -> None:
         store.set_keyframe_poses([moved.kf_ids[i] for i in keep], moved.T_c_w[keep])
     late_kfs = sorted(set(store.keyframe_ids()) - set(moved.kf_ids))
     if late_kfs:
-        G_inv = G_new_old.inverse()
         store.set_keyframe_poses(
-            late_kfs, np.stack([pose_of_sim3(sim3_of_pose(store.get_keyframe(k).T_c_w) @ G_inv) for k in late_kfs])
+            late_kfs, np.stack([moved_pose(store.get_keyframe(k).T_c_w, G_new_old) for k in late_kfs])
         )
     if moved.point_ids.size:
         live = store.has_points(moved.point_ids)
@@ -245,6 +249,7 @@ __all__ = [
     "import_map",
     "merge_essential_graph_problem",
     "moved_map",
+    "moved_pose",
     "rooted_at",
     "transform_map",
     "welding_bundle",

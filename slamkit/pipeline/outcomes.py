@@ -96,6 +96,7 @@ class TrackingOutcome:
     lost_decision: LostDecision | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     message: str = ""
+    map_moves: int = 0  # how many moves of the active map (merges) its poses are after (Tracker.follow_map_moves)
 
 
 @dataclass(frozen=True)

@@ -80,7 +80,7 @@ class SequentialRunner:
         """Loop closing moves the active map into another map's frame to merge them: the frames recorded relative to
         the moved keyframes follow the move's scale; slamkit_maps_merged fires."""
         self.recorder.rescale(merge.moved_kf_ids, merge.G.s)
-        self.tracker.map_moved(merge.G.s)  # the motion model's velocity follows the move's scale
+        self.tracker.map_moved(merge.G)  # the motion model's velocity follows the move's scale
         self._merge_G = merge.G
         self.log.maps_merged += 1
         self._run_events.maps_merged(

@@ -202,11 +202,11 @@ class ThreadedRunner:
 
     def _on_merge(self, merge: MapMerge) -> None:
         """Loop closing (its thread, the active map's write lock held) moves the active map into another map's frame
-        to merge them: the frames recorded relative to the moved keyframes follow the move's scale (a frame tracking
-        records meanwhile was tracked before the lock or after the move: at most that one is off);
+        to merge them: the frames recorded relative to the moved keyframes follow the move's scale (a frame tracked
+        before the move and not yet recorded follows it in ``_track``: Tracker.follow_map_moves);
         slamkit_maps_merged is queued."""
         self.recorder.rescale(merge.moved_kf_ids, merge.G.s)
-        self.tracker.map_moved(merge.G.s)  # the motion model's velocity follows the move's scale
+        self.tracker.map_moved(merge.G)  # the motion model's velocity follows the move's scale
         self.log.maps_merged += 1
         self._run_events.maps_merged(
             merge.kf_id, merge.matched_kf_id, merge.merged_map_id, merge.into_map_id, merge.G.matrix()
@@ -294,22 +294,26 @@ class ThreadedRunner:
                 self.tracker.start_new_map()
         map_change = self.atlas.change_since(map_before)  # reset, or a new map with the old one kept
         map_was_reset = map_change == MapChange.RESET
-        log_tracking_outcome(self.log, self.recorder, out, map_change)
-        self._run_events.map_events(out)
-        if out.new_keyframes and self._mapping is None:
-            raise RuntimeError(f"frame {out.frame_index}: a keyframe was made in a run without local mapping")
-        if out.new_keyframes and self._mapping is not None and not self._mapping.idle():
-            self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
-        for kf in out.new_keyframes:
-            assert self._mapping is not None
-            self._mapping.submit(kf)
         ref_id, T_ref_w = None, None
-        if out.state == TrackingState.OK and out.T_c_w is not None and out.T_ref_w is not None:
-            # recorded against the reference keyframe's pose as tracking read it (the frame's own pose when it became
-            # that keyframe), so a keyframe local mapping has not inserted yet is never needed
-            ref_id, T_ref_w = out.reference_kf_id, out.T_ref_w
-            assert ref_id is not None
-            self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref_id, T_ref_w)
+        # a merge may have moved the map since the frame was tracked (it takes the write lock): the outcome follows
+        # the move, and no other move comes before its frame is recorded and its keyframe queued for local mapping
+        with self.store.read():
+            self.tracker.follow_map_moves(out)
+            log_tracking_outcome(self.log, self.recorder, out, map_change)
+            self._run_events.map_events(out)
+            if out.new_keyframes and self._mapping is None:
+                raise RuntimeError(f"frame {out.frame_index}: a keyframe was made in a run without local mapping")
+            if out.new_keyframes and self._mapping is not None and not self._mapping.idle():
+                self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
+            for kf in out.new_keyframes:
+                assert self._mapping is not None
+                self._mapping.submit(kf)
+            if out.state == TrackingState.OK and out.T_c_w is not None and out.T_ref_w is not None:
+                # recorded against the reference keyframe's pose as tracking read it (the frame's own pose when it
+                # became that keyframe), so a keyframe local mapping has not inserted yet is never needed
+                ref_id, T_ref_w = out.reference_kf_id, out.T_ref_w
+                assert ref_id is not None
+                self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref_id, T_ref_w)
         self._run_events.frame_tracked(out, map_was_reset, ref_id, T_ref_w, data.image, self.tracker.current_frame)
         return out
 

@@ -62,6 +62,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
+from slamkit.geometry.sim3 import Sim3
 from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
@@ -75,6 +76,7 @@ from slamkit.pipeline.initialization import (
     new_keyframe,
 )
 from slamkit.pipeline.lost import LostDecision, LostPolicy, LostRecord, decide_when_lost
+from slamkit.pipeline.map_merging import moved_pose
 from slamkit.pipeline.map_points import orbslam_observation_counts
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
@@ -189,6 +191,9 @@ class Tracker:
         self._frame_bow: BowDescription | None = None
         # the scale of the map moves (merges) since the motion model's velocity was last brought up to date
         self._moved_scale = 1.0
+        # every move of the active map (x_new = G x_old) in order; a TrackingOutcome's map_moves counts the ones its
+        # poses are expressed after (follow_map_moves brings an outcome past later ones)
+        self._moves: list[Sim3] = []
         self._moved_lock = threading.Lock()
 
     @property
@@ -214,6 +219,7 @@ class Tracker:
             # a new session on a loaded map: relocalization there first, with the tracking extractor
             frame = self._frame(data, camera, False, timings)
             outcome = self._relocalize_in_loaded_map(frame, timings, mapping)
+            outcome.map_moves = self._n_moves()  # no merge runs before the session's first tracked frame
             if outcome.state == TrackingState.OK:
                 timings["track_ms"] = (time.perf_counter() - t0) * 1e3
                 outcome.timings_ms.update(timings)
@@ -224,7 +230,11 @@ class Tracker:
         # ORB-SLAM extracts twice the features on frames used for monocular initialisation (the front end's job),
         # and ORB-SLAM3 goes on with that extractor for a while after initialising (_init_extractor_window)
         frame = self._frame(data, camera, initializing or self._in_init_extractor_window(data.index), timings)
-        outcome = self._initialize(frame) if initializing else self._track(frame, timings, mapping)
+        if initializing:
+            outcome = self._initialize(frame)
+            outcome.map_moves = self._n_moves()  # a map being initialised is not merged
+        else:
+            outcome = self._track(frame, timings, mapping)
         timings["track_ms"] = (time.perf_counter() - t0) * 1e3
         outcome.timings_ms.update(timings)
         return outcome
@@ -265,16 +275,44 @@ class Tracker:
             timings_ms=dict(outcome.timings_ms),
         )
 
-    def map_moved(self, scale: float) -> None:
-        """A map merge moved the active map by a similarity of scale ``scale`` (x_new = G x_old, ``MapMerge.G.s``;
-        called by the runner, from the loop-closing thread under the map's write lock in the threaded runner). The
-        motion model's velocity T_cur_last and the last frame's pose relative to its reference keyframe were measured
-        in the old scale: their translations are multiplied by ``scale`` at the next frame, under the map's read lock
-        (so a frame tracked before the move and one tracked after it both get it right). ORB-SLAM3's visual MergeLocal
-        leaves the tracker's velocity as it is (its MergeLocal2 calls Tracking::UpdateFrameIMU with scale 1): a
-        monocular merge of scale far from 1 then loses a frame or two (docs/BENCHMARKS.md, "Map merging")."""
+    def map_moved(self, G_new_old: Sim3) -> None:
+        """A map merge moved the active map by the similarity x_new = G x_old (``MapMerge.G``; called by the runner,
+        from the loop-closing thread under the map's write lock in the threaded runner). The motion model's velocity
+        T_cur_last and the last frame's pose relative to its reference keyframe were measured in the old scale: their
+        translations are multiplied by G's scale at the next frame, under the map's read lock (a frame is tracked
+        wholly before the move or wholly after it: ``_track`` holds the read lock throughout). ORB-SLAM3's visual
+        MergeLocal leaves the tracker's velocity as it is (its MergeLocal2 calls Tracking::UpdateFrameIMU with scale
+        1): a monocular merge of scale far from 1 then loses a frame or two (docs/BENCHMARKS.md, "Map merging")."""
         with self._moved_lock:
-            self._moved_scale *= float(scale)
+            self._moved_scale *= float(G_new_old.s)
+            self._moves.append(G_new_old)
+
+    def _n_moves(self) -> int:
+        with self._moved_lock:
+            return len(self._moves)
+
+    def follow_map_moves(self, outcome: TrackingOutcome) -> None:
+        """Bring a step's outcome past the map moves made since the frame was tracked (``outcome.map_moves``): its pose,
+        its reference keyframe's pose as tracking read it, the keyframes it made (not in the map yet: the move did not
+        see them) and the last frame's pose, each moved as the map was. The threaded runner calls it under the active
+        map's read lock before it records the frame and hands its keyframes to local mapping, so no move comes between
+        (ORB-SLAM holds mMutexMapUpdate for the whole of Tracking::Track, keyframe creation included)."""
+        with self._moved_lock:
+            moves = self._moves[outcome.map_moves :]
+            outcome.map_moves = len(self._moves)
+        if not moves:
+            return
+        G = moves[0]
+        for later in moves[1:]:
+            G = later @ G
+        if outcome.T_c_w is not None:
+            outcome.T_c_w = moved_pose(outcome.T_c_w, G)
+        if outcome.T_ref_w is not None:
+            outcome.T_ref_w = moved_pose(outcome.T_ref_w, G)
+        outcome.new_keyframes = [dataclasses.replace(kf, T_c_w=moved_pose(kf.T_c_w, G)) for kf in outcome.new_keyframes]
+        last = self.last_frame
+        if last is not None and last.index == outcome.frame_index and last.T_c_w is not None:
+            last.T_c_w = moved_pose(last.T_c_w, G)
 
     def _apply_map_moves(self) -> None:
         """Bring the velocity and the last frame's relative pose to the scale of the map moves since the last frame
@@ -449,6 +487,16 @@ class Tracker:
     # ---- tracking --------------------------------------------------------------------------------
 
     def _track(self, frame: Frame, timings: dict[str, float], mapping: MappingState) -> TrackingOutcome:
+        """V-B..E on a frame of an initialised map, under the map's read lock from the first pose read to the
+        outcome (ORB-SLAM's Tracking::Track holds mMutexMapUpdate throughout): a merge moving the map comes wholly
+        before or wholly after the frame, whose poses, reference keyframe pose and new keyframe agree."""
+        with self.store.read():
+            moves_seen = self._n_moves()
+            outcome = self._track_locked(frame, timings, mapping)
+        outcome.map_moves = moves_seen
+        return outcome
+
+    def _track_locked(self, frame: Frame, timings: dict[str, float], mapping: MappingState) -> TrackingOutcome:
         cfg = self.cfg
         store = self.store
         t0 = time.perf_counter()

@@ -168,6 +168,38 @@ def test_bad_config_is_named() -> None:
         InMemoryMapStore(covisibility_min_shared=0)
 
 
+def test_a_nested_read_does_not_wait_for_a_waiting_writer_and_the_writer_waits_for_the_outer_read() -> None:
+    """Tracking holds the read lock for a whole frame and its steps take it again: a writer (a merge's move) that
+    starts waiting in between must neither deadlock the nested read nor get in before the outer read ends."""
+    lock = ReadWriteLock()
+    events: list[str] = []
+    outer_in, writer_waiting = threading.Event(), threading.Event()
+
+    def tracking() -> None:
+        with lock.read():
+            outer_in.set()
+            writer_waiting.wait(5)
+            time.sleep(0.02)  # the writer is waiting now
+            with lock.read():
+                events.append("nested read")
+            events.append("outer read done")
+
+    def writer() -> None:
+        writer_waiting.set()
+        with lock.write():
+            events.append("writer")
+
+    t1 = threading.Thread(target=tracking, daemon=True)  # daemon: a deadlock fails the test, not the run
+    t1.start()
+    outer_in.wait(5)
+    t2 = threading.Thread(target=writer, daemon=True)
+    t2.start()
+    for t in (t1, t2):
+        t.join(timeout=5)
+    assert not t1.is_alive() and not t2.is_alive()
+    assert events == ["nested read", "outer read done", "writer"]
+
+
 def test_reader_waiting_goes_in_between_a_writers_back_to_back_writes() -> None:
     """Local mapping writes in a series of short phases; tracking's read must not wait for the whole series."""
     lock = ReadWriteLock()
