@@ -148,6 +148,8 @@ class LocalMappingConfig:
     keyframe_culling_redundancy: float = 0.9
     point_bad_max_observations: int = 2
     keyframe_culling_min_observers: int = 3
+    keyframe_culling_max_candidates: int = 101
+    keyframe_culling_max_candidates_aborted: int = 21
     min_baseline_depth_ratio: float = 0.01
     stereo_new_points_min: int = 100
     ba_iterations_first: int = 5

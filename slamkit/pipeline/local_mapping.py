@@ -88,7 +88,7 @@ class LocalMapper:
         lap("local_ba_ms")
         if self.cfg.keyframe_culling:
             with self.store.write():
-                out.culled_keyframes = self._cull_keyframes(kf)
+                out.culled_keyframes = self._cull_keyframes(kf, abort)
         lap("keyframe_culling_ms")
         return out
 
@@ -398,23 +398,33 @@ class LocalMapper:
 
     # ---- VI-E -------------------------------------------------------------------------------------------
 
-    def _cull_keyframes(self, kf: KeyFrame) -> list[CulledKeyFrame]:
+    def _cull_keyframes(self, kf: KeyFrame, abort: AbortToken | None = None) -> list[CulledKeyFrame]:
         """Erase covisible keyframes whose points are 90% seen by at least three other keyframes at the same
         or a finer scale (VI-E). The map's origin keyframe is never culled, nor a keyframe loop closing has pinned
         (ORB-SLAM SetNotErase). A point the culled keyframe leaves with at most ``point_bad_max_observations``
         observations is erased (ORB-SLAM2 KeyFrame::SetBadFlag -> MapPoint::EraseObservation: nObs <= 2 ->
-        SetBadFlag)."""
+        SetBadFlag).
+
+        The covisible keyframes are visited best first; as ORB-SLAM3's KeyFrameCulling the visit stops after
+        ``keyframe_culling_max_candidates`` of them, or ``keyframe_culling_max_candidates_aborted`` once ``abort``
+        is set (mbAbortBA: a newer keyframe waits), every visited keyframe counted (0: no limit, ORB-SLAM2)."""
         cfg = self.cfg
         store = self.store
         origin = store.origin_keyframe_id()
-        candidates = [k for k in store.covisibility.neighbors(kf.id) if k != origin and store.has_keyframe(k)]
+        visit = store.covisibility.neighbors(kf.id)
         culled: list[CulledKeyFrame] = []
+        if cfg.keyframe_culling_max_candidates > 0:
+            visit = visit[: cfg.keyframe_culling_max_candidates]
+        candidates = [k for k in visit if k != origin and store.has_keyframe(k)]
         if not candidates:
             return culled
         table = ObservationTable(store, candidates)
         pinned = self.pins.snapshot()
-        for k_id in candidates:
-            if k_id in pinned:
+        aborted_limit = cfg.keyframe_culling_max_candidates_aborted
+        for count, k_id in enumerate(visit, start=1):
+            if aborted_limit > 0 and count > aborted_limit and abort is not None and abort.is_set():
+                break  # ORB-SLAM3: `count > 20 && mbAbortBA`, tested after the 21st keyframe, before the 22nd
+            if k_id == origin or k_id in pinned or not store.has_keyframe(k_id):
                 continue
             n_points, redundant = table.redundancy(k_id, cfg.keyframe_culling_min_observers)
             if n_points and redundant > cfg.keyframe_culling_redundancy * n_points:

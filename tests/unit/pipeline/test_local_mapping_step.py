@@ -228,6 +228,42 @@ def test_keyframe_culling_leaves_the_keyframes_loop_closing_pinned(pinned: tuple
     assert all(store.has_keyframe(k) for k in pinned)
 
 
+@pytest.mark.parametrize(
+    ("aborted", "max_candidates", "expected"),
+    [(False, 101, set(range(1, 28))), (True, 101, set(range(1, 21))), (False, 10, set(range(1, 10)))],
+)
+def test_keyframe_culling_visits_as_many_covisible_keyframes_as_orbslam3(
+    aborted: bool, max_candidates: int, expected: set[int]
+) -> None:
+    """Thirty keyframes 1 cm apart see the same 200 points, so each is redundant while three others remain. Culling
+    at the last visits its covisible keyframes best first (ties: lower id first; the origin 0 is visited, never
+    culled): every one up to 27 (then 28 has two others left) with ORB-SLAM3's limit of 101; only the first 21
+    visited once the local BA was told to stop (ORB-SLAM3 `count > 20 && mbAbortBA`: keyframes 1-20); the first
+    ``max_candidates`` with a smaller limit."""
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kfs = [keyframe(store, 0.01 * i, xyz, desc) for i in range(30)]
+    for kf in kfs:
+        store.add_keyframe(kf)
+    for j in range(N_MAPPED):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
+        for kf in kfs:
+            store.add_observation(pid, kf.id, j)
+    refresh_points(store, store.point_ids())
+    for kf in kfs:
+        store.update_connections(kf.id)
+    abort = threading.Event()
+    if aborted:
+        abort.set()
+    cfg = LocalMappingConfig(keyframe_culling_max_candidates=max_candidates)
+    mapper = LocalMapper(cfg, Atlas.of(store), None)  # type: ignore[arg-type]
+    with store.write():
+        culled = {c.kf_id for c in mapper._cull_keyframes(kfs[-1], abort)}
+    assert culled == expected
+    assert all(store.has_keyframe(k) != (k in expected) for k in range(30))
+
+
 def test_the_one_keyframe_inserter_turns_tracked_matches_into_observations_once() -> None:
     """slamkit/pipeline/keyframe_insertion.py: a keyframe tracking made enters the map with its tracked points as
     observations (their viewing data refreshed); inserting a keyframe the map holds (the two of a new map, which
