@@ -311,4 +311,6 @@ def rig_observations(
         n_left=n1,
         stereo_match=link,
         xyz_c1=xyz,
+        camera_2=camera_2,
+        T_c2_c1=np.asarray(np.linalg.inv(np.asarray(T_c1_c2, np.float64)), np.float64),
     )

@@ -80,9 +80,12 @@ def fuse_points(
         assert chi2_gate_stereo is not None
         u_right = predicted_u_right(test.uv_px[q], test.z_m[q], feats.bf)
         right_gate = fuse_reprojection_gate(feats, u_right, chi2_gate, chi2_gate_stereo)
+    # a two-camera keyframe: the points are projected through camera 1 and fused with its keypoints only (ORB-SLAM3
+    # Fuse projects into the right camera as well: not yet)
+    taken = feats.camera_index() != 0 if feats.two_cameras else np.zeros(len(feats), bool)
     m = match_projected(
         feats,
-        np.zeros(len(feats), bool),
+        taken,
         bounds,
         test.uv_px[q],
         store.point_rows(ids[q], "descriptor"),

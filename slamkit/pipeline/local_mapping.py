@@ -205,6 +205,11 @@ class LocalMapper:
         matcher = self.cfg.matcher
         free1 = kf1.point_ids < 0
         free2 = kf2.point_ids < 0
+        # two-camera keyframes: camera 1's keypoints with neither a point nor a camera-2 stereo match that stands for
+        # one (ORB-SLAM3 SearchForTriangulation pairs both cameras' keypoints, each through its own camera; slamkit
+        # triangulates camera 1's so far)
+        free1 &= _camera_1_free(kf1)
+        free2 &= _camera_1_free(kf2)
         if not free1.any() or not free2.any():
             return empty
         if self.place is not None and kf1.bow is not None and kf2.bow is not None:
@@ -433,6 +438,16 @@ class LocalMapper:
                 if self.place is not None:
                     self.place.remove(k_id)
         return culled
+
+
+def _camera_1_free(kf: KeyFrame) -> NDArray[np.bool_]:
+    """(N,) bool: the keypoints local mapping's triangulation may use: all of a one-camera keyframe, camera 1's of a
+    two-camera one."""
+    feats = kf.features
+    if not feats.two_cameras:
+        return np.ones(len(feats), bool)
+    out: NDArray[np.bool_] = feats.camera_index() == 0
+    return out
 
 
 def _triangulate_with_depths(
