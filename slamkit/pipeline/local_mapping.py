@@ -220,8 +220,8 @@ class LocalMapper:
             a, b, d = close_pairs(kf1.features.descriptors, kf2.features.descriptors, free1, free2, matcher.th_low)
         if a.size == 0:
             return empty
-        uv1 = kf1.features.uv_undist_px[a].astype(np.float64)
-        uv2 = kf2.features.uv_undist_px[b].astype(np.float64)
+        uv1 = _pinhole_uv(kf1, a)
+        uv2 = _pinhole_uv(kf2, b)
         F21 = _fundamental_21(kf1, kf2)
         lines = np.c_[uv1, np.ones(a.size)] @ F21.T  # epipolar lines in image 2
         num = np.einsum("ij,ij->i", lines, np.c_[uv2, np.ones(b.size)])
@@ -231,10 +231,12 @@ class LocalMapper:
         # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably: squared distance below
         # epipole_min_dist2 x the scale factor of its level (not squared, as ORB-SLAM writes it). An epipole at
         # infinity (kf1's centre level with kf2's image plane) is close to nothing: NaN distances are not rejected.
-        epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
-        scale2 = kf2.features.level_scale()[b]
-        with np.errstate(invalid="ignore"):
-            ok &= ~(np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2)
+        if not (kf1.features.two_cameras or kf2.features.two_cameras):
+            # ORB-SLAM3 SearchForTriangulation checks the epipole for one-camera keyframes only (!pKF1->mpCamera2)
+            epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
+            scale2 = kf2.features.level_scale()[b]
+            with np.errstate(invalid="ignore"):
+                ok &= ~(np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2)
         a, b, dd = a[ok], b[ok], d[ok]
         # best candidate per kf1 feature
         order = np.lexsort((b, dd, a))
@@ -252,11 +254,9 @@ class LocalMapper:
         """Triangulate matched features; keep those with enough parallax, in front of both cameras, within the
         chi-square reprojection gate in both, and scale-consistent (VI-C)."""
         cfg = self.cfg
-        require_pinhole_image(kf1.camera, "local mapping (triangulation)")
-        require_pinhole_image(kf2.camera, "local mapping (triangulation)")
         K1, K2 = kf1.camera.K, kf2.camera.K
-        uv1 = kf1.features.uv_undist_px[i1].astype(np.float64)
-        uv2 = kf2.features.uv_undist_px[i2].astype(np.float64)
+        uv1 = _pinhole_uv(kf1, i1)
+        uv2 = _pinhole_uv(kf2, i2)
         rays1 = (np.c_[uv1, np.ones(i1.size)] @ np.linalg.inv(K1).T) @ kf1.T_c_w[:3, :3]
         rays2 = (np.c_[uv2, np.ones(i2.size)] @ np.linalg.inv(K2).T) @ kf2.T_c_w[:3, :3]
         cos_par = np.einsum("ij,ij->i", rays1, rays2) / (np.linalg.norm(rays1, axis=1) * np.linalg.norm(rays2, axis=1))
@@ -270,7 +270,8 @@ class LocalMapper:
         xyz = np.where(np.isfinite(xyz), xyz, 0.0)
         sigma1 = kf1.features.level_sigma2()[i1]
         sigma2 = kf2.features.level_sigma2()[i2]
-        for kf, idx, uv, s2 in ((kf1, i1, uv1, sigma1), (kf2, i2, uv2, sigma2)):
+        for kf, idx, s2 in ((kf1, i1, sigma1), (kf2, i2, sigma2)):
+            uv = kf.features.uv_undist_px[idx].astype(np.float64)  # the keypoint in its camera's pipeline image
             proj, z, _ = project_points(kf.T_c_w, xyz, kf.camera)
             ok &= z > 0
             err2 = np.sum((np.where(np.isfinite(proj), proj, 1e9) - uv) ** 2, axis=1)
@@ -486,10 +487,25 @@ def _median_depth(kf: KeyFrame, store: MapStore) -> float:
     return float(np.median(store.point_rows(ids, "xyz_w") @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3]))
 
 
+def _pinhole_uv(kf: KeyFrame, idx: I64) -> F64:
+    """(M, 2) px: keypoints ``idx`` of ``kf`` as undistorted pinhole pixels of its camera's K, where the epipolar
+    search and the triangulation work: the pipeline image's own for a pinhole camera; for a two-camera keyframe with a
+    Kannala-Brandt camera its bearings through K (K b / b_z; NaN for rays at or behind 90 degrees: left out), as
+    ORB-SLAM3 triangulates fisheye keypoints from their unprojected rays (KannalaBrandt8::unprojectEig). A one-camera
+    fisheye keyframe is refused as before."""
+    if kf.camera.image_undistorted or not kf.features.two_cameras:
+        require_pinhole_image(kf.camera, "local mapping (triangulation)")
+        return kf.features.uv_undist_px[idx].astype(np.float64)
+    b = kf.features.bearing[idx]
+    K = kf.camera.K
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = np.where(b[:, 2:3] > 1e-6, b[:, :2] / b[:, 2:3], np.nan)
+    out: F64 = n @ K[:2, :2].T + K[:2, 2]
+    return out
+
+
 def _fundamental_21(kf1: KeyFrame, kf2: KeyFrame) -> F64:
-    """F such that x2^T F x1 = 0 for undistorted pixels x1 in kf1 and x2 in kf2."""
-    require_pinhole_image(kf1.camera, "local mapping (epipolar search)")
-    require_pinhole_image(kf2.camera, "local mapping (epipolar search)")
+    """F such that x2^T F x1 = 0 for undistorted pixels x1 in kf1 and x2 in kf2 (:func:`_pinhole_uv`)."""
     T21 = kf2.T_c_w @ invert_T(kf1.T_c_w)
     R21, t21 = T21[:3, :3], T21[:3, 3]
     E21 = hat(t21) @ R21
