@@ -162,6 +162,8 @@ class StereoRigFrontEnd(MonocularFrontEnd):
     """
 
     uses_depth: ClassVar[bool] = False
+    #: Each frame needs its second image (``System.track(..., right=...)``).
+    uses_right: ClassVar[bool] = True
     #: Its records hold two cameras' keypoints (``Observations.n_left``): a consumer that does not read them refuses it.
     two_cameras: ClassVar[bool] = True
 
