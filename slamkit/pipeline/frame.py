@@ -9,6 +9,7 @@ from numpy.typing import NDArray
 
 from slamkit.features import Observations
 from slamkit.interfaces import Camera
+from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.matching import FeatureGrid
 
 F64 = NDArray[np.float64]
@@ -139,3 +140,28 @@ def camera_views(frame: Frame, T_c_w: F64) -> list[CameraView]:
         CameraView(0, T_c_w, frame.camera, frame.bounds, cam != 0),
         CameraView(1, np.asarray(feats.T_c2_c1, np.float64) @ T_c_w, feats.camera_2, frame.bounds2, cam != 1),
     ]
+
+
+def keyframe_cameras(kf: KeyFrame) -> tuple[int, ...]:
+    """The cameras of a keyframe: (0,) or, for a two-camera record, (0, 1)."""
+    return (0, 1) if kf.features.two_cameras and kf.features.camera_2 is not None else (0,)
+
+
+def keyframe_view(kf: KeyFrame, camera: int) -> KeyFrame:
+    """``kf`` seen as camera ``camera`` alone: itself for 0; for 1 a stand-in keyframe (same id, record, points and bag
+    of words) posed at T_c2_c1 T_c_w with the second camera's model, where triangulation computes with camera 2
+    (ORB-SLAM3 CreateNewMapPoints: GetRightPose / mpCamera2 for a right keypoint). Never put in a map."""
+    feats = kf.features
+    if camera == 0:
+        return kf
+    assert feats.T_c2_c1 is not None and feats.camera_2 is not None
+    return KeyFrame(
+        kf.id,
+        kf.frame_index,
+        kf.timestamp_s,
+        np.asarray(feats.T_c2_c1, np.float64) @ kf.T_c_w,
+        feats.camera_2,
+        feats,
+        kf.point_ids,
+        kf.bow,
+    )

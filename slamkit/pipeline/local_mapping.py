@@ -21,6 +21,7 @@ from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
+from slamkit.pipeline.frame import keyframe_cameras, keyframe_view
 from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
@@ -189,27 +190,49 @@ class LocalMapper:
         depths = _median_depth(kf2, store)
         if not np.isfinite(depths) or baseline / depths < self.cfg.min_baseline_depth_ratio:
             return None
-        i1, i2 = self._match_for_triangulation(kf, kf2)
-        if i1.size == 0:
+        if not (kf.features.two_cameras or kf2.features.two_cameras):
+            i1, i2 = self._match_for_triangulation(kf, kf2)
+            if i1.size == 0:
+                return None
+            return self._triangulate(kf, kf2, i1, i2)
+        # two-camera keyframes (ORB-SLAM3 CreateNewMapPoints with mpCamera2): each keypoint through its own camera,
+        # every pair of cameras searched; a keypoint taken by an earlier pair is skipped when the points are added
+        found: list[tuple[I64, I64, F64]] = []
+        for c1 in keyframe_cameras(kf):
+            for c2 in keyframe_cameras(kf2):
+                v1, v2 = keyframe_view(kf, c1), keyframe_view(kf2, c2)
+                i1, i2 = self._match_for_triangulation(v1, v2, c1, c2)
+                if i1.size == 0:
+                    continue
+                tri = self._triangulate(v1, v2, i1, i2)
+                if tri is not None:
+                    found.append(tri)
+        if not found:
             return None
-        return self._triangulate(kf, kf2, i1, i2)
+        return (
+            np.concatenate([f[0] for f in found]),
+            np.concatenate([f[1] for f in found]),
+            np.concatenate([f[2] for f in found]),
+        )
 
-    def _match_for_triangulation(self, kf1: KeyFrame, kf2: KeyFrame) -> tuple[I64, I64]:
+    def _match_for_triangulation(
+        self, kf1: KeyFrame, kf2: KeyFrame, camera_1: int = 0, camera_2: int = 0
+    ) -> tuple[I64, I64]:
         """Unmatched features of kf1 and kf2 with Hamming <= TH_LOW, on the epipolar line (distance^2 <
         3.84 sigma^2 of kf2's level, pipeline.chi2.epipolar), away from the epipole, best per feature,
         one-to-one, rotation-consistent (ORB-SLAM SearchForTriangulation; thresholds from pipeline.matcher). As
         ORB-SLAM, the candidates are those the place recognizer pairs (``PlaceRecognizer.candidate_pairs``: DBoW
         compares only features under the same vocabulary node) when both keyframes have a bag of words;
-        otherwise every pair is a candidate."""
+        otherwise every pair is a candidate. camera_1 / camera_2: the camera of each keyframe whose keypoints are
+        searched (two-camera keyframes: ``kf1`` / ``kf2`` are then that camera's views, :func:`~slamkit.pipeline.frame.keyframe_view`)."""
         empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
         matcher = self.cfg.matcher
         free1 = kf1.point_ids < 0
         free2 = kf2.point_ids < 0
-        # two-camera keyframes: camera 1's keypoints with neither a point nor a camera-2 stereo match that stands for
-        # one (ORB-SLAM3 SearchForTriangulation pairs both cameras' keypoints, each through its own camera; slamkit
-        # triangulates camera 1's so far)
-        free1 &= _camera_1_free(kf1)
-        free2 &= _camera_1_free(kf2)
+        # two-camera keyframes: the searched camera's keypoints whose stereo partner has no point either (the partner's
+        # point stands for both)
+        free1 &= _camera_free(kf1, camera_1)
+        free2 &= _camera_free(kf2, camera_2)
         if not free1.any() or not free2.any():
             return empty
         if self.place is not None and kf1.bow is not None and kf2.bow is not None:
@@ -301,9 +324,12 @@ class LocalMapper:
         """Add the triangulated points whose two features are still unmatched (new map points, VI-C)."""
         store = self.store
         created: list[int] = []
+        rig = kf1.features.two_cameras or kf2.features.two_cameras
         for m in range(i1.size):
             a, b = int(i1[m]), int(i2[m])
             if kf1.point_ids[a] >= 0 or kf2.point_ids[b] >= 0:
+                continue
+            if rig and (_partner_has_point(kf1, a) or _partner_has_point(kf2, b)):
                 continue
             pid = store.new_point_id()
             point = MapPoint(pid, xyz[m].copy(), kf1.features.descriptors[a].copy(), kf1.id, kf1.id)
@@ -441,14 +467,29 @@ class LocalMapper:
         return culled
 
 
-def _camera_1_free(kf: KeyFrame) -> NDArray[np.bool_]:
-    """(N,) bool: the keypoints local mapping's triangulation may use: all of a one-camera keyframe, camera 1's of a
-    two-camera one."""
+def _camera_free(kf: KeyFrame, camera: int) -> NDArray[np.bool_]:
+    """(N,) bool: the keypoints triangulation may use in camera ``camera`` of ``kf``: all of a one-camera keyframe; of
+    a two-camera one, that camera's keypoints whose stereo partner (if any) has no point."""
     feats = kf.features
     if not feats.two_cameras:
         return np.ones(len(feats), bool)
-    out: NDArray[np.bool_] = feats.camera_index() == 0
+    out: NDArray[np.bool_] = feats.camera_index() == camera
+    sm = feats.stereo_match
+    if sm is not None:
+        has = sm >= 0
+        partner_point = np.zeros(len(feats), bool)
+        partner_point[has] = np.asarray(kf.point_ids)[sm[has]] >= 0
+        out &= ~partner_point
     return out
+
+
+def _partner_has_point(kf: KeyFrame, idx: int) -> bool:
+    """Whether keypoint ``idx`` of a two-camera keyframe has a stereo partner observing a point (the point stands for
+    both keypoints)."""
+    sm = kf.features.stereo_match
+    if sm is None or sm[idx] < 0:
+        return False
+    return bool(kf.point_ids[int(sm[idx])] >= 0)
 
 
 def _triangulate_with_depths(
