@@ -187,6 +187,12 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     )
     if hasattr(frontend, "bind_dataset"):  # optional: a front end taking calibration from the dataset (stereo bf)
         frontend.bind_dataset(dataset)
+    map_node = cfg.get("map") or {}
+    if getattr(frontend, "two_cameras", False) and (map_node.get("save") or map_node.get("load")):
+        raise ConfigError(
+            "map.save / map.load: the map file has no fields for a non-rectified rig's second camera yet "
+            "(frontend=stereo_rig); run without them"
+        )
     tracker = Tracker(
         pipeline.tracking,
         frontend,

@@ -4,6 +4,7 @@ record a front end builds from it for a frame (``Observations``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -81,6 +82,10 @@ class Observations(Features):
     xyz_c1: (N, 3) float64 m or None, the triangulated point of a stereo match in camera 1's frame at both of its
         keypoints (ORB-SLAM3 mvStereo3Dpoints), NaN elsewhere; None for a one-camera record. ``depth_m`` of a
         matched camera-1 keypoint is its z (ORB-SLAM3 mvDepth); camera 2's keypoints have no depth (NaN).
+    camera_2: the second camera (a ``slamkit.interfaces.Camera``: camera 2's keypoints are in its pipeline image) or
+        None for a one-camera record (ORB-SLAM3 Frame::mpCamera2).
+    T_c2_c1: (4, 4) float64 or None, the rig's fixed extrinsic mapping camera-1 points into camera 2 (ORB-SLAM3
+        mTrl; the inverse of the dataset's T_l_r); None for a one-camera record.
     """
 
     bearing: NDArray[np.float64]
@@ -92,11 +97,22 @@ class Observations(Features):
     n_left: int = -1
     stereo_match: NDArray[np.int64] | None = None
     xyz_c1: NDArray[np.float64] | None = None
+    camera_2: Any = None
+    T_c2_c1: NDArray[np.float64] | None = None
 
     @property
     def two_cameras(self) -> bool:
         """True for a record of a non-rectified pair (keypoints of two cameras, ``n_left`` >= 0)."""
         return self.n_left >= 0
+
+    def stereo_partner(self) -> NDArray[np.int64]:
+        """(N,) int64: for a camera-1 keypoint of a two-camera record, the record index of its camera-2 stereo
+        match (ORB-SLAM3 Nleft + mvLeftToRightMatch[i]), else -1 (camera 2's keypoints, unmatched ones, and every
+        keypoint of a one-camera record)."""
+        out = np.full(len(self), -1, np.int64)
+        if self.n_left >= 0 and self.stereo_match is not None:
+            out[: self.n_left] = self.stereo_match[: self.n_left]
+        return out
 
     def camera_index(self) -> NDArray[np.int64]:
         """(N,) int64: 0 for camera 1's keypoints, 1 for camera 2's (all 0 in a one-camera record)."""
@@ -133,7 +149,12 @@ class Observations(Features):
         self, idx: NDArray[np.int64], T_w_c: NDArray[np.float64], K: NDArray[np.float64]
     ) -> NDArray[np.float64]:
         """(M, 3) m world points of keypoints ``idx`` with a depth (ORB-SLAM2 Frame::UnprojectStereo): the undistorted
-        keypoint back-projected at its depth through the pinhole K (3, 3), then mapped by T_w_c (4, 4)."""
+        keypoint back-projected at its depth through the pinhole K (3, 3), then mapped by T_w_c (4, 4). A two-camera
+        record's stereo points are its triangulated ``xyz_c1`` (ORB-SLAM3 Frame::UnprojectStereoFishEye), K unused."""
+        if self.xyz_c1 is not None:
+            p1 = np.asarray(self.xyz_c1[idx], np.float64).reshape(-1, 3)
+            out1: NDArray[np.float64] = p1 @ T_w_c[:3, :3].T + T_w_c[:3, 3]
+            return out1
         uv = self.uv_undist_px[idx].astype(np.float64)
         z = self.depth_m[idx].astype(np.float64)
         x = (uv[:, 0] - K[0, 2]) * z / K[0, 0]

@@ -162,6 +162,8 @@ class StereoRigFrontEnd(MonocularFrontEnd):
     """
 
     uses_depth: ClassVar[bool] = False
+    #: Each frame needs its second image (``System.track(..., right=...)``).
+    uses_right: ClassVar[bool] = True
     #: Its records hold two cameras' keypoints (``Observations.n_left``): a consumer that does not read them refuses it.
     two_cameras: ClassVar[bool] = True
 
@@ -311,4 +313,6 @@ def rig_observations(
         n_left=n1,
         stereo_match=link,
         xyz_c1=xyz,
+        camera_2=camera_2,
+        T_c2_c1=np.asarray(np.linalg.inv(np.asarray(T_c1_c2, np.float64)), np.float64),
     )

@@ -127,6 +127,18 @@ class MapPoint:
         MapPoint.__init__(self, **state)
 
 
+def observation_weight(features: Observations, feature_index: int) -> int:
+    """ORB-SLAM's weight of one keyframe observation in MapPoint::Observations(): 2 for a stereo / RGB-D keypoint
+    with a right coordinate (ORB-SLAM2 AddObservation: ``nObs += 2`` when mvuRight[idx] >= 0); 2 for a camera-1
+    keypoint of a two-camera record with a stereo match, whose camera-2 partner observes the point too (ORB-SLAM3
+    AddObservation adds 1 for each of the tuple's left and right indices; slamkit records the camera-1 index and reads
+    the partner from ``Observations.stereo_match``); else 1."""
+    if features.n_left >= 0:
+        sm = features.stereo_match
+        return 2 if sm is not None and feature_index < features.n_left and sm[feature_index] >= 0 else 1
+    return 2 if np.isfinite(features.u_right_px[feature_index]) else 1
+
+
 # ---- for MapStore implementations only: how a store changes the entities it owns -------------------------------
 
 

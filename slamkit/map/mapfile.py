@@ -263,6 +263,12 @@ def _map_arrays(store: MapStore, camera_id: Callable[[Camera], int]) -> tuple[di
     kf_ids = store.keyframe_ids()
     kfs = [store.get_keyframe(k) for k in kf_ids]
     feats = [kf.features for kf in kfs]
+    rig = next((kf.id for kf in kfs if kf.features.two_cameras), None)
+    if rig is not None:
+        raise ValueError(
+            f"keyframe {rig} holds a non-rectified rig's two cameras (frontend=stereo_rig): the map file has no fields "
+            "for the second camera's keypoints, stereo matches and extrinsic yet"
+        )
     K = len(kfs)
     a: dict[str, NDArray[Any]] = {
         "kf_id": np.array(kf_ids, np.int64),

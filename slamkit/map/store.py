@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
 from slamkit.interfaces import BowDescription
-from slamkit.map.entities import KeyFrame, MapPoint, frozen_copy, frozen_view, replace_fields
+from slamkit.map.entities import KeyFrame, MapPoint, frozen_copy, frozen_view, observation_weight, replace_fields
 from slamkit.map.graphs import (
     CovisibilityGraph,
     CovisibilityView,
@@ -209,11 +209,12 @@ class InMemoryMapStore:
 
     def _observation_weight(self, keyframe_id: int, feature_index: int) -> int:
         """ORB-SLAM's MapPoint::AddObservation weight of keypoint ``feature_index`` of a keyframe of this map: 2 when
-        it has a right coordinate (stereo / RGB-D: ``nObs += 2`` when mvuRight[idx] >= 0), else 1."""
+        it has a right coordinate (stereo / RGB-D: ``nObs += 2`` when mvuRight[idx] >= 0) or is a camera-1 keypoint
+        of a two-camera keyframe with a stereo match (observed by both cameras), else 1 (``observation_weight``)."""
         kf = self._keyframes.get(keyframe_id)
         if kf is None or kf.features.bf <= 0.0:
             return 1
-        return 2 if np.isfinite(kf.features.u_right_px[feature_index]) else 1
+        return observation_weight(kf.features, feature_index)
 
     def _forget_point(self, point_id: int) -> dict[int, int]:
         del self._points[point_id]

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
+from slamkit.features import Observations
 from slamkit.interfaces import AbortToken, Camera, MapStore, Optimizer
 from slamkit.problems import CAMERA_KANNALA_BRANDT, CAMERA_PINHOLE, BundleProblem, BundleResult
 
@@ -35,6 +36,22 @@ def problem_camera(camera: Camera) -> dict[str, Any]:
         f"camera model {camera.model!r}: its observations are in the raw image, which optimization problems model only "
         f"for {CAMERA_KANNALA_BRANDT!r} cameras"
     )
+
+
+def rig_fields(features: Observations, idx: I64) -> dict[str, Any]:
+    """The second-camera fields of a pose problem whose observations are keypoints ``idx`` (M,) of ``features``:
+    for a two-camera record (``features.camera_2``) ``camera_index`` (M,) 0 / 1, ``T_c2_c1`` (4, 4), ``intrinsics2``,
+    ``camera_model2``, ``distortion2``; for a one-camera record nothing (the problem's one-camera defaults)."""
+    if not features.two_cameras or features.camera_2 is None or features.T_c2_c1 is None:
+        return {}
+    cam2 = problem_camera(features.camera_2)
+    return {
+        "camera_index": features.camera_index()[idx],
+        "T_c2_c1": np.asarray(features.T_c2_c1, np.float64),
+        "intrinsics2": intrinsics_of(features.camera_2.K),
+        "camera_model2": cam2["camera_model"],
+        "distortion2": cam2["distortion"],
+    }
 
 
 @dataclass(frozen=True)
@@ -115,6 +132,11 @@ def snapshot_bundle(
         u_right[rows] = feats.u_right_px[obs_feat_a[rows]]
         level[rows] = feats.level[obs_feat_a[rows]]
         scale_factor = feats.scale_factor
+    rig: dict[str, Any] = {}
+    if any(kf.features.two_cameras for kf in keyframes):
+        obs_pose_a, obs_point_a, obs_kf_a, obs_feat_a, uv, u_right, level, rig = _rig_rows(
+            keyframes, obs_pose_a, obs_point_a, obs_kf_a, obs_feat_a, uv, u_right, level, intr
+        )
     n_free = len(free_kf_ids)
     # a free keyframe left without observations (all its points dropped) is held fixed: nothing constrains it
     observed = np.zeros(len(kf_ids), bool)
@@ -137,8 +159,87 @@ def snapshot_bundle(
         chi2_mono=chi2_mono,
         chi2_stereo=chi2_stereo,
         **camera,
+        **rig,
     )
     return BundleSnapshot(problem, kf_ids, pids, obs_kf_a, obs_feat_a, tuple(dropped))
+
+
+def _rig_rows(
+    keyframes: list[Any],
+    obs_pose: I64,
+    obs_point: I64,
+    obs_kf: I64,
+    obs_feat: I64,
+    uv: F64,
+    u_right: F64,
+    level: I64,
+    intrinsics: F64,
+) -> tuple[I64, I64, I64, I64, F64, F64, I64, dict[str, Any]]:
+    """The observations of a bundle problem with two-camera keyframes (ORB-SLAM3 LocalBundleAdjustment with
+    EdgeSE3ProjectXYZToBody): a recorded camera-2 keypoint is a camera-2 row; a recorded camera-1 keypoint with a
+    stereo match adds a camera-2 row at its partner (ORB-SLAM3's tuple<left, right> of MapPoint::AddObservation: slamkit
+    records the camera-1 index, the partner stands for the right one). An added row keeps the recorded keypoint as its
+    ``obs_feature``, so an outlier there erases the keyframe's observation (ORB-SLAM3 EraseObservation(pKF) erases
+    both). Returns the arrays (E', ...) and the problem's rig fields (per keyframe T_c2_c1 (K, 4, 4), intrinsics2
+    (K, 4), camera_model2, distortion2; a one-camera keyframe gets the identity and its own intrinsics, unused)."""
+    E = obs_pose.size
+    row_of = {}
+    for k, kf in enumerate(keyframes):
+        row_of[int(kf.id)] = k
+    cam = np.zeros(E, np.int64)
+    extra: list[I64] = []
+    extra_uv: list[F64] = []
+    extra_level: list[I64] = []
+    for kf_id in np.unique(obs_kf).tolist():
+        feats = keyframes[row_of[kf_id]].features
+        if not feats.two_cameras:
+            continue
+        rows = np.flatnonzero(obs_kf == kf_id)
+        f = obs_feat[rows]
+        cam[rows[f >= feats.n_left]] = 1
+        partner = feats.stereo_partner()[f]
+        has = partner >= 0
+        extra.append(rows[has])
+        extra_uv.append(feats.uv_undist_px[partner[has]].astype(np.float64))
+        extra_level.append(feats.level[partner[has]].astype(np.int64))
+    add = np.concatenate(extra) if extra else np.zeros(0, np.int64)
+    if add.size:
+        obs_pose = np.concatenate([obs_pose, obs_pose[add]])
+        obs_point = np.concatenate([obs_point, obs_point[add]])
+        obs_kf = np.concatenate([obs_kf, obs_kf[add]])
+        obs_feat = np.concatenate([obs_feat, obs_feat[add]])
+        uv = np.concatenate([uv, np.concatenate(extra_uv).reshape(-1, 2)])
+        u_right = np.concatenate([u_right, np.full(add.size, np.nan)])
+        level = np.concatenate([level, np.concatenate(extra_level)])
+        cam = np.concatenate([cam, np.ones(add.size, np.int64)])
+    K = len(keyframes)
+    T21 = np.tile(np.eye(4), (K, 1, 1))
+    intr2 = np.array(intrinsics, np.float64, copy=True).reshape(K, 4)
+    models: set[str] = set()
+    dist2: list[F64 | None] = [None] * K
+    for k, kf in enumerate(keyframes):
+        feats = kf.features
+        if feats.two_cameras and feats.camera_2 is not None and feats.T_c2_c1 is not None:
+            T21[k] = feats.T_c2_c1
+            intr2[k] = intrinsics_of(feats.camera_2.K)
+            c2 = problem_camera(feats.camera_2)
+            models.add(c2["camera_model"])
+            dist2[k] = c2["distortion"]
+    if len(models) > 1:
+        raise ConfigError(f"bundle adjustment over second cameras of different models {sorted(models)}: not supported")
+    model2 = models.pop() if models else CAMERA_PINHOLE
+    distortion2 = None
+    if model2 == CAMERA_KANNALA_BRANDT:
+        first = next(d for d in dist2 if d is not None)
+        distortion2 = np.stack([first if d is None else d for d in dist2])
+    rig = {
+        "camera_index": cam,
+        "T_c2_c1": T21,
+        "intrinsics2": intr2,
+        "camera_model2": model2,
+        "distortion2": distortion2,
+    }
+    return obs_pose, obs_point, obs_kf, obs_feat, uv, u_right, level, rig
 
 
 def _bundle_camera(keyframes: list[Any]) -> dict[str, Any]:

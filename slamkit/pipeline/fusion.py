@@ -4,10 +4,11 @@ the keyframe; a match either adds an observation or merges two points that are t
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from slamkit.interfaces import MapStore
 from slamkit.map.entities import KeyFrame, MapPoint
-from slamkit.pipeline.frame import ImageBounds
+from slamkit.pipeline.frame import ImageBounds, keyframe_cameras, keyframe_view
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.projection import (
     frustum_test,
@@ -50,16 +51,54 @@ def fuse_points(
     against this threshold (pipeline.chi2.stereo_rounded, 7.8), 2 dof against ``chi2_gate`` for a candidate without
     one. None, or a monocular keyframe: the 2-dof gate on the best match only (slamkit's monocular fusion).
     """
+    if not kf.features.two_cameras:
+        return _fuse_view(
+            store, kf, kf, None, point_ids, radius_px, incoming_wins, max_distance, chi2_gate, chi2_gate_stereo
+        )
+    # a two-camera keyframe (ORB-SLAM3 SearchInNeighbors: Fuse(pKF, points) then Fuse(pKF, points, bRight = true)):
+    # each camera's keypoints through that camera
+    cam = kf.features.camera_index()
+    return sum(
+        _fuse_view(
+            store,
+            kf,
+            keyframe_view(kf, c),
+            cam != c,
+            point_ids,
+            radius_px,
+            incoming_wins,
+            max_distance,
+            chi2_gate,
+            chi2_gate_stereo,
+        )
+        for c in keyframe_cameras(kf)
+    )
+
+
+def _fuse_view(
+    store: MapStore,
+    kf: KeyFrame,
+    view: KeyFrame,
+    taken: NDArray[np.bool_] | None,
+    point_ids: list[int],
+    radius_px: float,
+    incoming_wins: bool,
+    max_distance: int,
+    chi2_gate: float,
+    chi2_gate_stereo: float | None,
+) -> int:
+    """fuse_points into one camera of ``kf``: ``view`` gives the pose and camera model (``kf`` itself for a one-camera
+    keyframe, :func:`keyframe_view`), ``taken`` (N,) the keypoints of the other camera (None: none)."""
     kf_id = kf.id
     points = [p for p in store.get_points(point_ids) if kf_id not in p.observations]
     if not points or len(kf.features) == 0:
         return 0
     feats = kf.features
-    bounds = ImageBounds.of(kf.camera)
+    bounds = ImageBounds.of(view.camera)
     ids = np.array([p.id for p in points], np.int64)
     test = frustum_test(
-        kf.T_c_w,
-        kf.camera,
+        view.T_c_w,
+        view.camera,
         bounds,
         store.point_rows(ids, "xyz_w"),
         store.point_rows(ids, "normal_w"),
@@ -82,7 +121,7 @@ def fuse_points(
         right_gate = fuse_reprojection_gate(feats, u_right, chi2_gate, chi2_gate_stereo)
     m = match_projected(
         feats,
-        np.zeros(len(feats), bool),
+        np.zeros(len(feats), bool) if taken is None else taken,
         bounds,
         test.uv_px[q],
         store.point_rows(ids[q], "descriptor"),
@@ -109,6 +148,8 @@ def fuse_points(
         if not store.has_point(point.id) or kf_id in point.observations:
             continue
         existing = int(kf.point_ids[feat])
+        if existing < 0 and taken is not None and feats.stereo_match is not None and feats.stereo_match[feat] >= 0:
+            existing = int(kf.point_ids[int(feats.stereo_match[feat])])  # the stereo partner's point stands for both
         if existing >= 0 and store.has_point(existing):
             if existing == point.id:
                 continue

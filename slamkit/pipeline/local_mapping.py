@@ -21,6 +21,7 @@ from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
+from slamkit.pipeline.frame import keyframe_cameras, keyframe_view
 from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
@@ -189,22 +190,49 @@ class LocalMapper:
         depths = _median_depth(kf2, store)
         if not np.isfinite(depths) or baseline / depths < self.cfg.min_baseline_depth_ratio:
             return None
-        i1, i2 = self._match_for_triangulation(kf, kf2)
-        if i1.size == 0:
+        if not (kf.features.two_cameras or kf2.features.two_cameras):
+            i1, i2 = self._match_for_triangulation(kf, kf2)
+            if i1.size == 0:
+                return None
+            return self._triangulate(kf, kf2, i1, i2)
+        # two-camera keyframes (ORB-SLAM3 CreateNewMapPoints with mpCamera2): each keypoint through its own camera,
+        # every pair of cameras searched; a keypoint taken by an earlier pair is skipped when the points are added
+        found: list[tuple[I64, I64, F64]] = []
+        for c1 in keyframe_cameras(kf):
+            for c2 in keyframe_cameras(kf2):
+                v1, v2 = keyframe_view(kf, c1), keyframe_view(kf2, c2)
+                i1, i2 = self._match_for_triangulation(v1, v2, c1, c2)
+                if i1.size == 0:
+                    continue
+                tri = self._triangulate(v1, v2, i1, i2)
+                if tri is not None:
+                    found.append(tri)
+        if not found:
             return None
-        return self._triangulate(kf, kf2, i1, i2)
+        return (
+            np.concatenate([f[0] for f in found]),
+            np.concatenate([f[1] for f in found]),
+            np.concatenate([f[2] for f in found]),
+        )
 
-    def _match_for_triangulation(self, kf1: KeyFrame, kf2: KeyFrame) -> tuple[I64, I64]:
+    def _match_for_triangulation(
+        self, kf1: KeyFrame, kf2: KeyFrame, camera_1: int = 0, camera_2: int = 0
+    ) -> tuple[I64, I64]:
         """Unmatched features of kf1 and kf2 with Hamming <= TH_LOW, on the epipolar line (distance^2 <
         3.84 sigma^2 of kf2's level, pipeline.chi2.epipolar), away from the epipole, best per feature,
         one-to-one, rotation-consistent (ORB-SLAM SearchForTriangulation; thresholds from pipeline.matcher). As
         ORB-SLAM, the candidates are those the place recognizer pairs (``PlaceRecognizer.candidate_pairs``: DBoW
         compares only features under the same vocabulary node) when both keyframes have a bag of words;
-        otherwise every pair is a candidate."""
+        otherwise every pair is a candidate. camera_1 / camera_2: the camera of each keyframe whose keypoints are
+        searched (two-camera keyframes: ``kf1`` / ``kf2`` are then that camera's views, :func:`~slamkit.pipeline.frame.keyframe_view`)."""
         empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
         matcher = self.cfg.matcher
         free1 = kf1.point_ids < 0
         free2 = kf2.point_ids < 0
+        # two-camera keyframes: the searched camera's keypoints whose stereo partner has no point either (the partner's
+        # point stands for both)
+        free1 &= _camera_free(kf1, camera_1)
+        free2 &= _camera_free(kf2, camera_2)
         if not free1.any() or not free2.any():
             return empty
         if self.place is not None and kf1.bow is not None and kf2.bow is not None:
@@ -215,8 +243,8 @@ class LocalMapper:
             a, b, d = close_pairs(kf1.features.descriptors, kf2.features.descriptors, free1, free2, matcher.th_low)
         if a.size == 0:
             return empty
-        uv1 = kf1.features.uv_undist_px[a].astype(np.float64)
-        uv2 = kf2.features.uv_undist_px[b].astype(np.float64)
+        uv1 = _pinhole_uv(kf1, a)
+        uv2 = _pinhole_uv(kf2, b)
         F21 = _fundamental_21(kf1, kf2)
         lines = np.c_[uv1, np.ones(a.size)] @ F21.T  # epipolar lines in image 2
         num = np.einsum("ij,ij->i", lines, np.c_[uv2, np.ones(b.size)])
@@ -226,10 +254,12 @@ class LocalMapper:
         # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably: squared distance below
         # epipole_min_dist2 x the scale factor of its level (not squared, as ORB-SLAM writes it). An epipole at
         # infinity (kf1's centre level with kf2's image plane) is close to nothing: NaN distances are not rejected.
-        epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
-        scale2 = kf2.features.level_scale()[b]
-        with np.errstate(invalid="ignore"):
-            ok &= ~(np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2)
+        if not (kf1.features.two_cameras or kf2.features.two_cameras):
+            # ORB-SLAM3 SearchForTriangulation checks the epipole for one-camera keyframes only (!pKF1->mpCamera2)
+            epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
+            scale2 = kf2.features.level_scale()[b]
+            with np.errstate(invalid="ignore"):
+                ok &= ~(np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2)
         a, b, dd = a[ok], b[ok], d[ok]
         # best candidate per kf1 feature
         order = np.lexsort((b, dd, a))
@@ -247,11 +277,9 @@ class LocalMapper:
         """Triangulate matched features; keep those with enough parallax, in front of both cameras, within the
         chi-square reprojection gate in both, and scale-consistent (VI-C)."""
         cfg = self.cfg
-        require_pinhole_image(kf1.camera, "local mapping (triangulation)")
-        require_pinhole_image(kf2.camera, "local mapping (triangulation)")
         K1, K2 = kf1.camera.K, kf2.camera.K
-        uv1 = kf1.features.uv_undist_px[i1].astype(np.float64)
-        uv2 = kf2.features.uv_undist_px[i2].astype(np.float64)
+        uv1 = _pinhole_uv(kf1, i1)
+        uv2 = _pinhole_uv(kf2, i2)
         rays1 = (np.c_[uv1, np.ones(i1.size)] @ np.linalg.inv(K1).T) @ kf1.T_c_w[:3, :3]
         rays2 = (np.c_[uv2, np.ones(i2.size)] @ np.linalg.inv(K2).T) @ kf2.T_c_w[:3, :3]
         cos_par = np.einsum("ij,ij->i", rays1, rays2) / (np.linalg.norm(rays1, axis=1) * np.linalg.norm(rays2, axis=1))
@@ -265,7 +293,8 @@ class LocalMapper:
         xyz = np.where(np.isfinite(xyz), xyz, 0.0)
         sigma1 = kf1.features.level_sigma2()[i1]
         sigma2 = kf2.features.level_sigma2()[i2]
-        for kf, idx, uv, s2 in ((kf1, i1, uv1, sigma1), (kf2, i2, uv2, sigma2)):
+        for kf, idx, s2 in ((kf1, i1, sigma1), (kf2, i2, sigma2)):
+            uv = kf.features.uv_undist_px[idx].astype(np.float64)  # the keypoint in its camera's pipeline image
             proj, z, _ = project_points(kf.T_c_w, xyz, kf.camera)
             ok &= z > 0
             err2 = np.sum((np.where(np.isfinite(proj), proj, 1e9) - uv) ** 2, axis=1)
@@ -295,9 +324,12 @@ class LocalMapper:
         """Add the triangulated points whose two features are still unmatched (new map points, VI-C)."""
         store = self.store
         created: list[int] = []
+        rig = kf1.features.two_cameras or kf2.features.two_cameras
         for m in range(i1.size):
             a, b = int(i1[m]), int(i2[m])
             if kf1.point_ids[a] >= 0 or kf2.point_ids[b] >= 0:
+                continue
+            if rig and (_partner_has_point(kf1, a) or _partner_has_point(kf2, b)):
                 continue
             pid = store.new_point_id()
             point = MapPoint(pid, xyz[m].copy(), kf1.features.descriptors[a].copy(), kf1.id, kf1.id)
@@ -445,6 +477,31 @@ class LocalMapper:
         return culled
 
 
+def _camera_free(kf: KeyFrame, camera: int) -> NDArray[np.bool_]:
+    """(N,) bool: the keypoints triangulation may use in camera ``camera`` of ``kf``: all of a one-camera keyframe; of
+    a two-camera one, that camera's keypoints whose stereo partner (if any) has no point."""
+    feats = kf.features
+    if not feats.two_cameras:
+        return np.ones(len(feats), bool)
+    out: NDArray[np.bool_] = feats.camera_index() == camera
+    sm = feats.stereo_match
+    if sm is not None:
+        has = sm >= 0
+        partner_point = np.zeros(len(feats), bool)
+        partner_point[has] = np.asarray(kf.point_ids)[sm[has]] >= 0
+        out &= ~partner_point
+    return out
+
+
+def _partner_has_point(kf: KeyFrame, idx: int) -> bool:
+    """Whether keypoint ``idx`` of a two-camera keyframe has a stereo partner observing a point (the point stands for
+    both keypoints)."""
+    sm = kf.features.stereo_match
+    if sm is None or sm[idx] < 0:
+        return False
+    return bool(kf.point_ids[int(sm[idx])] >= 0)
+
+
 def _triangulate_with_depths(
     kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64, uv1: F64, uv2: F64, cos_par: F64, min_parallax_cos: float
 ) -> tuple[NDArray[np.bool_], F64]:
@@ -481,10 +538,25 @@ def _median_depth(kf: KeyFrame, store: MapStore) -> float:
     return float(np.median(store.point_rows(ids, "xyz_w") @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3]))
 
 
+def _pinhole_uv(kf: KeyFrame, idx: I64) -> F64:
+    """(M, 2) px: keypoints ``idx`` of ``kf`` as undistorted pinhole pixels of its camera's K, where the epipolar
+    search and the triangulation work: the pipeline image's own for a pinhole camera; for a two-camera keyframe with a
+    Kannala-Brandt camera its bearings through K (K b / b_z; NaN for rays at or behind 90 degrees: left out), as
+    ORB-SLAM3 triangulates fisheye keypoints from their unprojected rays (KannalaBrandt8::unprojectEig). A one-camera
+    fisheye keyframe is refused as before."""
+    if kf.camera.image_undistorted or not kf.features.two_cameras:
+        require_pinhole_image(kf.camera, "local mapping (triangulation)")
+        return kf.features.uv_undist_px[idx].astype(np.float64)
+    b = kf.features.bearing[idx]
+    K = kf.camera.K
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = np.where(b[:, 2:3] > 1e-6, b[:, :2] / b[:, 2:3], np.nan)
+    out: F64 = n @ K[:2, :2].T + K[:2, 2]
+    return out
+
+
 def _fundamental_21(kf1: KeyFrame, kf2: KeyFrame) -> F64:
-    """F such that x2^T F x1 = 0 for undistorted pixels x1 in kf1 and x2 in kf2."""
-    require_pinhole_image(kf1.camera, "local mapping (epipolar search)")
-    require_pinhole_image(kf2.camera, "local mapping (epipolar search)")
+    """F such that x2^T F x1 = 0 for undistorted pixels x1 in kf1 and x2 in kf2 (:func:`_pinhole_uv`)."""
     T21 = kf2.T_c_w @ invert_T(kf1.T_c_w)
     R21, t21 = T21[:3, :3], T21[:3, 3]
     E21 = hat(t21) @ R21

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import invert_T
 from slamkit.interfaces import MapStore
-from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.entities import KeyFrame, MapPoint, observation_weight
 from slamkit.pipeline.matching import row_distance
 
 F64 = NDArray[np.float64]
@@ -278,6 +278,6 @@ def orbslam_observation_counts(store: MapStore, point_ids: Iterable[int]) -> I64
     for pid in ids.tolist():
         n = 0
         for kf_id, idx in store.get_point(pid).observations.items():
-            n += 2 if np.isfinite(store.get_keyframe(kf_id).features.u_right_px[idx]) else 1
+            n += observation_weight(store.get_keyframe(kf_id).features, idx)
         out.append(n)
     return np.array(out, np.int64)

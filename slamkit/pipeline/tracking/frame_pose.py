@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.interfaces import MapStore
-from slamkit.pipeline.bundle import intrinsics_of, problem_camera
+from slamkit.pipeline.bundle import intrinsics_of, problem_camera, rig_fields
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame
 from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
@@ -30,7 +30,9 @@ class PoseRefiner:
         self.optimize_pose = optimize_pose
 
     def optimize(self, frame: Frame, T_init: F64) -> int:
-        """Motion-only BA from T_init (4, 4) T_c_w on the frame's matches (``frame.point_ids >= 0``): sets
+        """Motion-only BA from T_init (4, 4) T_c_w on the frame's matches (``frame.point_ids >= 0``; a two-camera
+        frame's camera-2 matches are residuals through camera 2 at T_c2_c1 T_c_w, ORB-SLAM3
+        EdgeSE3ProjectXYZOnlyPoseToBody): sets
         ``frame.T_c_w`` and ``frame.outlier``; returns the inlier count."""
         idx = np.flatnonzero(frame.point_ids >= 0)
         frame.outlier[:] = False
@@ -52,6 +54,7 @@ class PoseRefiner:
             rounds=self.cfg.pose_rounds,
             iterations_per_round=self.cfg.pose_iterations_per_round,
             **problem_camera(frame.camera),
+            **rig_fields(feats, idx),
         )
         result = self.optimize_pose(problem)
         frame.T_c_w = result.T_c_w

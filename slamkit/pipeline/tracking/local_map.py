@@ -11,8 +11,9 @@ from numpy.typing import NDArray
 
 from slamkit.interfaces import MapStore
 from slamkit.pipeline.config import TrackingConfig
-from slamkit.pipeline.frame import Frame
+from slamkit.pipeline.frame import CameraView, Frame, camera_views
 from slamkit.pipeline.projection import (
+    FrustumTest,
     frustum_test,
     match_projected,
     predicted_u_right,
@@ -90,58 +91,77 @@ def track_local_map(
 def search_local_points(frame: Frame, candidates: I64, store: MapStore, cfg: TrackingConfig, wide_search: bool) -> None:
     """ORB-SLAM SearchLocalPoints: the frustum test of every candidate (sorted point ids not matched yet), then the
     search around the projections of the visible ones. Attributes are read only as far as a point gets: the
-    position of all, the viewing data of those projecting into the image, the descriptor of the visible ones."""
+    position of all, the viewing data of those projecting into the image, the descriptor of the visible ones.
+
+    A two-camera frame (ORB-SLAM3 Frame::isInFrustum with isInFrustumChecks for mpCamera and mpCamera2): a point is
+    visible (its visible counter raised once) when it passes the test in either camera, and is searched among the
+    keypoints of each camera it passes in (SearchByProjection's mbTrackInView / mbTrackInViewR), so it may be matched
+    in both."""
     feats = frame.features
     assert frame.T_c_w is not None
     xyz = store.point_rows(candidates, "xyz_w")
-    uv, _, in_image = project_points(frame.T_c_w, xyz, frame.camera)
-    in_image &= frame.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
-    s = np.flatnonzero(in_image)
-    if s.size == 0:
+    views = camera_views(frame, frame.T_c_w)
+    tests: list[tuple[CameraView, I64, FrustumTest]] = []
+    for view in views:
+        uv, _, in_image = project_points(view.T_c_w, xyz, view.camera)
+        in_image &= view.bounds.contains(np.where(np.isfinite(uv), uv, -1e9))
+        s = np.flatnonzero(in_image)
+        if s.size == 0:
+            continue
+        near = candidates[s]
+        test = frustum_test(
+            view.T_c_w,
+            view.camera,
+            view.bounds,
+            xyz[s],
+            store.point_rows(near, "normal_w"),
+            store.point_rows(near, "d_min_m"),
+            store.point_rows(near, "d_max_m"),
+            cfg.local_map_min_view_cos,
+            feats.scale_factor,
+            feats.n_levels,
+        )
+        tests.append((view, s, test))
+    if not tests:
         return
-    near = candidates[s]
-    test = frustum_test(
-        frame.T_c_w,
-        frame.camera,
-        frame.bounds,
-        xyz[s],
-        store.point_rows(near, "normal_w"),
-        store.point_rows(near, "d_min_m"),
-        store.point_rows(near, "d_max_m"),
-        cfg.local_map_min_view_cos,
-        feats.scale_factor,
-        feats.n_levels,
-    )
-    v = np.flatnonzero(test.visible)
-    visible = near[v]
-    store.increase_visible(visible)
+    if len(views) == 1:
+        _, s, test = tests[0]
+        store.increase_visible(candidates[s[test.visible]])
+    else:
+        seen = np.zeros(candidates.size, bool)
+        for _, s, test in tests:
+            seen[s[test.visible]] = True
+        store.increase_visible(candidates[seen])
     if wide_search:
         th = cfg.local_map_search_radius_relocalized_px
     elif feats.sensor == "rgbd":  # ORB-SLAM2 SearchLocalPoints: th = 3 for RGB-D
         th = cfg.local_map_search_radius_rgbd_px
     else:
         th = cfg.local_map_search_radius_px
-    level = test.predicted_level[v]
-    radius = th * radius_by_viewing_cos(test.view_cos[v]) * np.power(feats.scale_factor, level)
-    # stereo/RGB-D (ORB-SLAM2 SearchByProjection(F, vpMapPoints)): a candidate with a right coordinate must agree
-    # with the point's predicted one (mTrackProjXR = u - bf / z) within the search radius at the predicted level
-    gate = None
-    if feats.bf > 0.0 and cfg.right_coordinate_gate:
-        gate = right_u_gate(feats, predicted_u_right(test.uv_px[v], test.z_m[v], feats.bf), radius)
-    m = match_projected(
-        feats,
-        frame.point_ids >= 0,
-        frame.bounds,
-        test.uv_px[v],
-        store.point_rows(visible, "descriptor"),
-        radius,
-        level - 1,
-        level,
-        cfg.matcher.th_high,
-        cfg.matcher.ratio_local_map,
-        None,
-        None,
-        ratio_same_level_only=True,  # ORB-SLAM2/3 SearchByProjection: ratio only when best and second share a level
-        right_gate=gate,
-    )
-    frame.point_ids[m.feature] = candidates[s[v[m.query]]]
+    for view, s, test in tests:
+        v = np.flatnonzero(test.visible)
+        visible = candidates[s[v]]
+        level = test.predicted_level[v]
+        radius = th * radius_by_viewing_cos(test.view_cos[v]) * np.power(feats.scale_factor, level)
+        # stereo/RGB-D (ORB-SLAM2 SearchByProjection(F, vpMapPoints)): a candidate with a right coordinate must agree
+        # with the point's predicted one (mTrackProjXR = u - bf / z) within the search radius at the predicted level
+        gate = None
+        if feats.bf > 0.0 and cfg.right_coordinate_gate:
+            gate = right_u_gate(feats, predicted_u_right(test.uv_px[v], test.z_m[v], feats.bf), radius)
+        m = match_projected(
+            feats,
+            view.taken | (frame.point_ids >= 0),
+            view.bounds,
+            test.uv_px[v],
+            store.point_rows(visible, "descriptor"),
+            radius,
+            level - 1,
+            level,
+            cfg.matcher.th_high,
+            cfg.matcher.ratio_local_map,
+            None,
+            None,
+            ratio_same_level_only=True,  # ORB-SLAM2/3 SearchByProjection: ratio only when best and second share a level
+            right_gate=gate,
+        )
+        frame.point_ids[m.feature] = candidates[s[v[m.query]]]

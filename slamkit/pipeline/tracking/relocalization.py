@@ -163,6 +163,10 @@ def relocalize(
             max_distance=matcher.th_low,
             rotation_bins=matcher.rotation_bins,
         )
+        if frame.features.two_cameras:
+            # a two-camera frame: EPnP on camera 1's matches (its keypoints and K); camera 2's join in the motion-only
+            # BA of the verification (ORB-SLAM3 Relocalization builds its MLPnPsolver on the frame's camera-1 rays)
+            pairs = pairs[pairs[:, 1] < frame.features.n_left]
         if pairs.shape[0] < cfg.reloc_min_bow_matches:
             continue
         uv = frame.features.uv_undist_px[pairs[:, 1]].astype(np.float64)
@@ -284,9 +288,12 @@ def search_keyframe_points(
     if q.size == 0:
         return 0
     level = predict_level(d_max[q], dist[q], feats.scale_factor, feats.n_levels)
+    taken = frame.point_ids >= 0
+    if feats.two_cameras:
+        taken |= feats.camera_index() != 0  # camera 1's keypoints only: the points are projected through camera 1
     m = match_projected(
         feats,
-        frame.point_ids >= 0,
+        taken,
         frame.bounds,
         uv[q],
         store.point_rows(pids[q], "descriptor"),

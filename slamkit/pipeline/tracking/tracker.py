@@ -61,14 +61,13 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.errors import ConfigError
 from slamkit.geometry.sim3 import Sim3
 from slamkit.interfaces import BowDescription, Camera, FrontEnd, Initializer, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
 from slamkit.map.mapfile_run import SESSION_STARTS
 from slamkit.pipeline.config import TrackingConfig
-from slamkit.pipeline.frame import Frame, ImageBounds
+from slamkit.pipeline.frame import Frame, ImageBounds, with_stereo_partners
 from slamkit.pipeline.initialization import (
     MonocularInitialization,
     create_initial_map,
@@ -137,15 +136,6 @@ class Tracker:
             raise ValueError(f"session_start={session_start!r}: expected one of {', '.join(SESSION_STARTS)}")
         self.cfg = cfg
         self.max_frames = max_frames_of(cfg, fps)  # ORB-SLAM mMaxFrames (frames)
-        if getattr(frontend, "two_cameras", False):
-            # a non-rectified pair's record (frontend=stereo_rig) holds two cameras' keypoints; tracking, local
-            # mapping and the bundle problems do not read it yet (issue 16 item 3: the front end and the
-            # motion-only BA with the second camera are in, docs/pipeline.md "Non-rectified stereo")
-            raise ConfigError(
-                f"frontend: {type(frontend).__name__} gives two-camera records (non-rectified stereo), which the "
-                "tracking pipeline does not run yet; rectify the pair instead (frontend=stereo with dataset.settings "
-                "holding ORB-SLAM's LEFT/RIGHT rectification blocks)"
-            )
         self.frontend = frontend
         self.optimizer = optimizer
         self.optimize_pose = pose_optimizer or motion_only_ba
@@ -245,7 +235,8 @@ class Tracker:
         t0 = time.perf_counter()
         features = self.frontend.observe(data, camera, initializing)
         timings["extract_ms"] = timings.get("extract_ms", 0.0) + (time.perf_counter() - t0) * 1e3
-        frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera))
+        bounds2 = self._bounds_of(features.camera_2) if features.two_cameras else None
+        frame = Frame.create(data.index, data.timestamp_s, camera, features, self._bounds_of(camera), bounds2)
         self.current_frame = frame
         return frame
 
@@ -465,7 +456,8 @@ class Tracker:
         frame.T_c_w = np.eye(4)
         self._make_session_map()
         kf = create_stereo_initial_map(self.store, frame)
-        frame.point_ids = kf.point_ids.copy()
+        # a two-camera frame: each stereo point at both of its keypoints (ORB-SLAM3 StereoInitialization, Nleft)
+        frame.point_ids = with_stereo_partners(frame.features, kf.point_ids)
         frame.ref_kf_id = kf.id
         self.reference_kf_id = kf.id
         self.last_kf_frame_index = frame.index

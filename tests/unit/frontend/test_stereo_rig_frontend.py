@@ -169,17 +169,6 @@ def test_euroc_raw_pair_depths_agree_with_the_rectified_front_end() -> None:
     assert abs(z_raw - z_rect) / z_rect < 0.1  # measured 2.115 m against 2.103 m
 
 
-def test_the_tracking_pipeline_refuses_two_camera_records_for_now(tmp_path: Path) -> None:
-    from slamkit.api import open_system
-    from slamkit.errors import ConfigError
-
-    with pytest.raises(ConfigError, match="two-camera records"):
-        open_system(
-            ["frontend=stereo_rig", "dataset.stereo=true", "dataset.max_frames=2", "runner=sequential"],
-            output_dir=tmp_path,
-        )
-
-
 @pytest.mark.slow
 def test_rendered_fisheye_pair_gives_the_rendered_depths() -> None:
     """The synthetic room through a Kannala-Brandt pair whose right camera diverges by 15 degrees (rendered wide and
