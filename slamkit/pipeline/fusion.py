@@ -3,6 +3,9 @@ the keyframe; a match either adds an observation or merges two points that are t
 
 from __future__ import annotations
 
+from itertools import compress, repeat
+from operator import attrgetter, contains, not_
+
 import numpy as np
 
 from slamkit.interfaces import MapStore
@@ -15,6 +18,9 @@ from slamkit.pipeline.projection import (
     match_projected,
     predicted_u_right,
 )
+
+_OBSERVATIONS = attrgetter("observations")
+_ID = attrgetter("id")
 
 
 def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
@@ -51,12 +57,14 @@ def fuse_points(
     one. None, or a monocular keyframe: the 2-dof gate on the best match only (slamkit's monocular fusion).
     """
     kf_id = kf.id
-    points = [p for p in store.get_points(point_ids) if kf_id not in p.observations]
+    candidates = store.get_points(point_ids)
+    # the points kf does not observe yet (C iterators over the observation mappings: thousands per call)
+    points = list(compress(candidates, map(not_, map(contains, map(_OBSERVATIONS, candidates), repeat(kf_id)))))
     if not points or len(kf.features) == 0:
         return 0
     feats = kf.features
     bounds = ImageBounds.of(kf.camera)
-    ids = np.array([p.id for p in points], np.int64)
+    ids = np.fromiter(map(_ID, points), np.int64, count=len(points))
     test = frustum_test(
         kf.T_c_w,
         kf.camera,
