@@ -3,9 +3,6 @@ the keyframe; a match either adds an observation or merges two points that are t
 
 from __future__ import annotations
 
-from itertools import compress, repeat
-from operator import attrgetter, contains, not_
-
 import numpy as np
 
 from slamkit.interfaces import MapStore
@@ -18,9 +15,6 @@ from slamkit.pipeline.projection import (
     match_projected,
     predicted_u_right,
 )
-
-_OBSERVATIONS = attrgetter("observations")
-_ID = attrgetter("id")
 
 
 def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
@@ -57,14 +51,24 @@ def fuse_points(
     one. None, or a monocular keyframe: the 2-dof gate on the best match only (slamkit's monocular fusion).
     """
     kf_id = kf.id
-    candidates = store.get_points(point_ids)
-    # the points kf does not observe yet (C iterators over the observation mappings: thousands per call)
-    points = list(compress(candidates, map(not_, map(contains, map(_OBSERVATIONS, candidates), repeat(kf_id)))))
-    if not points or len(kf.features) == 0:
+    ids = np.asarray(point_ids if isinstance(point_ids, np.ndarray) else list(point_ids), np.int64).reshape(-1)
+    ids = ids[store.has_points(ids)]
+    # leave out the points kf observes already. An observation is recorded in both directions (MapStore.add_observation),
+    # so only points among kf's point_ids can be observed by it: those few are checked one by one, not the thousands
+    # of candidates
+    own = kf.point_ids
+    maybe = np.flatnonzero(np.isin(ids, own[own >= 0]))
+    if maybe.size:
+        observed = np.fromiter(
+            (kf_id in store.get_point(p).observations for p in ids[maybe].tolist()), bool, count=maybe.size
+        )
+        keep = np.ones(ids.size, bool)
+        keep[maybe[observed]] = False
+        ids = ids[keep]
+    if not ids.size or len(kf.features) == 0:
         return 0
     feats = kf.features
     bounds = ImageBounds.of(kf.camera)
-    ids = np.fromiter(map(_ID, points), np.int64, count=len(points))
     test = frustum_test(
         kf.T_c_w,
         kf.camera,
@@ -113,8 +117,11 @@ def fuse_points(
     fused = 0
     survivors: list[int] = []
     for row, feat in zip(m.query[gated].tolist(), m.feature[gated].tolist(), strict=True):
-        point = points[int(q[row])]
-        if not store.has_point(point.id) or kf_id in point.observations:
+        pid = int(ids[q[row]])
+        if not store.has_point(pid):
+            continue
+        point = store.get_point(pid)
+        if kf_id in point.observations:
             continue
         existing = int(kf.point_ids[feat])
         if existing >= 0 and store.has_point(existing):

@@ -87,3 +87,44 @@ def test_refresh_of_shuffled_observations_follows_the_per_point_rules() -> None:
         np.testing.assert_allclose(point.normal_w, normal, atol=1e-12)
         assert (point.d_min_m, point.d_max_m) == (pytest.approx(d_min, rel=1e-12), pytest.approx(d_max, rel=1e-12))
         np.testing.assert_array_equal(point.descriptor, desc)
+
+
+def test_fusion_leaves_the_points_a_keyframe_observes_and_fuses_the_others() -> None:
+    """fuse_points picks the candidates kf does not observe from kf's point_ids (an observation is recorded in both
+    directions): a point kf observes is neither re-added nor replaced, even listed twice; a point kf does not observe
+    is added at its feature, and a duplicate of an observed point merges into it (ORB-SLAM Fuse)."""
+    from slamkit.pipeline.fusion import fuse_points
+    from tests.unit.pipeline.test_local_mapping_step import keyframe, scene
+
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kf0, kf1, kf2 = (keyframe(store, x, xyz, desc) for x in (0.0, 0.2, 0.4))
+    for kf in (kf0, kf1, kf2):
+        store.add_keyframe(kf)
+    # points 0..49 seen by kf0 and kf1; kf2 observes 0..29 too; points 50..59 are duplicates of 30..39 seen by kf0 and kf2
+    for j in range(50):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), kf0.id, kf0.id))
+        store.add_observation(pid, kf0.id, j)
+        store.add_observation(pid, kf1.id, j)
+        if j < 30:
+            store.add_observation(pid, kf2.id, j)
+    dup: dict[int, int] = {}
+    for j in range(30, 40):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), kf0.id, kf0.id))
+        store.add_observation(pid, kf2.id, j)
+        store.add_observation(pid, kf0.id, 100 + j)  # another feature of kf0 (a wrong match tracking made)
+        dup[pid] = j
+    refresh_points(store, store.point_ids())
+    observed_before = {p: dict(store.get_point(p).observations) for p in range(30)}
+    candidates = [*range(50), *range(10)]  # kf2 observes 0..29 (some listed twice); 30..49 it does not
+    fused = fuse_points(store, kf2, candidates, 3.0, max_distance=50, chi2_gate=5.991)
+    for p in range(30):  # observed by kf2: untouched
+        assert store.get_point(p).observations == observed_before[p]
+    for j in range(40, 50):  # feature j of kf2 was free: a new observation
+        assert store.get_point(j).observations[kf2.id] == j
+    for pid, j in dup.items():  # feature j of kf2 held a duplicate with fewer observations: it merges into point j
+        assert not store.has_point(pid)
+        assert store.get_point(j).observations[kf2.id] == j
+    assert fused == 20
