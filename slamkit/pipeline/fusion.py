@@ -53,18 +53,10 @@ def fuse_points(
     kf_id = kf.id
     ids = np.asarray(point_ids if isinstance(point_ids, np.ndarray) else list(point_ids), np.int64).reshape(-1)
     ids = ids[store.has_points(ids)]
-    # leave out the points kf observes already. An observation is recorded in both directions (MapStore.add_observation),
-    # so only points among kf's point_ids can be observed by it: those few are checked one by one, not the thousands
-    # of candidates
+    # leave out the points kf observes already: an observation is recorded in both directions (MapStore.add_observation:
+    # point.observations[kf] = f and kf.point_ids[f] = point), so they are the candidates among kf's point_ids
     own = kf.point_ids
-    maybe = np.flatnonzero(np.isin(ids, own[own >= 0]))
-    if maybe.size:
-        observed = np.fromiter(
-            (kf_id in store.get_point(p).observations for p in ids[maybe].tolist()), bool, count=maybe.size
-        )
-        keep = np.ones(ids.size, bool)
-        keep[maybe[observed]] = False
-        ids = ids[keep]
+    ids = ids[~np.isin(ids, own[own >= 0])]
     if not ids.size or len(kf.features) == 0:
         return 0
     feats = kf.features
