@@ -11,6 +11,8 @@ ORB-SLAM's ORBmatcher has them.
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from collections.abc import Mapping
 
 import numba
@@ -167,6 +169,32 @@ def _direct_index_arrays(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
     return np.array(nodes, np.int64), ptr, feats
 
 
+#: The flat arrays of the direct indices last used (keyed by the mapping's id, which the entry keeps alive so the id
+#: cannot be reused): local mapping pairs each new keyframe with its ~20 neighbours, which were paired with the
+#: keyframes before it, so most direct indices are flattened once instead of once per pair. Direct indices are never
+#: changed after ``transform`` made them.
+_FLAT_INDICES: OrderedDict[int, tuple[Mapping[int, I64], tuple[I64, I64, I64]]] = OrderedDict()
+_FLAT_INDICES_MAX = 128
+_FLAT_INDICES_LOCK = threading.Lock()
+
+
+def _direct_index_arrays_cached(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
+    """``_direct_index_arrays(di)``, from the cache of recently used direct indices when ``di`` is in it."""
+    key = id(di)
+    with _FLAT_INDICES_LOCK:
+        hit = _FLAT_INDICES.get(key)
+        if hit is not None and hit[0] is di:
+            _FLAT_INDICES.move_to_end(key)
+            return hit[1]
+    arrays = _direct_index_arrays(di)  # writeable (a read-only array would compile another numba signature)
+    with _FLAT_INDICES_LOCK:
+        _FLAT_INDICES[key] = (di, arrays)
+        _FLAT_INDICES.move_to_end(key)
+        while len(_FLAT_INDICES) > _FLAT_INDICES_MAX:
+            _FLAT_INDICES.popitem(last=False)
+    return arrays
+
+
 def node_pairs(
     feats1: Features,
     bow1: BowDescription,
@@ -189,6 +217,6 @@ def node_pairs(
     d2 = np.ascontiguousarray(feats2.descriptors, np.uint8)
     if d1.shape[1] % 8 or d1.shape[1] != d2.shape[1]:
         raise VocabularyError(f"descriptors must be (N, D) uint8 with one D, a multiple of 8: {d1.shape}, {d2.shape}")
-    n1, p1, f1 = _direct_index_arrays(bow1.direct_index)
-    n2, p2, f2 = _direct_index_arrays(bow2.direct_index)
+    n1, p1, f1 = _direct_index_arrays_cached(bow1.direct_index)
+    n2, p2, f2 = _direct_index_arrays_cached(bow2.direct_index)
     return _node_pair_matches(n1, p1, f1, n2, p2, f2, m1, m2, d1.view(np.uint64), d2.view(np.uint64), int(max_distance))

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from slamkit.errors import ConfigError
 from slamkit.features import Observations
 from slamkit.interfaces import AbortToken, Camera, MapStore, Optimizer
+from slamkit.pipeline.map_points import flat_observations, sorted_observations
 from slamkit.problems import CAMERA_KANNALA_BRANDT, CAMERA_PINHOLE, BundleProblem, BundleResult
 
 F64 = NDArray[np.float64]
@@ -79,44 +80,37 @@ def snapshot_bundle(
     """Copy what a (local or global) BA needs out of the map: the poses of free and fixed keyframes, the
     points, and every observation of those points by those keyframes (ORB-SLAM LocalBundleAdjustment)."""
     kf_ids = np.array(list(free_kf_ids) + list(fixed_kf_ids), np.int64)
-    kf_row = {int(k): i for i, k in enumerate(kf_ids)}
     keyframes = [store.get_keyframe(int(k)) for k in kf_ids]
     T = np.array([kf.T_c_w for kf in keyframes], np.float64).reshape(-1, 4, 4)
     intr = np.array([intrinsics_of(kf.camera.K) for kf in keyframes]).reshape(-1, 4)
     bf = np.array([kf.features.bf for kf in keyframes], np.float64)
     camera = _bundle_camera(keyframes)
-    # one pass over the observations (point order, then keyframe id order): the Python part of the snapshot
-    points = [store.get_point(int(p)) for p in point_ids]
-    point_id_array = np.array([p.id for p in points], np.int64)
-    obs_pose_l: list[int] = []
-    obs_point_l: list[int] = []
-    obs_kf_l: list[int] = []
-    obs_feat_l: list[int] = []
-    for j, point in enumerate(points):
-        for kf_id, feat in sorted(point.observations.items()):
-            row = kf_row.get(kf_id)
-            if row is not None:
-                obs_pose_l.append(row)
-                obs_point_l.append(j)
-                obs_kf_l.append(kf_id)
-                obs_feat_l.append(feat)
+    # every observation of the points by these keyframes, in point order, then keyframe id order (C iterators
+    # over the observation dictionaries and one sort: no Python loop per observation)
+    points = store.get_points(int(p) for p in point_ids)
+    if len(points) != len(point_ids):
+        missing = sorted(set(int(p) for p in point_ids) - {p.id for p in points})
+        raise KeyError(f"snapshot_bundle: map points {missing[:5]} are not in the map")
+    point_id_array = np.fromiter((p.id for p in points), np.int64, count=len(points))
+    counts, obs_kf_all, obs_feat_all = flat_observations(points)
+    obs_point_s, obs_kf_s, obs_feat_s = sorted_observations(counts, obs_kf_all, obs_feat_all, np.isin(obs_kf_all, kf_ids))
+    by_id = np.argsort(kf_ids, kind="stable")
+    obs_pose_all = by_id[np.searchsorted(kf_ids[by_id], obs_kf_s)]  # the row of each observer in kf_ids
     all_xyz = store.point_rows(point_id_array, "xyz_w").reshape(-1, 3)
-    obs_pose_a = np.array(obs_pose_l, np.int64)
-    obs_point_all = np.array(obs_point_l, np.int64)
     # A point behind every camera that sees it (or seen by none of these keyframes) cannot be optimized: it is
     # left out and reported, and the caller erases it (ORB-SLAM would flag all its observations as outliers).
-    depth = np.einsum("ej,ej->e", T[obs_pose_a, 2, :3], all_xyz[obs_point_all]) + T[obs_pose_a, 2, 3]
+    depth = np.einsum("ej,ej->e", T[obs_pose_all, 2, :3], all_xyz[obs_point_s]) + T[obs_pose_all, 2, 3]
     usable = np.zeros(len(points), bool)
-    usable[obs_point_all[depth > 0.0]] = True
-    dropped = [int(points[j].id) for j in np.flatnonzero(~usable).tolist()]
-    pids = np.array([points[j].id for j in np.flatnonzero(usable).tolist()], np.int64)
+    usable[obs_point_s[depth > 0.0]] = True
+    dropped = point_id_array[~usable].tolist()
+    pids = point_id_array[usable]
     xyz = all_xyz[usable]
     new_index = np.cumsum(usable) - 1
-    keep = usable[obs_point_all]
-    obs_pose_a = obs_pose_a[keep]
-    obs_point_a = new_index[obs_point_all[keep]].astype(np.int64)
-    obs_kf_a = np.array(obs_kf_l, np.int64)[keep]
-    obs_feat_a = np.array(obs_feat_l, np.int64)[keep]
+    keep = usable[obs_point_s]
+    obs_pose_a = obs_pose_all[keep]
+    obs_point_a = new_index[obs_point_s[keep]].astype(np.int64)
+    obs_kf_a = obs_kf_s[keep]
+    obs_feat_a = obs_feat_s[keep]
     E = obs_pose_a.size
     uv = np.zeros((E, 2))
     u_right = np.zeros(E)

@@ -90,12 +90,16 @@ def _fuse_view(
     """fuse_points into one camera of ``kf``: ``view`` gives the pose and camera model (``kf`` itself for a one-camera
     keyframe, :func:`keyframe_view`), ``taken`` (N,) the keypoints of the other camera (None: none)."""
     kf_id = kf.id
-    points = [p for p in store.get_points(point_ids) if kf_id not in p.observations]
-    if not points or len(kf.features) == 0:
+    ids = np.asarray(point_ids if isinstance(point_ids, np.ndarray) else list(point_ids), np.int64).reshape(-1)
+    ids = ids[store.has_points(ids)]
+    # leave out the points kf observes already: an observation is recorded in both directions (MapStore.add_observation:
+    # point.observations[kf] = f and kf.point_ids[f] = point), so they are the candidates among kf's point_ids
+    own = kf.point_ids
+    ids = ids[~np.isin(ids, own[own >= 0])]
+    if not ids.size or len(kf.features) == 0:
         return 0
     feats = kf.features
     bounds = ImageBounds.of(view.camera)
-    ids = np.array([p.id for p in points], np.int64)
     test = frustum_test(
         view.T_c_w,
         view.camera,
@@ -144,8 +148,11 @@ def _fuse_view(
     fused = 0
     survivors: list[int] = []
     for row, feat in zip(m.query[gated].tolist(), m.feature[gated].tolist(), strict=True):
-        point = points[int(q[row])]
-        if not store.has_point(point.id) or kf_id in point.observations:
+        pid = int(ids[q[row]])
+        if not store.has_point(pid):
+            continue
+        point = store.get_point(pid)
+        if kf_id in point.observations:
             continue
         existing = int(kf.point_ids[feat])
         if existing < 0 and taken is not None and feats.stereo_match is not None and feats.stereo_match[feat] >= 0:

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.interfaces import MapStore
+from slamkit.pipeline.map_points import flat_observations
 
 I64 = NDArray[np.int64]
 
@@ -51,19 +52,13 @@ class ObservationTable:
         self.store = store
         parts = [store.get_keyframe(k).point_ids for k in kf_ids]
         ids = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
-        self.point_ids = np.array([p for p in ids[ids >= 0].tolist() if store.has_point(p)], np.int64)
-        kf_of: list[int] = []
-        feat_of: list[int] = []
-        ptr = [0]
-        for pid in self.point_ids.tolist():
-            for o_id, o_feat in store.get_point(pid).observations.items():
-                kf_of.append(o_id)
-                feat_of.append(o_feat)
-            ptr.append(len(kf_of))
-        self.ptr = np.array(ptr, np.int64)
-        self.obs_kf = np.array(kf_of, np.int64)
+        ids = ids[ids >= 0]
+        self.point_ids = ids[store.has_points(ids)].astype(np.int64)
+        counts, self.obs_kf, feat = flat_observations(store.get_points(self.point_ids.tolist()))
+        self.ptr = np.zeros(counts.size + 1, np.int64)
+        np.cumsum(counts, out=self.ptr[1:])
+        kf_of = self.obs_kf
         self.obs_level = np.zeros(len(kf_of), np.int64)
-        feat = np.array(feat_of, np.int64)
         order = np.argsort(self.obs_kf, kind="stable")
         uniq, starts = np.unique(self.obs_kf[order], return_index=True)
         bounds = np.append(starts, len(kf_of))

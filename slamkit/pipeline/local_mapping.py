@@ -26,7 +26,12 @@ from slamkit.pipeline.fusion import fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.keyframe_pins import KeyFramePins
-from slamkit.pipeline.map_points import create_depth_points, orbslam_observation_counts, refresh_points
+from slamkit.pipeline.map_points import (
+    create_depth_points,
+    flat_observations,
+    orbslam_observation_counts,
+    refresh_points,
+)
 from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.outcomes import CulledKeyFrame, MappingOutcome
 from slamkit.pipeline.projection import project_points, require_pinhole_image
@@ -402,8 +407,10 @@ class LocalMapper:
             local = [kf.id, *store.covisibility.neighbors(kf.id)]
             origin = store.origin_keyframe_id()
             free = [k for k in local if k != origin]
-            pids = sorted({int(p) for k in local for p in store.get_keyframe(k).point_ids if p >= 0})
-            fixed = sorted({o for p in pids for o in store.get_point(p).observations} - set(free))
+            seen = np.unique(np.concatenate([store.get_keyframe(k).point_ids for k in local]))
+            pids = seen[seen >= 0].tolist()
+            observers = np.unique(flat_observations(store.get_points(pids))[1])
+            fixed = np.setdiff1d(observers, np.array(free, np.int64)).tolist()
             if not fixed and free:
                 fixed = [free.pop(free.index(min(free)))]
             if not free or not pids:
@@ -532,7 +539,8 @@ def _triangulate_with_depths(
 
 
 def _median_depth(kf: KeyFrame, store: MapStore) -> float:
-    ids = np.array([p for p in kf.point_ids[kf.point_ids >= 0].tolist() if store.has_point(p)], np.int64)
+    ids = kf.point_ids[kf.point_ids >= 0]
+    ids = ids[store.has_points(ids)]
     if not ids.size:
         return float("nan")
     return float(np.median(store.point_rows(ids, "xyz_w") @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3]))

@@ -9,7 +9,9 @@ the arithmetic, instead of a numpy round trip per point. ``update_normal_and_dep
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
+from itertools import chain
+from operator import attrgetter, methodcaller
 from typing import Any
 
 import numba
@@ -102,42 +104,65 @@ def _refresh_kernel(
     return normal, has_normal, d_min, d_max, best
 
 
+_OBSERVATIONS = attrgetter("observations")
+_VALUES = methodcaller("values")
+
+
+def flat_observations(points: Sequence[MapPoint]) -> tuple[I64, I64, I64]:
+    """Every observation of ``points`` as flat arrays, in each point's observation order (no sorting):
+    -> (counts (P,) observations per point, kf (E,) observing keyframe ids, feat (E,) feature indices), the
+    observations of point q at rows sum(counts[:q]) : sum(counts[:q + 1]).
+
+    The dictionaries are walked by C iterators (``map``/``chain``), not a Python loop per observation: the
+    observation gathers of local mapping (refresh, local BA, culling) read tens of thousands per keyframe."""
+    obs = list(map(_OBSERVATIONS, points))
+    counts = np.fromiter(map(len, obs), np.int64, count=len(obs))
+    E = int(counts.sum())
+    kf = np.fromiter(chain.from_iterable(obs), np.int64, count=E)
+    feat = np.fromiter(chain.from_iterable(map(_VALUES, obs)), np.int64, count=E)
+    return counts, kf, feat
+
+
+def sorted_observations(counts: I64, kf: I64, feat: I64, keep: NDArray[np.bool_] | None = None) -> tuple[I64, I64, I64]:
+    """The rows of flat_observations grouped by point and, within a point, in keyframe-id order (the order of
+    ``for kf_id in sorted(point.observations)``), only those with ``keep`` (E,) when given.
+    -> (point (E',) row of the point in the input, kf (E',), feat (E',))."""
+    point = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
+    if keep is not None:
+        point, kf, feat = point[keep], kf[keep], feat[keep]
+    order = np.lexsort((kf, point))
+    return point[order], kf[order], feat[order]
+
+
 class _Gathered:
     """Observations of P points flattened in point order, each point's in keyframe-id order."""
 
-    def __init__(self, points: list[MapPoint], keyframes: Mapping[int, KeyFrame]) -> None:
-        kf_of: list[int] = []
-        feat_of: list[int] = []
-        ptr = [0]
-        ref_row: list[int] = []
-        for point in points:
-            obs = point.observations
-            ref = -1
-            for kf_id in sorted(obs):
-                if kf_id in keyframes:
-                    if kf_id == point.ref_kf_id:
-                        ref = len(kf_of)
-                    kf_of.append(kf_id)
-                    feat_of.append(obs[kf_id])
-            ptr.append(len(kf_of))
-            ref_row.append(ref)
-        E = len(kf_of)
-        self.ptr = np.array(ptr, np.int64)
-        self.ref_row = np.array(ref_row, np.int64)
+    def __init__(self, points: Sequence[MapPoint], keyframes: Mapping[int, KeyFrame], flat: tuple[I64, I64, I64]) -> None:
+        """flat: ``flat_observations(points)``; observers missing from ``keyframes`` are left out."""
+        P = len(points)
+        counts, kf_all, feat_all = flat
+        present = np.isin(kf_all, np.fromiter(keyframes, np.int64, count=len(keyframes)))
+        point, kf_a, feat_a = sorted_observations(counts, kf_all, feat_all, present)
+        E = kf_a.size
+        self.n_observations = counts
+        self.ptr = np.zeros(P + 1, np.int64)
+        np.cumsum(np.bincount(point, minlength=P), out=self.ptr[1:])
+        ref_kf = np.fromiter(map(_REF_KF, points), np.int64, count=P)
+        is_ref = np.flatnonzero(kf_a == ref_kf[point])  # at most one row per point (one observation per keyframe)
+        self.ref_row = np.full(P, -1, np.int64)
+        self.ref_row[point[is_ref]] = is_ref
         self.center = np.zeros((E, 3))
         self.level = np.zeros(E, np.int64)
         self.desc = np.zeros((E, 32), np.uint8)
-        self.scale_factor = np.ones(len(points))
-        self.n_levels = np.ones(len(points), np.int64)
-        kf_a = np.array(kf_of, np.int64)
-        feat_a = np.array(feat_of, np.int64)
+        self.scale_factor = np.ones(P)
+        self.n_levels = np.ones(P, np.int64)
         if E:
             order = np.argsort(kf_a, kind="stable")
             ids, starts = np.unique(kf_a[order], return_index=True)
             bounds = np.append(starts, E)
-            for i, kf_id in enumerate(ids):
+            for i, kf_id in enumerate(ids.tolist()):
                 rows = order[bounds[i] : bounds[i + 1]]
-                kf = keyframes[int(kf_id)]
+                kf = keyframes[kf_id]
                 feats = kf.features
                 if i == 0:
                     self.desc = np.zeros((E, feats.descriptors.shape[1]), np.uint8)
@@ -145,10 +170,14 @@ class _Gathered:
                 self.level[rows] = feats.level[feat_a[rows]]
                 self.desc[rows] = feats.descriptors[feat_a[rows]]
         has_ref = np.flatnonzero(self.ref_row >= 0)
-        for q in has_ref:  # the reference keyframe's pyramid (one per point)
-            feats = keyframes[kf_of[self.ref_row[q]]].features
-            self.scale_factor[q] = feats.scale_factor
-            self.n_levels[q] = feats.n_levels
+        if has_ref.size:  # the reference keyframe's pyramid (one per point)
+            ref_ids, inverse = np.unique(kf_a[self.ref_row[has_ref]], return_inverse=True)
+            pyramids = [keyframes[k].features for k in ref_ids.tolist()]
+            self.scale_factor[has_ref] = np.array([f.scale_factor for f in pyramids], np.float64)[inverse]
+            self.n_levels[has_ref] = np.array([f.n_levels for f in pyramids], np.int64)[inverse]
+
+
+_REF_KF = attrgetter("ref_kf_id")
 
 
 def _apply(store: MapStore, points: list[MapPoint], g: _Gathered, normals: bool, descriptors: bool) -> None:
@@ -170,7 +199,7 @@ def _apply(store: MapStore, points: list[MapPoint], g: _Gathered, normals: bool,
         g.scale_factor,
         g.n_levels,
     )
-    observed = np.array([bool(p.observations) for p in points])
+    observed = g.n_observations > 0
     updates: list[tuple[str, NDArray[np.int64], NDArray[Any]]] = []
     if normals:
         with_normal = np.flatnonzero(observed & has_normal)
@@ -191,9 +220,9 @@ def refresh_points(store: MapStore, point_ids: Iterable[int], normals: bool = Tr
     points = store.get_points(sorted(set(point_ids)))
     if not points:
         return
-    kf_ids = {k for p in points for k in p.observations}
-    keyframes = {k: store.get_keyframe(k) for k in kf_ids if store.has_keyframe(k)}
-    _apply(store, points, _Gathered(points, keyframes), normals, descriptors)
+    flat = flat_observations(points)
+    keyframes = {k: store.get_keyframe(k) for k in np.unique(flat[1]).tolist() if store.has_keyframe(k)}
+    _apply(store, points, _Gathered(points, keyframes, flat), normals, descriptors)
 
 
 def update_normal_and_depth(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
@@ -202,13 +231,13 @@ def update_normal_and_depth(store: MapStore, point: MapPoint, keyframes: Mapping
     d_max = d_ref * scale^level, d_min = d_max / scale^(n_levels - 1) (ORB-SLAM MapPoint::UpdateNormalAndDepth).
     Observers missing from ``keyframes`` are ignored. ``point`` is a point of ``store``, which records the result.
     """
-    _apply(store, [point], _Gathered([point], keyframes), True, False)
+    _apply(store, [point], _Gathered([point], keyframes, flat_observations([point])), True, False)
 
 
 def compute_distinctive_descriptor(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
     """Choose as the point's descriptor the observation with the least median Hamming distance to all the
     others (ORB-SLAM MapPoint::ComputeDistinctiveDescriptors). Deterministic: ties go to the lowest keyframe id."""
-    _apply(store, [point], _Gathered([point], keyframes), False, True)
+    _apply(store, [point], _Gathered([point], keyframes, flat_observations([point])), False, True)
 
 
 def predict_level(
