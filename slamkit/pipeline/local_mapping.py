@@ -186,14 +186,9 @@ class LocalMapper:
             return None
         kf2 = store.get_keyframe(n_id)
         baseline = float(np.linalg.norm(kf2.center_w - kf.center_w))
-        if kf2.features.bf > 0.0:
-            # ORB-SLAM2/3 CreateNewMapPoints, stereo/RGB-D: `if(baseline<pKF2->mb) continue;` (no depth ratio)
-            if baseline < kf2.features.bf / float(kf2.camera.K[0, 0]):
-                return None
-        else:
-            depths = _median_depth(kf2, store)
-            if not np.isfinite(depths) or baseline / depths < self.cfg.min_baseline_depth_ratio:
-                return None
+        depths = _median_depth(kf2, store)
+        if not np.isfinite(depths) or baseline / depths < self.cfg.min_baseline_depth_ratio:
+            return None
         i1, i2 = self._match_for_triangulation(kf, kf2)
         if i1.size == 0:
             return None

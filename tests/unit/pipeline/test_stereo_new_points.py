@@ -1,7 +1,6 @@
 """Local mapping's new points between stereo/RGB-D keyframes as ORB-SLAM2/3's CreateNewMapPoints and
 SearchForTriangulation: the stereo parallax that competes with the rays' is the new keyframe's (``if(bStereo1) ...
-else if(bStereo2)``), a stereo keypoint near the epipole is still a candidate (``if(!bStereo1 && !bStereo2)``), and a
-stereo neighbour closer than one baseline is skipped (``if(baseline<pKF2->mb) continue;``)."""
+else if(bStereo2)``), and a stereo keypoint near the epipole is still a candidate (``if(!bStereo1 && !bStereo2)``)."""
 
 from __future__ import annotations
 
@@ -84,20 +83,3 @@ def test_a_stereo_keypoint_near_the_epipole_is_a_triangulation_candidate() -> No
         i1, _ = mapper._match_for_triangulation(kf1, kf2)
         assert (0 in i1.tolist()) is stereo, "near the epipole"
         assert 1 in i1.tolist(), "away from the epipole: a candidate either way"
-
-
-def test_a_stereo_neighbour_closer_than_one_baseline_gives_no_points() -> None:
-    """ORB-SLAM's stereo/RGB-D baseline test (the neighbour's baseline, not the monocular baseline / depth ratio):
-    0.3 m apart with a 0.5 m stereo baseline gives nothing, 0.6 m apart gives points."""
-    rng = np.random.default_rng(3)
-    xyz = rng.uniform([-3.0, -2.0, 8.0], [3.0, 2.0, 12.0], (60, 3))
-    created = {}
-    for gap in (0.3, 0.6):
-        store = InMemoryMapStore()
-        kf2 = stereo_keyframe(store, np.zeros(3), xyz, np.full(60, np.nan))
-        kf1 = stereo_keyframe(store, np.array([gap, 0.0, 0.0]), xyz, np.full(60, np.nan))
-        mapper = _mapper_with(kf1, kf2, store)
-        found = mapper._triangulate_with(kf1, kf2.id)
-        created[gap] = 0 if found is None else found[0].size
-    assert created[0.3] == 0
-    assert created[0.6] > 40
