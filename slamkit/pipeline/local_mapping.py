@@ -264,7 +264,11 @@ class LocalMapper:
             epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
             scale2 = kf2.features.level_scale()[b]
             with np.errstate(invalid="ignore"):
-                ok &= ~(np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2)
+                near_epipole = np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2
+            # ORB-SLAM2/3 SearchForTriangulation: `if(!bStereo1 && !bStereo2)`: only a pair without a right coordinate
+            # on either side is refused near the epipole (a stereo keypoint can be made from its depth)
+            near_epipole &= ~(np.isfinite(kf1.features.u_right_px[a]) | np.isfinite(kf2.features.u_right_px[b]))
+            ok &= ~near_epipole
         a, b, dd = a[ok], b[ok], d[ok]
         # best candidate per kf1 feature
         order = np.lexsort((b, dd, a))
@@ -526,7 +530,9 @@ def _triangulate_with_depths(
     b2 = kf2.features.bf / K2[0, 0]
     none = cos_par + 1.0
     cps1 = np.where(st1, np.cos(2.0 * np.arctan2(b1 / 2.0, np.where(st1, d1, 1.0))), none)
-    cps2 = np.where(st2, np.cos(2.0 * np.arctan2(b2 / 2.0, np.where(st2, d2, 1.0))), none)
+    # ORB-SLAM2/3 CreateNewMapPoints: `if(bStereo1) cosParallaxStereo1 = ...; else if(bStereo2) cosParallaxStereo2 =
+    # ...`: kf2's stereo parallax only when the new keyframe kf1 has no depth at the keypoint
+    cps2 = np.where(st2 & ~st1, np.cos(2.0 * np.arctan2(b2 / 2.0, np.where(st2, d2, 1.0))), none)
     cps = np.minimum(cps1, cps2)
     rays = (cos_par < cps) & (cos_par > 0) & (st1 | st2 | (cos_par < min_parallax_cos))
     use1 = ~rays & st1 & (cps1 < cps2)

@@ -59,18 +59,10 @@ def test_room_start_is_tracked_with_metric_scale(sensor: list[str]) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "seed",
-    [
-        0,
-        1,
-        pytest.param(
-            2, marks=pytest.mark.xfail(reason="issue 16: seed 2 measured 1.16 cm (> 1 cm), open", strict=False)
-        ),
-    ],
-)
+@pytest.mark.parametrize("seed", [0, 1, 2])
 def test_room_whole_loop_stereo(seed: int) -> None:
-    """The whole room (840 frames, one loop) with the 0.12 m stereo pair: every frame, under 1 cm, the loop closed."""
+    """The whole room (840 frames, one loop) with the 0.12 m stereo pair: every frame, under 1 cm, the loop closed
+    (global BA after the loop, the default: measured 0.67 / 0.68 / 0.91 cm, seeds 0-2, docs/BENCHMARKS.md)."""
     metrics, runner, dataset = run(*STEREO, f"seed={seed}")
     _check_metric(metrics, runner, dataset, 0.01)
     assert metrics["loops_closed"] >= 1 and metrics["loops_false"] == 0
