@@ -202,13 +202,11 @@ def test_cholesky_kernel_signals_an_indefinite_system_with_nan() -> None:
     assert np.all(np.isnan(cholesky_solve_upper(np.array([[np.nan]]), np.ones(1))))
 
 
-@pytest.mark.parametrize("pinned", [(), (2,)])
-def test_keyframe_culling_leaves_the_keyframes_loop_closing_pinned(pinned: tuple[int, ...]) -> None:
-    """Five keyframes 5 cm apart see the same 200 points: culling (VI-E) at the last erases the redundant ones in
-    order (1 and 2; then 3 is seen by too few others), but never one loop closing pinned (ORB-SLAM SetNotErase)."""
+def keyframes_seeing_the_same_points(n: int, spacing_m: float) -> tuple[InMemoryMapStore, list[KeyFrame]]:
+    """``n`` keyframes ``spacing_m`` apart along x, each observing all N_MAPPED points of ``scene()``, connected."""
     xyz, desc = scene()
     store = InMemoryMapStore()
-    kfs = [keyframe(store, 0.05 * i, xyz, desc) for i in range(5)]
+    kfs = [keyframe(store, spacing_m * i, xyz, desc) for i in range(n)]
     for kf in kfs:
         store.add_keyframe(kf)
     for j in range(N_MAPPED):
@@ -219,6 +217,14 @@ def test_keyframe_culling_leaves_the_keyframes_loop_closing_pinned(pinned: tuple
     refresh_points(store, store.point_ids())
     for kf in kfs:
         store.update_connections(kf.id)
+    return store, kfs
+
+
+@pytest.mark.parametrize("pinned", [(), (2,)])
+def test_keyframe_culling_leaves_the_keyframes_loop_closing_pinned(pinned: tuple[int, ...]) -> None:
+    """Five keyframes 5 cm apart see the same 200 points: culling (VI-E) at the last erases the redundant ones in
+    order (1 and 2; then 3 is seen by too few others), but never one loop closing pinned (ORB-SLAM SetNotErase)."""
+    store, kfs = keyframes_seeing_the_same_points(5, 0.05)
     pins = KeyFramePins()
     pins.pin(*pinned)
     mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), None, pins=pins)  # type: ignore[arg-type]
@@ -240,19 +246,7 @@ def test_keyframe_culling_visits_as_many_covisible_keyframes_as_orbslam3(
     culled): every one up to 27 (then 28 has two others left) with ORB-SLAM3's limit of 101; only the first 21
     visited once the local BA was told to stop (ORB-SLAM3 `count > 20 && mbAbortBA`: keyframes 1-20); the first
     ``max_candidates`` with a smaller limit."""
-    xyz, desc = scene()
-    store = InMemoryMapStore()
-    kfs = [keyframe(store, 0.01 * i, xyz, desc) for i in range(30)]
-    for kf in kfs:
-        store.add_keyframe(kf)
-    for j in range(N_MAPPED):
-        pid = store.new_point_id()
-        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
-        for kf in kfs:
-            store.add_observation(pid, kf.id, j)
-    refresh_points(store, store.point_ids())
-    for kf in kfs:
-        store.update_connections(kf.id)
+    store, kfs = keyframes_seeing_the_same_points(30, 0.01)
     abort = threading.Event()
     if aborted:
         abort.set()
