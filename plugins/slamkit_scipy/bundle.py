@@ -225,45 +225,24 @@ class BundleSolver:
     def cost(self, state: BAState) -> float:
         st = self.st
         o = st.obs
-        if st.rig is not None:
-            return float(
-                rig_cost(
-                    np.ascontiguousarray(state.T_c_w[:, :3, :3]),
-                    np.ascontiguousarray(state.T_c_w[:, :3, 3]),
-                    state.xyz_w,
-                    st.obs_pose,
-                    st.obs_point,
-                    o.uvr,
-                    o.stereo,
-                    o.intr,
-                    o.bf,
-                    o.info,
-                    o.delta,
-                    st.robust,
-                    st.rig.cam,
-                    st.rig.fish,
-                    st.rig.Rx,
-                    st.rig.tx,
-                )
-            )
-        return float(
-            ba_cost(
-                np.ascontiguousarray(state.T_c_w[:, :3, :3]),
-                np.ascontiguousarray(state.T_c_w[:, :3, 3]),
-                state.xyz_w,
-                st.obs_pose,
-                st.obs_point,
-                o.uvr,
-                o.stereo,
-                o.intr,
-                o.bf,
-                o.info,
-                o.delta,
-                st.robust,
-                st.cam,
-                o.kb is not None,
-            )
+        # the arguments both kernels take (as linearize shares them), then each one's camera fields
+        args = (
+            np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+            np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+            state.xyz_w,
+            st.obs_pose,
+            st.obs_point,
+            o.uvr,
+            o.stereo,
+            o.intr,
+            o.bf,
+            o.info,
+            o.delta,
+            st.robust,
         )
+        if st.rig is not None:
+            return float(rig_cost(*args, st.rig.cam, st.rig.fish, st.rig.Rx, st.rig.tx))
+        return float(ba_cost(*args, st.cam, o.kb is not None))
 
     def linearize(self, state: BAState) -> tuple[_System, F64, float, float]:
         st = self.st
