@@ -7,7 +7,10 @@ initialisation; local mapping per keyframe (whole, and each stage with local BA 
 (detection, Sim3, correction, essential graph). Plus frames dropped (real-time playback), the real-time factor
 (sequence time / wall time), peak memory (resident set size sampled every 50 ms during the run) and memory per
 keyframe, accuracy (ATE) when the dataset has ground truth, and, for runs of 1000+ tracked frames, the median
-tracking time of the first and last 500 frames after initialisation (is the cost flat as the map grows?).
+tracking time of the first and last 500 frames after initialisation (is the cost flat as the map grows?). After the
+first 200 frames, cost against map size (slamkit.bench.growth): per quarter of the run the tracking and local-mapping
+medians and the keyframes in the map, the last quarter over the first, and memory per keyframe as the slope of
+resident memory against keyframes in the map; ``--plot FILE.png`` draws them.
 
 ``--runners threaded,sequential`` runs the same config once per runner, one after the other in this process,
 and adds the threaded/sequential ATE ratio: the side-by-side comparison of issue 6.
@@ -28,7 +31,9 @@ from typing import Any
 import numpy as np
 import psutil
 
+from slamkit.bench.growth import GrowthProbe, format_growth, growth_report, plot_growth
 from slamkit.bench.optimizer import machine_info
+from slamkit.errors import ConfigError
 
 __all__ = ["add_bench_run_arguments", "bench_one", "run_bench_command", "summarize_run"]
 
@@ -72,8 +77,11 @@ def _stats(values: Sequence[float]) -> dict[str, float | int | None]:
     return {"median": float(np.median(arr)), "p95": float(np.percentile(arr, 95)), "n": int(arr.size)}
 
 
-def summarize_run(runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: float) -> dict[str, Any]:
-    """The bench record of a finished (or failed) run: stage statistics, counts, memory, accuracy."""
+def summarize_run(
+    runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: float, probe: GrowthProbe | None = None
+) -> dict[str, Any]:
+    """The bench record of a finished (or failed) run: stage statistics, counts, memory, accuracy; with ``probe``
+    (the run's ``on_frame`` growth probe) the cost against map size (``growth``, see slamkit.bench.growth)."""
     from slamkit.eval.run_metrics import runner_metrics
 
     log = runner.log
@@ -81,7 +89,7 @@ def summarize_run(runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: f
     tracked = [o for o in log.tracking if o.state == "ok" and o.method != "initialize"]
     tracking = {s: _stats([o.timings_ms[s] for o in tracked if s in o.timings_ms]) for s in _TRACKING_STAGES}
     mapping_stages = sorted({k for m in log.mapping for k in m.timings_ms})
-    mapping = {"per_keyframe_ms": _stats([sum(m.timings_ms.values()) for m in log.mapping])}
+    mapping = {"per_keyframe_ms": _stats(_per_keyframe_ms(log))}
     mapping.update({s: _stats([m.timings_ms[s] for m in log.mapping if s in m.timings_ms]) for s in mapping_stages})
     loops = {s: _stats([lp.timings_ms[s] for lp in log.loops if s in lp.timings_ms]) for s in _LOOP_STAGES}
     n_kf = max(int(metrics["keyframes"]), 1)
@@ -123,7 +131,16 @@ def summarize_run(runner: Any, dataset: Any, peak_rss_mb: float, start_rss_mb: f
             "last_ms_median": last,
             "last_over_first": last / first if first > 0 else None,
         }
+    if probe is not None:
+        growth = growth_report(probe.samples, _per_keyframe_ms(log))
+        if growth is not None:
+            record["growth"] = growth
     return record
+
+
+def _per_keyframe_ms(log: Any) -> list[float]:
+    """Local mapping's time per keyframe (all stages), ms, in the order the keyframes were processed."""
+    return [float(sum(m.timings_ms.values())) for m in log.mapping]
 
 
 def _tracking_beside_local_ba(log: Any) -> dict[str, Any] | None:
@@ -155,7 +172,6 @@ def compose_bench_config(overrides: Sequence[str], progress: bool = True) -> Any
     from hydra.errors import HydraException
 
     from slamkit.config import compose_config
-    from slamkit.errors import ConfigError
 
     try:
         return compose_config([*overrides, f"runner.progress={'true' if progress else 'false'}"])
@@ -163,12 +179,14 @@ def compose_bench_config(overrides: Sequence[str], progress: bool = True) -> Any
         raise ConfigError(f"slamkit bench: cannot compose the config for {' '.join(overrides)}: {exc}") from None
 
 
-def bench_one(overrides: Sequence[str], progress: bool = True) -> dict[str, Any]:
-    """Compose the config from ``overrides``, run it, and return the bench record (``status`` ok/failed)."""
+def bench_one(overrides: Sequence[str], progress: bool = True, plot: Path | None = None) -> dict[str, Any]:
+    """Compose the config from ``overrides``, run it, and return the bench record (``status`` ok/failed); ``plot``:
+    a PNG to draw the cost against map size into (slamkit.bench.growth.plot_growth)."""
     from slamkit.app import build_runner
 
     cfg = compose_bench_config(overrides, progress)
     runner, dataset = build_runner(cfg)
+    probe = GrowthProbe(runner)
     gc.collect()
     sampler = RssSampler()
     sampler.start()
@@ -180,12 +198,15 @@ def bench_one(overrides: Sequence[str], progress: bool = True) -> dict[str, Any]
     try:
         # the composed config goes to the lifecycle hooks as in `slamkit run` (a listener such as the viewer reads
         # its settings there); no run directory: a bench writes no run outputs
-        runner.run(dataset, dataset.camera, config={str(k): v for k, v in config.items()})
+        runner.run(dataset, dataset.camera, on_frame=probe, config={str(k): v for k, v in config.items()})
     except Exception as exc:  # a failed run still reports what it measured
         status, error = "failed", f"{type(exc).__name__}: {exc}"
     finally:
         sampler.stop()
-    record = summarize_run(runner, dataset, sampler.peak_mb, sampler.start_mb)
+    record = summarize_run(runner, dataset, sampler.peak_mb, sampler.start_mb, probe)
+    if plot is not None:
+        title = f"{record['runner']}: {' '.join(overrides) or '(defaults)'}"
+        record["plot"] = str(plot_growth(plot, probe.samples, _per_keyframe_ms(runner.log), title=title))
     record["status"] = status
     record["overrides"] = list(overrides)
     if error:
@@ -265,6 +286,13 @@ def add_bench_run_arguments(parser: argparse.ArgumentParser) -> None:
         "default: the config's runner",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        help="draw tracking, local mapping and memory against keyframes in the map into this PNG (one file per "
+        "runner: FILE_<runner>.png when several are run)",
+    )
 
 
 def run_bench_command(args: argparse.Namespace) -> int:
@@ -273,10 +301,15 @@ def run_bench_command(args: argparse.Namespace) -> int:
     plans = [list(args.overrides) + ([f"runner={kind}"] if kind else []) for kind in runners]
     for overrides in plans:  # every config composes before anything runs: a typo must not cost the first run
         compose_bench_config(overrides)
-    for overrides in plans:
+    if args.plot is not None and args.plot.suffix.lower() != ".png":
+        raise ConfigError(f"slamkit bench --plot: {args.plot} must end in .png")
+    for kind, overrides in zip(runners, plans, strict=True):
         print(f"slamkit bench: {' '.join(overrides) or '(defaults)'}", file=sys.stderr)
+        plot = args.plot
+        if plot is not None and len(plans) > 1:
+            plot = plot.with_name(f"{plot.stem}_{kind}{plot.suffix}")
         t0 = time.perf_counter()
-        records.append(bench_one(overrides, progress=not args.no_progress))
+        records.append(bench_one(overrides, progress=not args.no_progress, plot=plot))
         print(f"  done in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     result: dict[str, Any] = {
         "machine": machine_info(),
@@ -292,6 +325,9 @@ def run_bench_command(args: argparse.Namespace) -> int:
         t, s = by_runner["threaded"].get("ate_rmse_m"), by_runner["sequential"].get("ate_rmse_m")
         result["ate_ratio_threaded_over_sequential"] = t / s if t is not None and s else None
     print(format_table(records))
+    for r in records:
+        if "growth" in r:
+            print(f"{r['runner']}: {format_growth(r['growth'])}")
     if "ate_ratio_threaded_over_sequential" in result:
         print(f"ATE threaded / sequential: {_fmt(result['ate_ratio_threaded_over_sequential'], 2)}")
     if args.json is not None:

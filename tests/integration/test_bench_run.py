@@ -17,9 +17,22 @@ def test_bench_runs_both_runners_side_by_side_and_writes_the_json(
 ) -> None:
     out = tmp_path / "bench.json"
     rc = main(
-        ["bench", "--no-progress", "--runners", "threaded,sequential", "--json", str(out), "dataset.max_frames=60"]
+        [
+            "bench",
+            "--no-progress",
+            "--runners",
+            "threaded,sequential",
+            "--json",
+            str(out),
+            "--plot",
+            str(tmp_path / "growth.png"),
+            "dataset.max_frames=60",
+        ]
     )
     assert rc == 0
+    # the cost-against-map-size plot, one per runner (too short a run for the growth table: 200 frames are skipped)
+    for kind in ("threaded", "sequential"):
+        assert (tmp_path / f"growth_{kind}.png").read_bytes()[:4] == b"\x89PNG"
     result = json.loads(out.read_text())
     for key in ("tracking_ms_median", "local_mapping_ms_median", "frames_dropped", "realtime_factor", "peak_rss_mb"):
         assert key in result, key
@@ -41,6 +54,25 @@ def test_bench_runs_both_runners_side_by_side_and_writes_the_json(
     )
     table = capsys.readouterr().out
     assert "tracking.extract_ms" in table and "local_mapping.local_ba_ms" in table and "threaded median / p95" in table
+
+
+@pytest.mark.slow
+def test_bench_reports_cost_against_map_size_after_the_first_200_frames(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The growth record of a 240-frame sequential run: four parts of 10 frames after the first 200, the map's
+    keyframes counted at their ends (never fewer than local mapping left), and memory per keyframe."""
+    out = tmp_path / "bench.json"
+    rc = main(["bench", "--no-progress", "--json", str(out), "runner=sequential", "dataset.max_frames=240"])
+    assert rc == 0
+    run = json.loads(out.read_text())["runs"][0]
+    growth = run["growth"]
+    assert [p["frames"] for p in growth["parts"]] == [[200, 209], [210, 219], [220, 229], [230, 239]]
+    assert growth["parts"][-1]["keyframes_at_end"] == run["keyframes"]
+    assert sum(p["keyframes_mapped"] for p in growth["parts"]) >= 1
+    assert all(p["tracked_frames"] == 10 and p["tracking_ms_median"] > 0 for p in growth["parts"])
+    assert growth["rss_mb_per_keyframe"] is not None
+    assert "cost as the map grows (after the first 200 frames)" in capsys.readouterr().out
 
 
 def test_bench_reports_a_bad_override_clearly(capsys: pytest.CaptureFixture[str]) -> None:
