@@ -90,6 +90,32 @@ def assert_point_table_matches_points() -> Callable[[Any], None]:
     return _assert_point_table_matches_points
 
 
+def _assert_no_culled_keyframe_alive(runner: Any) -> None:
+    """After a run, the only KeyFrame objects alive are those in the Atlas's maps (and in local mapping's queue, empty
+    at the end): the run log and the trajectory recorder keep ids and poses, not the culled keyframes themselves
+    (their features and bag of words, about 0.3 MB each, would make memory grow per keyframe ever made)."""
+    import gc
+
+    from slamkit.map.entities import KeyFrame
+
+    gc.collect()
+    alive = {id(o): o for o in gc.get_objects() if isinstance(o, KeyFrame)}
+    in_maps = {
+        id(store.get_keyframe(k))
+        for m in runner.atlas.map_ids()
+        for store in [runner.atlas.get(m)]
+        for k in store.keyframe_ids()
+    }
+    assert len(runner.log.mapping) > len(in_maps), "the run culled no keyframe: nothing to check"
+    assert set(alive) == in_maps, f"{len(alive) - len(in_maps)} keyframes alive outside the maps"
+
+
+@pytest.fixture
+def assert_no_culled_keyframe_alive() -> Callable[[Any], None]:
+    """assert_no_culled_keyframe_alive(runner): keyframes culled during the run were freed."""
+    return _assert_no_culled_keyframe_alive
+
+
 @pytest.fixture(scope="module")
 def dictmap_plugin(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """The example third-party MapStore (tests/plugins/slamkit_dictmap, ``map=dict``), pip-installed into a private

@@ -72,7 +72,10 @@ class TrackingOutcome:
     T_c_w: (4, 4) estimated pose (None when not tracked). inliers: map points matched after the last pose
     optimization. new_keyframes: keyframes made from this frame, for local mapping: the tracked frame's keyframe
     (not in the map yet: local mapping inserts it), or the two keyframes of a new map (``initialized_map``: put in
-    the map by initialisation, local mapping processes them next). keyframe: the V-E decision. reference_kf_id /
+    the map by initialisation, local mapping processes them next); once the runner has handed them over it calls
+    ``release_keyframes``, so the run log, which keeps every outcome, does not keep every keyframe ever made alive
+    (about 0.3 MB each: features and bag of words; most are culled later); ``keyframe_ids`` names them before and
+    after. keyframe: the V-E decision. reference_kf_id /
     T_ref_w: the keyframe the frame's pose is recorded against and its (4, 4) T_c_w as tracking last read it (the
     frame's own pose when it became that keyframe), so a runner never needs a keyframe local mapping has not
     inserted yet. lost_decision: on a frame tracking could not track, what to do (slamkit/pipeline/lost.py,
@@ -97,6 +100,18 @@ class TrackingOutcome:
     timings_ms: dict[str, float] = field(default_factory=dict)
     message: str = ""
     map_moves: int = 0  # how many moves of the active map (merges) its poses are after (Tracker.follow_map_moves)
+    released_keyframe_ids: tuple[int, ...] = ()  # new_keyframes' ids after release_keyframes
+
+    @property
+    def keyframe_ids(self) -> tuple[int, ...]:
+        """Ids of the keyframes made from this frame (``new_keyframes``), also after ``release_keyframes``."""
+        return tuple(kf.id for kf in self.new_keyframes) or self.released_keyframe_ids
+
+    def release_keyframes(self) -> None:
+        """Drop the keyframe objects once local mapping has them, keeping their ids (``keyframe_ids``)."""
+        if self.new_keyframes:
+            self.released_keyframe_ids = tuple(kf.id for kf in self.new_keyframes)
+            self.new_keyframes = []
 
 
 @dataclass(frozen=True)

@@ -213,4 +213,5 @@ class SequentialRunner:
                 self.recorder.record(out.frame_index, out.timestamp_s, out.T_c_w, ref, T_ref_w)
         # after the frame's keyframes were mapped: its pose is recorded against its reference keyframe as it is now
         self._run_events.frame_tracked(out, map_was_reset, ref, T_ref_w, data.image, self.tracker.current_frame)
+        out.release_keyframes()  # the map holds those it kept; the log must not keep the culled ones alive
         return out

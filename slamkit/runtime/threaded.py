@@ -308,6 +308,7 @@ class ThreadedRunner:
             for kf in out.new_keyframes:
                 assert self._mapping is not None
                 self._mapping.submit(kf)
+            out.release_keyframes()  # local mapping has them; the log must not keep the culled ones alive
             if out.state == TrackingState.OK and out.T_c_w is not None and out.T_ref_w is not None:
                 # recorded against the reference keyframe's pose as tracking read it (the frame's own pose when it
                 # became that keyframe), so a keyframe local mapping has not inserted yet is never needed

@@ -127,7 +127,7 @@ def _check_localization_run(
     assert len(outcomes) == n_frames
     assert outcomes[0].method == "relocalization", "the first frame relocalizes in the loaded map"
     assert all(o.state == TrackingState.OK for o in outcomes), [o.message for o in outcomes if o.T_c_w is None][:3]
-    assert all(not o.new_keyframes and o.keyframe == KeyFrameDecision.NOT_NEEDED for o in outcomes)
+    assert all(not o.keyframe_ids and o.keyframe == KeyFrameDecision.NOT_NEEDED for o in outcomes)
     gt = system.dataset.ground_truth
     assert gt is not None
     errors, kf_errors = _centre_errors_m(system, gt)

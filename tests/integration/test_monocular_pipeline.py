@@ -3,6 +3,9 @@ accurate, deterministic, and handles degenerate input without an exception."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -23,8 +26,11 @@ def run_synthetic(*overrides: str) -> tuple[dict, object]:
     return runner_metrics(runner, dataset), runner
 
 
-def test_room_initialises_early_tracks_every_frame_and_is_accurate() -> None:
+def test_room_initialises_early_tracks_every_frame_and_is_accurate(
+    assert_no_culled_keyframe_alive: Callable[[Any], None],
+) -> None:
     metrics, runner = run_synthetic("dataset.max_frames=150")
+    assert_no_culled_keyframe_alive(runner)
     assert metrics["initialized_at_frame"] is not None and metrics["initialized_at_frame"] < 30
     states = [o.state for o in runner.log.tracking]  # type: ignore[attr-defined]
     first_ok = states.index(TrackingState.OK)

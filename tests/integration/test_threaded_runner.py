@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -47,9 +48,12 @@ def _fail_on_call(n: int, message: str):  # type: ignore[no-untyped-def]
     return wrap
 
 
-def test_threaded_run_tracks_the_room_as_accurately_as_the_sequential_one() -> None:
+def test_threaded_run_tracks_the_room_as_accurately_as_the_sequential_one(
+    assert_no_culled_keyframe_alive: Callable[[Any], None],
+) -> None:
     runner, dataset = _runner()
     log = runner.run(dataset, dataset.camera)
+    assert_no_culled_keyframe_alive(runner)
     metrics = runner_metrics(runner, dataset)
     assert metrics["runner"] == "threaded" and metrics["frames_dropped"] == 0
     assert metrics["frames"] == 150
