@@ -187,6 +187,11 @@ def bench_one(overrides: Sequence[str], progress: bool = True, plot: Path | None
     cfg = compose_bench_config(overrides, progress)
     runner, dataset = build_runner(cfg)
     probe = GrowthProbe(runner)
+    prepare = getattr(dataset, "prepare_playback", None)
+    if callable(prepare):
+        # the dataset's one-off memory (the synthetic world's textures, made lazily as walls come into view
+        # otherwise) is not the map's: made before the memory baseline, so memory per keyframe is the map's
+        prepare()
     gc.collect()
     sampler = RssSampler()
     sampler.start()
