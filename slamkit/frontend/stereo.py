@@ -330,7 +330,7 @@ class StereoFrontEnd(MonocularFrontEnd):
         sad_slide_px: int = 5,
         outlier_factor: float = 2.1,
         parallel: bool = True,
-        parallel_matching: bool = True,
+        parallel_matching: bool = False,
     ) -> None:
         super().__init__(extractor, None)
         del init_extractor  # one-frame initialisation (ORB-SLAM2 builds mpIniORBextractor for monocular only)
