@@ -4,7 +4,8 @@ Level ``l`` is the image shrunk by ``scale_factor ** l``. Sizes and scales are c
 OpenCV's ORB does, and each level is resized from the one above it with ``INTER_LINEAR_EXACT``, so the level
 images here are pixel-for-pixel those OpenCV builds when it computes descriptors for our keypoints
 (``cv2.ORB.compute``): detection, orientation and descriptor all see the same level image. (ORB-SLAM itself
-resizes with ``INTER_LINEAR``; the two differ by at most one grey level on a few pixels.)
+resizes with ``INTER_LINEAR``; the two differ by up to 3 grey levels, on about a fifth of all the pyramid's pixels
+of room and KITTI frames: docs/BENCHMARKS.md, issue 16 branch ``stspeed``.)
 """
 
 from __future__ import annotations

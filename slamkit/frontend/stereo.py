@@ -21,7 +21,7 @@ dataset (``T_l_r``) when the front end is bound to it (``bind_dataset``), else t
 from __future__ import annotations
 
 import dataclasses
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from typing import Any, ClassVar
 
 import cv2
@@ -85,8 +85,12 @@ def _stereo_match_kernel(
     w: int,
     slide: int,
     table: NDArray[np.int64],
+    start: int,
+    step: int,
 ) -> tuple[F32, F32, F32]:  # pragma: no cover - numba
-    """-> (u_right (N,), depth (N,), sad (N,)), NaN where unmatched (see the module docstring, steps 1-4)."""
+    """-> (u_right (N,), depth (N,), sad (N,)), NaN where unmatched (see the module docstring, steps 1-4), of the left
+    keypoints start, start + step, ... (the others NaN): the front end matches the even and the odd ones in two
+    threads."""
     n_l = uv_l.shape[0]
     n_r = uv_r.shape[0]
     rows = heights[0]
@@ -113,7 +117,7 @@ def _stereo_match_kernel(
             table_r[fill[y]] = i
             fill[y] += 1
     dists = np.empty(2 * slide + 1)
-    for i in range(n_l):
+    for i in range(start, n_l, step):
         ul = uv_l[i, 0]
         vl = uv_l[i, 1]
         row = int(vl)
@@ -190,25 +194,35 @@ def _popcount_table() -> NDArray[np.int64]:
 _POPCOUNT = _popcount_table()
 
 
-def image_pyramid(
-    image: NDArray[np.uint8], n_levels: int, scale_factor: float
-) -> tuple[NDArray[np.uint8], I64, I64, I64]:
+#: an image pyramid packed into one array: (pixels (sum of w x h,) uint8, offsets, widths, heights (n_levels,) int64);
+#: level l is pixels[offsets[l] : offsets[l] + widths[l] * heights[l]], row-major
+Pyramid = tuple[NDArray[np.uint8], I64, I64, I64]
+
+
+def image_pyramid(image: NDArray[np.uint8], n_levels: int, scale_factor: float) -> Pyramid:
     """ORB-SLAM's image pyramid (ORBextractor::ComputePyramid: level l is level l-1 resized by INTER_LINEAR to
-    round(size / scale_factor^l)) packed row-major into one uint8 array -> (pixels, offsets, widths, heights)."""
+    round(size / scale_factor^l)) packed row-major into one uint8 array -> (pixels, offsets, widths, heights).
+
+    Each level is resized straight into its place in the packed array (no per-level copy)."""
     h, w = image.shape[:2]
-    levels: list[NDArray[Any]] = [image]
+    sizes_wh = [(w, h)]
     for lev in range(1, n_levels):
         s = scale_factor**lev
-        size = (round(w / s), round(h / s))
-        levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR))
-    widths = np.array([im.shape[1] for im in levels], np.int64)
-    heights = np.array([im.shape[0] for im in levels], np.int64)
+        sizes_wh.append((round(w / s), round(h / s)))
+    widths = np.array([sw for sw, _ in sizes_wh], np.int64)
+    heights = np.array([sh for _, sh in sizes_wh], np.int64)
     sizes = widths * heights
     offsets = np.zeros(n_levels, np.int64)
     offsets[1:] = np.cumsum(sizes)[:-1]
     pixels = np.empty(int(sizes.sum()), np.uint8)
-    for im, off, size in zip(levels, offsets.tolist(), sizes.tolist(), strict=True):
-        pixels[off : off + size] = im.ravel()
+    previous = pixels[: w * h].reshape(h, w)
+    previous[...] = image
+    for (sw, sh), off in zip(sizes_wh[1:], offsets[1:].tolist(), strict=True):
+        level = pixels[off : off + sw * sh].reshape(sh, sw)
+        out = cv2.resize(previous, (sw, sh), dst=level, interpolation=cv2.INTER_LINEAR)
+        if not np.shares_memory(out, level):  # OpenCV allocated its own output after all
+            level[...] = out
+        previous = level
     return pixels, offsets, widths, heights
 
 
@@ -224,20 +238,32 @@ def stereo_matches(
     window: int = 5,
     slide: int = 5,
     outlier_factor: float = 1.5 * 1.4,
+    pyramids: tuple[Pyramid, Pyramid] | None = None,
+    pool: Executor | None = None,
 ) -> tuple[F32, F32]:
     """ORB-SLAM2 ComputeStereoMatches of two rectified images' features (see the module docstring) ->
     (u_right_px (N,), depth_m (N,)) of the left keypoints, NaN where unmatched. bf: baseline x fx (m px); fx: px.
     th_orb: Hamming gate; band: row band half-height in level scales; window: SAD half-window (5: 11 x 11);
-    slide: SAD search +-px; outlier_factor: SAD above it x median is an outlier."""
+    slide: SAD search +-px; outlier_factor: SAD above it x median is an outlier. pyramids: the left and right
+    images' :func:`image_pyramid` (``left.n_levels`` levels of ``left.scale_factor``) when the caller has built
+    them already (the front end builds each in the thread that extracted the image); None: built here. pool: an
+    executor to match half of the keypoints in (the front end's right-image thread, idle by then); the result does
+    not depend on it."""
     n = len(left)
     if n == 0 or len(right) == 0:
         return np.full(n, np.nan, np.float32), np.full(n, np.nan, np.float32)
     scales = np.power(float(left.scale_factor), np.arange(left.n_levels, dtype=np.float64))
-    pyr_l, offsets, widths, heights = image_pyramid(image_left, left.n_levels, left.scale_factor)
-    pyr_r, offsets_r, _, _ = image_pyramid(image_right, left.n_levels, left.scale_factor)
+    if pyramids is None:
+        pyramids = (
+            image_pyramid(image_left, left.n_levels, left.scale_factor),
+            image_pyramid(image_right, left.n_levels, left.scale_factor),
+        )
+    (pyr_l, offsets, widths, heights), (pyr_r, offsets_r, _, _) = pyramids
     if image_left.shape != image_right.shape or not np.array_equal(offsets, offsets_r):
         raise DatasetError(f"stereo: left image {image_left.shape} and right image {image_right.shape} differ in size")
-    u_right, depth, sad = _stereo_match_kernel(
+    if offsets.shape[0] != left.n_levels:
+        raise ValueError(f"stereo_matches: pyramids of {offsets.shape[0]} levels for features of {left.n_levels}")
+    args = (
         np.ascontiguousarray(left.uv_px, np.float32),
         left.level.astype(np.int64),
         np.ascontiguousarray(left.descriptors),
@@ -259,6 +285,15 @@ def stereo_matches(
         int(slide),
         _POPCOUNT,
     )
+    if pool is None:
+        u_right, depth, sad = _stereo_match_kernel(*args, 0, 1)
+    else:
+        # the odd keypoints in the pool's thread, the even ones here (the kernel holds no GIL); each keypoint's
+        # match depends on nothing else, so the merged result is the one-thread one
+        future = pool.submit(_stereo_match_kernel, *args, 1, 2)
+        u_right, depth, sad = _stereo_match_kernel(*args, 0, 2)
+        odd = future.result()
+        u_right[1::2], depth[1::2], sad[1::2] = odd[0][1::2], odd[1][1::2], odd[2][1::2]
     matched = np.isfinite(sad)
     if matched.any():
         # step 5: vDistIdx sorted, median = element size / 2, drop SAD >= 1.5 x 1.4 x median
@@ -276,7 +311,9 @@ class StereoFrontEnd(MonocularFrontEnd):
     bf: baseline x fx (m px), used only when the front end is not bound to a dataset with a stereo pair
     (``bind_dataset`` takes it from the dataset's ``T_l_r`` and camera). th_depth: close/far threshold in baselines
     (ORB-SLAM2 settings ``ThDepth``; KITTI: 35, EuRoC: 35). The remaining keywords are ComputeStereoMatches'
-    constants (see :func:`stereo_matches`).
+    constants (see :func:`stereo_matches`). parallel: extract the right image in a second thread (and build each
+    image's matching pyramid in its extraction's thread); parallel_matching: with ``parallel``, match the odd left
+    keypoints in that thread while the caller's matches the even ones. Neither changes the result.
     """
 
     uses_depth: ClassVar[bool] = False
@@ -293,6 +330,7 @@ class StereoFrontEnd(MonocularFrontEnd):
         sad_slide_px: int = 5,
         outlier_factor: float = 2.1,
         parallel: bool = True,
+        parallel_matching: bool = False,
     ) -> None:
         super().__init__(extractor, None)
         del init_extractor  # one-frame initialisation (ORB-SLAM2 builds mpIniORBextractor for monocular only)
@@ -307,6 +345,8 @@ class StereoFrontEnd(MonocularFrontEnd):
         self.slide = int(sad_slide_px)
         self.outlier_factor = float(outlier_factor)
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="orb-right") if parallel else None
+        # half of the stereo matching in that thread too (idle once the right image is extracted)
+        self._match_pool = self._pool if parallel_matching else None
 
     def bind_dataset(self, dataset: Any) -> None:
         """Take bf = baseline x fx from the dataset's rectified pair (``T_l_r``'s x translation, the left camera's fx).
@@ -325,6 +365,14 @@ class StereoFrontEnd(MonocularFrontEnd):
             raise ConfigError(f"frontend=stereo: dataset {getattr(dataset, 'name', '?')} has a zero stereo baseline")
         self.bf = baseline * float(dataset.camera.K[0, 0])
 
+    def _extract_with_pyramid(
+        self, extractor: FeatureExtractor, image: NDArray[np.uint8], camera: Camera
+    ) -> tuple[Features, Pyramid]:
+        """The features of one image of the pair and the image's matching pyramid (ComputeStereoMatches' SAD
+        levels, :func:`image_pyramid`), built in the calling thread."""
+        features = extractor.extract(image, camera)
+        return features, image_pyramid(image, int(features.n_levels), float(features.scale_factor))
+
     def observe(self, data: FrameData, camera: Camera, initializing: bool = False) -> Observations:
         """data.image and data.image_right (H, W) uint8, rectified -> the record with u_right_px and depth_m of the
         left keypoints matched in the right image (NaN elsewhere).
@@ -339,13 +387,14 @@ class StereoFrontEnd(MonocularFrontEnd):
             )
         if self.bf is None:
             raise ConfigError("frontend=stereo: no bf (baseline x fx): bind the front end to a stereo dataset")
+        # each image's extraction and its matching pyramid in one thread (the right one in the pool's)
         if self._pool is not None:
-            future = self._pool.submit(self.right_extractor.extract, right_image, camera)
-            left = self.extractor.extract(data.image, camera)
-            right = future.result()
+            future = self._pool.submit(self._extract_with_pyramid, self.right_extractor, right_image, camera)
+            left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera)
+            right, pyr_r = future.result()
         else:
-            left = self.extractor.extract(data.image, camera)
-            right = self.right_extractor.extract(right_image, camera)
+            left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera)
+            right, pyr_r = self._extract_with_pyramid(self.right_extractor, right_image, camera)
         fx = float(camera.K[0, 0])
         u_right, depth = stereo_matches(
             left,
@@ -359,6 +408,8 @@ class StereoFrontEnd(MonocularFrontEnd):
             self.window,
             self.slide,
             self.outlier_factor,
+            (pyr_l, pyr_r),
+            self._match_pool,
         )
         if not camera.image_undistorted:
             left = dataclasses.replace(left, uv_undist_px=left.uv_px.copy())

@@ -5,6 +5,7 @@ semi-global block matching); bf comes from the dataset's pair and a frame withou
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -14,7 +15,7 @@ import pytest
 from slamkit.app import build_components
 from slamkit.config import compose_config
 from slamkit.errors import ConfigError, DatasetError
-from slamkit.frontend.stereo import StereoFrontEnd
+from slamkit.frontend.stereo import StereoFrontEnd, image_pyramid, stereo_matches
 from slamkit.interfaces import FrontEnd
 from slamkit.plugins import ComponentRegistry
 
@@ -76,3 +77,39 @@ def test_missing_right_image_or_baseline_is_refused() -> None:
     unbound, mono_dataset = _built(bind=False)  # the synthetic room without its right camera
     with pytest.raises(ConfigError, match="no stereo pair"):
         unbound.bind_dataset(mono_dataset)
+
+
+def test_given_pyramids_and_split_matching_give_the_rebuilt_one_thread_matches() -> None:
+    """The front end builds each image's matching pyramid in its extraction's thread and matches the odd keypoints in
+    a second thread (issue 16, speed): the matches must be those of stereo_matches building its own pyramids in one
+    thread, bit for bit, and the packed pyramid must hold ORB-SLAM's INTER_LINEAR levels (each from the one above)."""
+    frontend, dataset = _built("dataset.stereo=true")
+    data = dataset[2]  # type: ignore[index]
+    camera = dataset.camera  # type: ignore[attr-defined]
+    extractor = frontend.extractor
+    left, right = extractor.extract(data.image, camera), extractor.extract(data.image_right, camera)
+    fx = float(camera.K[0, 0])
+    assert frontend.bf is not None
+    rebuilt = stereo_matches(left, right, data.image, data.image_right, frontend.bf, fx)
+    pyramids = (
+        image_pyramid(data.image, left.n_levels, left.scale_factor),
+        image_pyramid(data.image_right, left.n_levels, left.scale_factor),
+    )
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        shared = stereo_matches(
+            left, right, data.image, data.image_right, frontend.bf, fx, pyramids=pyramids, pool=pool
+        )
+    assert np.isfinite(rebuilt[1]).sum() > 0.4 * len(left)
+    for a, b in zip(rebuilt, shared, strict=True):
+        np.testing.assert_array_equal(a, b)  # NaN where unmatched on both sides
+    # the front end's own observe gives the same record
+    obs = frontend.observe(data, camera)
+    np.testing.assert_array_equal(obs.u_right_px, rebuilt[0])
+    np.testing.assert_array_equal(obs.depth_m, rebuilt[1])
+    pixels, offsets, widths, heights = pyramids[0]
+    level = data.image
+    for lev in range(left.n_levels):
+        if lev:
+            level = cv2.resize(level, (int(widths[lev]), int(heights[lev])), interpolation=cv2.INTER_LINEAR)
+        packed = pixels[offsets[lev] : offsets[lev] + widths[lev] * heights[lev]].reshape(heights[lev], widths[lev])
+        np.testing.assert_array_equal(packed, level)
