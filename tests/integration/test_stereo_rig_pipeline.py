@@ -12,10 +12,11 @@ import pytest
 from numpy.typing import NDArray
 
 from slamkit.api import System, open_system
-from slamkit.errors import ConfigError, MapFileError
 from slamkit.eval.metrics import compute_ate
 from slamkit.interfaces import Camera
 from slamkit.io.ground_truth import poses_at
+from slamkit.map.mapfile import RIG_SCHEMA_VERSION, map_file_info, read_atlas
+from slamkit.map.mapfile_contents import differences, read_map_contents
 from slamkit.pipeline.bundle import snapshot_bundle
 from slamkit.pipeline.outcomes import TrackingOutcome, TrackingState
 from slamkit.problems import BundleProblem
@@ -69,9 +70,11 @@ def _checked_run(overrides: list[str], tmp_path: Path) -> tuple[float, list[Trac
     assert frame is not None
     n_left = frame.features.n_left
     assert np.count_nonzero(frame.point_ids[n_left:] >= 0) > 50
-    # the map file has no fields for the second camera yet: a clear error naming the file, not a wrong map
-    with pytest.raises(MapFileError, match="non-rectified rig"):
-        system.save_map(tmp_path / "rig.slamkit")
+    # the map file keeps the second camera (its keypoints, stereo matches, model and T_c2_c1): read back exactly
+    saved = system.save_map(tmp_path / "rig.slamkit")
+    assert saved.schema_version == RIG_SCHEMA_VERSION
+    for map_id, store in read_atlas(tmp_path / "rig.slamkit").items():
+        assert not differences(read_map_contents(system.atlas.get(map_id)), read_map_contents(store))
     system.close()
     return ate, outcomes
 
@@ -98,9 +101,20 @@ def _reprojection_px(p: BundleProblem, camera_1: Camera, camera_2: Camera) -> ND
     return out
 
 
-def test_map_files_are_refused_for_a_rig_before_the_run(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="stereo_rig"):
-        open_system([*RIG, "dataset.max_frames=2", f"map.save={tmp_path / 'm.slamkit'}"])
+def test_a_rig_run_saves_its_map_and_a_rig_run_loads_it(tmp_path: Path) -> None:
+    """A rig run's saved map loaded by another rig run (map.load): it starts on the first run's two-camera
+    keyframes."""
+    path = tmp_path / "m.slamkit"
+    system, _ = _run([*RIG, "dataset.max_frames=1"], tmp_path / "a")
+    system.save_map(path)
+    system.close()
+    assert map_file_info(path).schema_version == RIG_SCHEMA_VERSION
+    again = open_system([*RIG, "dataset.max_frames=1", f"map.load={path}"], output_dir=tmp_path / "b")
+    store = again.atlas.active
+    with store.read():
+        kfs = [store.get_keyframe(k) for k in store.keyframe_ids()]
+    assert kfs and all(kf.features.two_cameras and kf.features.camera_2 is not None for kf in kfs)
+    again.close()
 
 
 #: the room through a Kannala-Brandt pair whose right camera turns 15 degrees outwards (ORB-SLAM3's fisheye stereo);
