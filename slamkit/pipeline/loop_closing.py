@@ -30,6 +30,7 @@ import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -180,7 +181,7 @@ def _project_camera(camera: Camera, xyz_c: NDArray[np.float64]) -> NDArray[np.fl
     return np.asarray(uv, np.float64)
 
 
-def _sim3_cameras(camera_1: Camera, camera_2: Camera) -> dict[str, object]:
+def _sim3_cameras(camera_1: Camera, camera_2: Camera) -> dict[str, Any]:
     """The camera-model fields of a Sim3Problem between keyframes seen by ``camera_1`` and ``camera_2`` (ORB-SLAM3
     OptimizeSim3: vSim3->pCamera1 / pCamera2)."""
     c1, c2 = problem_camera(camera_1), problem_camera(camera_2)
@@ -780,7 +781,7 @@ class LoopCloser:
                 scale_factor=kf.features.scale_factor,
                 chi2=cfg.chi2.sim3,
                 fix_scale=kf.features.bf > 0.0,  # stereo/RGB-D: scale observable (ORB-SLAM2 mbFixScale)
-                **_sim3_cameras(kf.camera, cand.camera),  # type: ignore[arg-type]
+                **_sim3_cameras(kf.camera, cand.camera),
             )
             opt = self.optimizer.optimize_sim3(problem)
             info["optimized_inliers"] = int(opt.inliers.sum())
@@ -1020,6 +1021,12 @@ class LoopCloser:
             if g is not None and _camera_1(matched.features, np.array([g], np.int64))[0]:
                 uv2[n] = matched.features.uv_undist_px[g]
                 level2[n] = int(matched.features.level[g])
+        seen = np.isfinite(uv2).all(axis=1)  # a fisheye model's projection can be undefined (beyond its field of view)
+        if not seen.all():
+            feats, level1, level2 = feats[seen], level1[seen], level2[seen]
+            xyz1, xyz2, uv2 = xyz1[seen], xyz2[seen], uv2[seen]
+            if feats.shape[0] < 3:
+                return None
         return Sim3Problem(
             S_12_init=S_cm.matrix(),
             xyz1_c1=xyz1,
@@ -1033,7 +1040,7 @@ class LoopCloser:
             scale_factor=kf.features.scale_factor,
             chi2=self.cfg.chi2.sim3,
             fix_scale=kf.features.bf > 0.0,  # stereo/RGB-D: scale observable (ORB-SLAM2 mbFixScale)
-            **_sim3_cameras(kf.camera, matched.camera),  # type: ignore[arg-type]
+            **_sim3_cameras(kf.camera, matched.camera),
         )
 
     # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------
