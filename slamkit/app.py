@@ -167,7 +167,10 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     # map.load=FILE: the Atlas saved there (slamkit/map/mapfile_run.py), tracking then starts by relocalizing in it
     store_node = mapfile_run.store_node(map_node)
     atlas = mapfile_run.run_atlas(
-        map_node, lambda ids: registry.instantiate("map", store_node, ids=ids), place, [dataset.camera]
+        map_node,
+        lambda ids: registry.instantiate("map", store_node, ids=ids),
+        place,
+        [c for c in (dataset.camera, getattr(dataset, "camera_right", None)) if c is not None],
     )
     if localization and atlas.active.n_keyframes() == 0:
         raise ConfigError(
@@ -187,12 +190,6 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     )
     if hasattr(frontend, "bind_dataset"):  # optional: a front end taking calibration from the dataset (stereo bf)
         frontend.bind_dataset(dataset)
-    map_node = cfg.get("map") or {}
-    if getattr(frontend, "two_cameras", False) and (map_node.get("save") or map_node.get("load")):
-        raise ConfigError(
-            "map.save / map.load: the map file has no fields for a non-rectified rig's second camera yet "
-            "(frontend=stereo_rig); run without them"
-        )
     tracker = Tracker(
         pipeline.tracking,
         frontend,

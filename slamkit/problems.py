@@ -176,6 +176,9 @@ class Sim3Problem:
     xyz2_c2: (N, 3) m, the match's point of keyframe 2 in camera 2 (fixed).
     uv1_px: (N, 2) observation in keyframe 1 of its point; uv2_px: (N, 2) the same in keyframe 2.
     level1, level2: (N,) pyramid levels; intrinsics1/2: (4,) fx fy cx cy.
+    camera_model1/2: "pinhole" or "kannala_brandt" (module docstring), the model of keyframe 1's / 2's camera in
+        whose image uv1_px / uv2_px lie; distortion1/2: (4,) k1..k4 of a Kannala-Brandt camera, None for pinhole
+        (ORB-SLAM3 OptimizeSim3: vSim3->pCamera1 / pCamera2 project each direction).
     The error is bidirectional: uv1 vs project_1(S_12 xyz2_c2) and uv2 vs project_2(S_12^-1 xyz1_c1).
     chi2: ORB-SLAM uses th2 = 10 per direction. fix_scale: stereo/RGB-D (scale observable).
     """
@@ -194,6 +197,10 @@ class Sim3Problem:
     fix_scale: bool = False
     iterations_first: int = 5
     iterations_second: int = 10
+    camera_model1: str = CAMERA_PINHOLE
+    distortion1: F64 | None = None
+    camera_model2: str = CAMERA_PINHOLE
+    distortion2: F64 | None = None
 
 
 @dataclass

@@ -17,6 +17,8 @@ from slamkit.map.store import InMemoryMapStore
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0, dist=(0.01, -0.002, 0.0, 0.0, 0.0))
 FISHEYE = KannalaBrandtCamera(640, 480, 300.0, 300.0, 320.0, 240.0, k=(0.01, 0.0, 0.0, 0.0))
+#: a rig's second camera (another calibration than FISHEYE's)
+FISHEYE_2 = KannalaBrandtCamera(640, 480, 302.0, 301.0, 318.0, 242.0, k=(0.012, -0.001, 0.0, 0.0))
 N_FEATS = 80
 
 
@@ -24,7 +26,42 @@ def new_store(ids: IdAllocator) -> MapStore:
     return InMemoryMapStore(ids=ids)
 
 
-def observations(rng: np.random.Generator, camera: Any, stereo: bool) -> Observations:
+def rig_observations(rng: np.random.Generator, camera: Any) -> Observations:
+    """A non-rectified rig's two-camera record (frontend=stereo_rig): N_FEATS / 2 keypoints per camera, every third
+    camera-1 keypoint stereo-matched to a camera-2 one (both ways) with its triangulated point."""
+    obs = observations(rng, camera, stereo=False)
+    n_left = N_FEATS // 2
+    match = np.full(N_FEATS, -1, np.int64)
+    left = np.arange(0, n_left, 3)
+    right = n_left + rng.permutation(N_FEATS - n_left)[: left.size]
+    match[left], match[right] = right, left
+    xyz = np.full((N_FEATS, 3), np.nan)
+    xyz[left] = xyz[right] = rng.uniform([-1, -1, 1], [1, 1, 5], (left.size, 3))
+    depth = np.full(N_FEATS, np.nan, np.float32)
+    depth[left] = xyz[left, 2]
+    T_c2_c1 = np.eye(4)
+    T_c2_c1[:3, :3] = np.array([[np.cos(0.26), 0.0, -np.sin(0.26)], [0.0, 1.0, 0.0], [np.sin(0.26), 0.0, np.cos(0.26)]])
+    T_c2_c1[0, 3] = -0.11
+    return Observations(
+        **{name: getattr(obs, name) for name in Features.__dataclass_fields__},
+        bearing=obs.bearing,
+        u_right_px=np.full(N_FEATS, np.nan, np.float32),
+        depth_m=depth,
+        bf=0.11 * 300.0,
+        th_depth_m=0.11 * 40.0,
+        sensor="stereo",
+        n_left=n_left,
+        stereo_match=match,
+        xyz_c1=xyz,
+        camera_2=FISHEYE_2,
+        T_c2_c1=T_c2_c1,
+    )
+
+
+def observations(rng: np.random.Generator, camera: Any, stereo: bool | str) -> Observations:
+    """stereo: False (monocular), True (RGB-D-like) or "rig" (a non-rectified rig's two cameras)."""
+    if stereo == "rig":
+        return rig_observations(rng, camera)
     uv = rng.uniform(0, 480, (N_FEATS, 2)).astype(np.float32)
     feats = Features(
         uv,
@@ -52,7 +89,7 @@ def observations(rng: np.random.Generator, camera: Any, stereo: bool) -> Observa
     )
 
 
-def fill_map(atlas: Atlas, rng: np.random.Generator, n_kfs: int, camera: Any, stereo: bool = False) -> None:
+def fill_map(atlas: Atlas, rng: np.random.Generator, n_kfs: int, camera: Any, stereo: bool | str = False) -> None:
     """Keyframes along x with bags of words, points seen by 2-4 of them, graphs, counters, a loop edge, a culled
     keyframe and culled points: every part of a map's state."""
     store, place = atlas.active, atlas.place
@@ -112,6 +149,17 @@ def build_atlas(place: DbowPlaceRecognizer, seed: int = 0) -> Atlas:
     fill_map(atlas, rng, 8, CAMERA)
     atlas.create_map()
     fill_map(atlas, rng, 6, FISHEYE, stereo=True)
+    return atlas
+
+
+def build_rig_atlas(place: DbowPlaceRecognizer, seed: int = 0) -> Atlas:
+    """Two maps: map 0 monocular pinhole, map 1 (active) a fisheye rig's two-camera keyframes."""
+    place.database.clear()
+    atlas = Atlas(new_store, place)
+    rng = np.random.default_rng(seed)
+    fill_map(atlas, rng, 5, CAMERA)
+    atlas.create_map()
+    fill_map(atlas, rng, 6, FISHEYE, stereo="rig")
     return atlas
 
 

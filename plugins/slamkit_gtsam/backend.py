@@ -575,6 +575,8 @@ class GtsamOptimizer:
                 problem.intrinsics2,
                 problem.chi2,
                 problem.fix_scale,
+                problem.distortion1,
+                problem.distortion2,
             )
             graph = gtsam.NonlinearFactorGraph()
             graph.add(make_sim3_factor(0, residual))

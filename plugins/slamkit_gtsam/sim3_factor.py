@@ -20,6 +20,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.optim.costs import kannala_brandt_project
 from slamkit_gtsam.convert import S_from_similarity3
 
 F64 = NDArray[np.float64]
@@ -31,7 +32,9 @@ class Sim3MatchesResidual:
     """Whitened bidirectional reprojection residuals of fixed matched points under a Sim3 S_12.
 
     xyz1_c1, xyz2_c2: (N, 3); uv1, uv2: (N, 2) px; inv_sigma1/2: (N,) 1/sigma of each observation (px^-1);
-    intrinsics1/2: (4,) fx fy cx cy; delta2: Huber threshold on each direction's chi2 (None = no kernel).
+    intrinsics1/2: (4,) fx fy cx cy; delta2: Huber threshold on each direction's chi2 (None = no kernel);
+    distortion1/2: (4,) k1..k4 when that keyframe's camera is Kannala-Brandt (its observations raw fisheye pixels,
+    ORB-SLAM3's pCamera1 / pCamera2), None for a pinhole one.
     """
 
     def __init__(
@@ -46,6 +49,8 @@ class Sim3MatchesResidual:
         intrinsics2: F64,
         delta2: float | None,
         fix_scale: bool,
+        distortion1: F64 | None = None,
+        distortion2: F64 | None = None,
     ) -> None:
         self.xyz1 = xyz1_c1
         self.xyz2 = xyz2_c2
@@ -57,18 +62,24 @@ class Sim3MatchesResidual:
         self.K2 = intrinsics2
         self.delta2 = delta2
         self.fix_scale = fix_scale
+        self.kb1 = distortion1
+        self.kb2 = distortion2
 
     @staticmethod
-    def _project(S: F64, xyz: F64, K: F64) -> F64:
+    def _project(S: F64, xyz: F64, K: F64, kb: F64 | None = None) -> F64:
         p = xyz @ S[:3, :3].T + S[:3, 3]
+        if kb is not None:
+            n = len(p)
+            u, v = kannala_brandt_project(p, np.broadcast_to(K, (n, 4)), np.broadcast_to(kb, (n, 4)))
+            return np.stack([u, v], axis=1)
         z = p[:, 2:3]
         return np.asarray(K[:2] * p[:, :2] / z + K[2:], dtype=np.float64)
 
     def raw(self, S_12: F64) -> tuple[F64, F64]:
         """(N, 2) whitened errors of direction 1 (uv1 - pi1(S_12 xyz2)) and direction 2 (uv2 - pi2(S_21 xyz1))."""
         S_21 = np.asarray(np.linalg.inv(S_12), dtype=np.float64)
-        e1 = (self.uv1 - self._project(S_12, self.xyz2, self.K1)) * self.w1
-        e2 = (self.uv2 - self._project(S_21, self.xyz1, self.K2)) * self.w2
+        e1 = (self.uv1 - self._project(S_12, self.xyz2, self.K1, self.kb1)) * self.w1
+        e2 = (self.uv2 - self._project(S_21, self.xyz1, self.K2, self.kb2)) * self.w2
         return e1, e2
 
     def _scales(self, e: F64) -> tuple[F64, F64]:

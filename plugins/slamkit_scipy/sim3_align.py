@@ -3,7 +3,8 @@
 The state is S_12 (x' = s R x + t, camera 2 -> camera 1), updated by left perturbation
 S <- exp(delta) S, delta = [omega, v, lambda] (g2o's VertexSim3Expmap; with fix_scale lambda stays 0).
 Each match contributes two reprojection errors (both Huber with delta = sqrt(chi2), information 1/sigma^2
-of its level): e1 = pi_1(S_12 X2) - uv1 and e2 = pi_2(S_12^-1 X1) - uv2.
+of its level): e1 = pi_1(S_12 X2) - uv1 and e2 = pi_2(S_12^-1 X1) - uv2, pi_k the pinhole or Kannala-Brandt model of
+keyframe k's camera (the problem's camera_model1/2; ORB-SLAM3 VertexSim3Expmap pCamera1/pCamera2).
 
 Jacobians (first order in delta): d(S X2)/d delta = [-hat(p1), I, p1] with p1 = S X2; and since
 (exp(delta) S)^-1 X1 = S^-1 exp(-delta) X1, d(S^-1 X1)/d delta = -(R^T / s) [-hat(X1), I, X1].
@@ -21,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.so3 import hat
+from slamkit.optim.kannala_brandt import kb_project_many
 from slamkit.problems import Sim3Problem, Sim3Result
 from slamkit_scipy.lie import sim3_exp_batch, sim3_inverse_batch, sim3_split
 from slamkit_scipy.lm import LMSettings, levenberg_marquardt
@@ -39,6 +41,8 @@ class _Matches:
     info2: F64
     K1: F64  # (4,) fx fy cx cy
     K2: F64
+    kb1: F64 | None = None  # (8,) fx fy cx cy k1..k4 of a Kannala-Brandt keyframe-1 camera; None: pinhole
+    kb2: F64 | None = None
 
     def subset(self, keep: NDArray[np.bool_]) -> _Matches:
         return _Matches(
@@ -50,11 +54,18 @@ class _Matches:
             self.info2[keep],
             self.K1,
             self.K2,
+            self.kb1,
+            self.kb2,
         )
 
 
-def _project(p: F64, K: F64) -> tuple[F64, F64]:
-    """p: (N, 3) camera points -> (N, 2) px and (N, 2, 3) d pixel / d p."""
+def _project(p: F64, K: F64, kb: F64 | None = None) -> tuple[F64, F64]:
+    """p: (N, 3) camera points -> (N, 2) px and (N, 2, 3) d pixel / d p, through the pinhole K (4,) or, when ``kb``
+    (8,) is given, the Kannala-Brandt model (slamkit/optim/kannala_brandt.py; ORB-SLAM3 pCamera->project and
+    projectJac for a fisheye keyframe)."""
+    if kb is not None:
+        uv_kb, A_kb = kb_project_many(np.ascontiguousarray(p, dtype=np.float64), kb)
+        return uv_kb, A_kb
     fx, fy, cx, cy = K
     iz = 1.0 / p[:, 2]
     uv = np.column_stack([fx * p[:, 0] * iz + cx, fy * p[:, 1] * iz + cy])
@@ -77,8 +88,8 @@ def match_chi2(S: F64, m: _Matches) -> tuple[F64, F64, F64, F64]:
     p1 = _transform(S, m.X2)
     p2 = _transform(Sinv, m.X1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        r1 = _project(p1, m.K1)[0] - m.uv1
-        r2 = _project(p2, m.K2)[0] - m.uv2
+        r1 = _project(p1, m.K1, m.kb1)[0] - m.uv1
+        r2 = _project(p2, m.K2, m.kb2)[0] - m.uv2
     return m.info1 * np.sum(r1 * r1, 1), m.info2 * np.sum(r2 * r2, 1), p1[:, 2], p2[:, 2]
 
 
@@ -94,8 +105,8 @@ def linearize_sim3(S: F64, *, m: _Matches, delta: float, dof: int) -> tuple[tupl
     Sinv = sim3_inverse_batch(S[None])[0]
     p1 = _transform(S, m.X2)
     p2 = _transform(Sinv, m.X1)
-    uv1, A1 = _project(p1, m.K1)
-    uv2, A2 = _project(p2, m.K2)
+    uv1, A1 = _project(p1, m.K1, m.kb1)
+    uv2, A2 = _project(p2, m.K2, m.kb2)
     r1 = uv1 - m.uv1
     r2 = uv2 - m.uv2
     c1 = m.info1 * np.sum(r1 * r1, 1)
@@ -154,6 +165,13 @@ def _run(S: F64, m: _Matches, delta: float, dof: int, iterations: int, settings:
     return out.x, out.iterations
 
 
+def _kb(intrinsics: F64, distortion: F64 | None) -> F64 | None:
+    """(8,) fx fy cx cy k1..k4 of a Kannala-Brandt keyframe camera; None for a pinhole one (no distortion)."""
+    if distortion is None:
+        return None
+    return np.concatenate([np.asarray(intrinsics, np.float64), np.asarray(distortion, np.float64)])
+
+
 def optimize_sim3(problem: Sim3Problem, settings: LMSettings) -> Sim3Result:
     """Solve a validated Sim3Problem (module docstring)."""
     m_all = _Matches(
@@ -165,6 +183,8 @@ def optimize_sim3(problem: Sim3Problem, settings: LMSettings) -> Sim3Result:
         inv_sigma2(np.asarray(problem.level2), problem.scale_factor),
         np.asarray(problem.intrinsics1, dtype=np.float64),
         np.asarray(problem.intrinsics2, dtype=np.float64),
+        _kb(problem.intrinsics1, problem.distortion1),
+        _kb(problem.intrinsics2, problem.distortion2),
     )
     delta = float(np.sqrt(problem.chi2))
     dof = 6 if problem.fix_scale else 7

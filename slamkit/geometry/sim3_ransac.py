@@ -1,10 +1,12 @@
 """Sim3 between two keyframes from matched 3D points, by Horn's closed form inside RANSAC (ORB-SLAM sec.
 VII-B, Sim3Solver): three matches give a hypothesis; a match is an inlier when both its reprojections (point
 of keyframe 2 into image 1 through S_12, point of keyframe 1 into image 2 through S_21) are within a
-chi-square gate of its keypoints."""
+chi-square gate of its keypoints. Each image's projection is its keyframe's camera model (ORB-SLAM3 Sim3Solver:
+mpCamera1 / mpCamera2->project): the pinhole K by default, or a given projection (a fisheye camera's raw image)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +16,10 @@ from slamkit.geometry.alignment import horn_alignment
 from slamkit.geometry.sim3 import Sim3
 
 F64 = NDArray[np.float64]
+
+#: A camera's projection into its pipeline image: (N, 3) m camera-frame points -> (uv (N, 2) px, valid (N,) bool)
+#: (``Camera.project_image``).
+Projection = Callable[[F64], tuple[F64, NDArray[np.bool_]]]
 
 #: chi-square 99% with 2 dof, the per-image gate of ORB-SLAM's Sim3Solver (mvnMaxError1 = 9.210 sigma^2).
 CHI2_2DOF_99 = 9.210
@@ -29,7 +35,10 @@ class Sim3RansacResult:
     iterations: int
 
 
-def _project(K: F64, xyz: F64) -> tuple[F64, NDArray[np.bool_]]:
+def _project(K: F64, xyz: F64, project: Projection | None = None) -> tuple[F64, NDArray[np.bool_]]:
+    if project is not None:
+        uv_c, ok_c = project(xyz)
+        return uv_c, ok_c & (xyz[:, 2] > 1e-9)
     z = xyz[:, 2]
     ok = z > 1e-9
     zs = np.where(ok, z, 1.0)
@@ -48,13 +57,17 @@ def sim3_inliers(
     sigma2_1: F64,
     sigma2_2: F64,
     chi2: float = CHI2_2DOF_99,
+    project1: Projection | None = None,
+    project2: Projection | None = None,
 ) -> NDArray[np.bool_]:
-    """(N,) bool: matches whose bidirectional reprojection errors are within ``chi2 * sigma^2`` in both images."""
-    uv1, ok1 = _project(K1, S_12.act(xyz2_c2))
-    uv2, ok2 = _project(K2, S_12.inverse().act(xyz1_c1))
-    e1 = np.sum((uv1 - uv1_px) ** 2, axis=1)
-    e2 = np.sum((uv2 - uv2_px) ** 2, axis=1)
-    return ok1 & ok2 & (e1 < chi2 * sigma2_1) & (e2 < chi2 * sigma2_2)
+    """(N,) bool: matches whose bidirectional reprojection errors are within ``chi2 * sigma^2`` in both images.
+    project1 / project2: the cameras' projections (None: the pinhole K1 / K2)."""
+    uv1, ok1 = _project(K1, S_12.act(xyz2_c2), project1)
+    uv2, ok2 = _project(K2, S_12.inverse().act(xyz1_c1), project2)
+    with np.errstate(invalid="ignore"):
+        e1 = np.sum((uv1 - uv1_px) ** 2, axis=1)
+        e2 = np.sum((uv2 - uv2_px) ** 2, axis=1)
+        return ok1 & ok2 & (e1 < chi2 * sigma2_1) & (e2 < chi2 * sigma2_2)
 
 
 def ransac_sim3(
@@ -72,12 +85,15 @@ def ransac_sim3(
     min_inliers: int = 20,
     max_iterations: int = 300,
     chi2: float = CHI2_2DOF_99,
+    project1: Projection | None = None,
+    project2: Projection | None = None,
 ) -> Sim3RansacResult:
     """Find S_12 with at least ``min_inliers`` inliers (ORB-SLAM: 0.99, 20, 300).
 
     xyz1_c1 / xyz2_c2: (N, 3) m, each match's map point in camera 1 / camera 2; uv1_px / uv2_px: (N, 2) the
-    keypoints observing them; sigma2_*: (N,) px^2 level variances. The iteration count adapts to the inlier
-    ratio as RANSAC does; the best hypothesis is re-estimated on all its inliers.
+    keypoints observing them, in each camera's pipeline image; sigma2_*: (N,) px^2 level variances; project1 /
+    project2: the cameras' projections into those images (None: the pinhole K1 / K2). The iteration count adapts to
+    the inlier ratio as RANSAC does; the best hypothesis is re-estimated on all its inliers.
     """
     n = xyz1_c1.shape[0]
     none = Sim3RansacResult(None, np.zeros(n, bool), 0)
@@ -94,7 +110,7 @@ def ransac_sim3(
             S = horn_alignment(xyz2_c2[sample], xyz1_c1[sample], with_scale=not fix_scale)
         except ValueError:  # collinear or degenerate sample
             continue
-        inl = sim3_inliers(S, xyz1_c1, xyz2_c2, uv1_px, uv2_px, K1, K2, sigma2_1, sigma2_2, chi2)
+        inl = sim3_inliers(S, xyz1_c1, xyz2_c2, uv1_px, uv2_px, K1, K2, sigma2_1, sigma2_2, chi2, project1, project2)
         if inl.sum() > best_inliers.sum():
             best_inliers, best = inl, S
             ratio = inl.sum() / n
@@ -108,7 +124,7 @@ def ransac_sim3(
         refined = horn_alignment(xyz2_c2[best_inliers], xyz1_c1[best_inliers], with_scale=not fix_scale)
     except ValueError:
         refined = best
-    inl = sim3_inliers(refined, xyz1_c1, xyz2_c2, uv1_px, uv2_px, K1, K2, sigma2_1, sigma2_2, chi2)
+    inl = sim3_inliers(refined, xyz1_c1, xyz2_c2, uv1_px, uv2_px, K1, K2, sigma2_1, sigma2_2, chi2, project1, project2)
     if inl.sum() >= best_inliers.sum():
         best, best_inliers = refined, inl
     return Sim3RansacResult(best, best_inliers, it)

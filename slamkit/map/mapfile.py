@@ -22,6 +22,12 @@ Members:
   reference and first keyframes, visible/found counters; ``obs_*``: observations in the store's order), and the
   graphs (``cov_edges`` (E, 3) with their saved weights, ``tree`` (T, 2) child/parent with -1 for a root,
   ``loop_edges`` (L, 2)). Variable-length parts are concatenated with a count per owner.
+- A map of a non-rectified rig (``frontend=stereo_rig``, ORB-SLAM3 sec. I-B; schema version 2, the only difference
+  from version 1): per keyframe ``kf_n_left`` (ORB-SLAM3's Nleft, -1 for a one-camera keyframe), ``kf_camera2`` (the
+  second camera's index in the manifest's cameras, -1 for none) and ``kf_T_c2_c1`` (K, 4, 4) (the fixed extrinsic,
+  ORB-SLAM3 mTrl; identity for none); per feature ``feat_stereo_match`` (the other camera's keypoint of its stereo
+  match, -1 for none) and ``feat_xyz_c1`` (F, 3) (the triangulated point in camera 1, NaN elsewhere). A file without
+  a two-camera keyframe is written as version 1, as before, and both versions are read.
 
 Integrity: the zip comment, the file's last 89 bytes, is ``slamkit-map v0001 sha256=`` and the hex sha256 of every
 byte before the 64 hex digits. A reader checks the comment (absent: truncated or not a map file), the schema version
@@ -59,8 +65,13 @@ from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.ids import IdAllocator
 from slamkit.map.mapfile_contents import MapContents
 
-#: The layout this code writes and the only one it reads (a change to the members or their meaning bumps it).
+#: The layout this code writes for a map without a two-camera keyframe (a change to the members or their meaning
+#: bumps it).
 SCHEMA_VERSION = 1
+#: The layout of a file holding a non-rectified rig's keyframes: version 1 plus the rig members (module docstring), so
+#: that a reader that knows version 1 only refuses it rather than losing the second camera.
+RIG_SCHEMA_VERSION = 2
+_READABLE = (SCHEMA_VERSION, RIG_SCHEMA_VERSION)
 FORMAT = "slamkit-map"
 #: The suggested file name suffix (and a run directory's map file: ``map.slamkit``).
 SUFFIX = ".slamkit"
@@ -111,18 +122,25 @@ def save_atlas(atlas: Atlas, path: str | os.PathLike[str], config: Mapping[str, 
     camera_index: dict[str, int] = {}
     maps_meta: list[dict[str, Any]] = []
     members: list[tuple[str, NDArray[Any]]] = []
+    rig_members: list[tuple[str, NDArray[Any]]] = []
     for map_id, store in atlas.items():
         try:
             with store.read():  # the arrays are copies: the map may change again once they are made
                 arrays, meta = _map_arrays(store, lambda cam: _camera_id(cam, cameras, camera_index, target))
+                rig = _rig_arrays(store, lambda cam: _camera_id(cam, cameras, camera_index, target))
         except ValueError as exc:
             raise MapFileError(f"map file {target}: map {map_id} cannot be saved ({exc})") from None
         maps_meta.append({"id": map_id, **meta})
         members += [(f"m{map_id}/{name}.npy", array) for name, array in arrays.items()]
+        rig_members += [(f"m{map_id}/{name}.npy", array) for name, array in rig.items()]
+    two_cameras = any(bool(np.any(array >= 0)) for name, array in rig_members if name.endswith("/kf_n_left.npy"))
+    version = RIG_SCHEMA_VERSION if two_cameras else SCHEMA_VERSION
+    if two_cameras:
+        members += rig_members
     next_kf, next_pt = atlas.ids.next_ids()
     manifest = {
         "format": FORMAT,
-        "schema_version": SCHEMA_VERSION,
+        "schema_version": version,
         "slamkit_version": _slamkit_version(),
         "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "vocabulary": _vocabulary_identity(atlas.place),
@@ -136,7 +154,7 @@ def save_atlas(atlas: Atlas, path: str | os.PathLike[str], config: Mapping[str, 
         },
         "maps": maps_meta,
     }
-    return _write(target, manifest, members, SCHEMA_VERSION)
+    return _write(target, manifest, members, version)
 
 
 def _write(
@@ -263,12 +281,6 @@ def _map_arrays(store: MapStore, camera_id: Callable[[Camera], int]) -> tuple[di
     kf_ids = store.keyframe_ids()
     kfs = [store.get_keyframe(k) for k in kf_ids]
     feats = [kf.features for kf in kfs]
-    rig = next((kf.id for kf in kfs if kf.features.two_cameras), None)
-    if rig is not None:
-        raise ValueError(
-            f"keyframe {rig} holds a non-rectified rig's two cameras (frontend=stereo_rig): the map file has no fields "
-            "for the second camera's keypoints, stereo matches and extrinsic yet"
-        )
     K = len(kfs)
     a: dict[str, NDArray[Any]] = {
         "kf_id": np.array(kf_ids, np.int64),
@@ -361,6 +373,38 @@ def _map_arrays(store: MapStore, camera_id: Callable[[Camera], int]) -> tuple[di
     return a, meta
 
 
+def _rig_arrays(store: MapStore, camera_id: Callable[[Camera], int]) -> dict[str, NDArray[Any]]:
+    """The rig members of one map (module docstring), in the keyframe and feature order of ``_map_arrays``: for a
+    one-camera keyframe n_left -1, no second camera, the identity extrinsic, no stereo matches, NaN points."""
+    kfs = [store.get_keyframe(k) for k in store.keyframe_ids()]
+    K = len(kfs)
+    n_left = np.full(K, -1, np.int64)
+    camera2 = np.full(K, -1, np.int64)
+    T_c2_c1 = np.tile(np.eye(4), (K, 1, 1))
+    matches: list[NDArray[np.int64]] = []
+    xyz: list[NDArray[np.float64]] = []
+    for i, kf in enumerate(kfs):
+        f = kf.features
+        n = len(f)
+        if f.two_cameras:
+            if f.camera_2 is None or f.T_c2_c1 is None or f.stereo_match is None or f.xyz_c1 is None:
+                raise ValueError(f"keyframe {kf.id}: a two-camera record without its second camera's fields")
+            n_left[i], camera2[i] = f.n_left, camera_id(f.camera_2)
+            T_c2_c1[i] = np.asarray(f.T_c2_c1, np.float64)
+            matches.append(np.asarray(f.stereo_match, np.int64).reshape(n))
+            xyz.append(np.asarray(f.xyz_c1, np.float64).reshape(n, 3))
+        else:
+            matches.append(np.full(n, -1, np.int64))
+            xyz.append(np.full((n, 3), np.nan))
+    return {
+        "kf_n_left": n_left,
+        "kf_camera2": camera2,
+        "kf_T_c2_c1": T_c2_c1.reshape(K, 4, 4),
+        "feat_stereo_match": np.concatenate(matches) if matches else np.zeros(0, np.int64),
+        "feat_xyz_c1": np.concatenate(xyz) if xyz else np.zeros((0, 3)),
+    }
+
+
 def _parent_or_root(parent: int | None) -> int:
     return -1 if parent is None else int(parent)
 
@@ -394,10 +438,10 @@ def _open_verified(path: Path) -> tuple[BinaryIO, int, str]:
             raise MapFileError(f"map file {path}: corrupted (unreadable trailer)") from None
         if trailer[len(_TRAILER_PREFIX) + 4 : -_HEX] != b" sha256=":
             raise MapFileError(f"map file {path}: corrupted (unreadable trailer)")
-        if version != SCHEMA_VERSION:
+        if version not in _READABLE:
             raise MapFileError(
                 f"map file {path}: schema version {version}, this slamkit ({_slamkit_version()}) reads schema "
-                f"version {SCHEMA_VERSION} only"
+                f"versions {', '.join(map(str, _READABLE))} only"
             )
         actual = _sha256_of(f, size - _HEX)
         if actual != expected:
@@ -409,6 +453,12 @@ def _open_verified(path: Path) -> tuple[BinaryIO, int, str]:
         f.close()
         raise
     return f, size, actual
+
+
+def _trailer_version(f: BinaryIO, size: int) -> int:
+    """The schema version in the (already verified) trailer of the open file of ``size`` bytes."""
+    f.seek(size - _TRAILER_LEN + len(_TRAILER_PREFIX))
+    return int(f.read(4).decode("ascii"))
 
 
 class _Reader:
@@ -427,10 +477,15 @@ class _Reader:
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
             self.file.close()
             raise self.error(f"not a {FORMAT} manifest")
-        if manifest.get("schema_version") != SCHEMA_VERSION:
+        trailer_version = int(_trailer_version(self.file, self.size))
+        if manifest.get("schema_version") != trailer_version:
             self.file.close()
-            raise self.error(f"manifest schema version {manifest.get('schema_version')!r}, expected {SCHEMA_VERSION}")
+            raise self.error(
+                f"manifest schema version {manifest.get('schema_version')!r}, the trailer says {trailer_version}"
+            )
         self.manifest: dict[str, Any] = manifest
+        #: the file holds the rig members (schema version 2)
+        self.rig = trailer_version == RIG_SCHEMA_VERSION
 
     def __enter__(self) -> _Reader:
         return self
@@ -512,6 +567,7 @@ def _read_map(reader: _Reader, meta: Mapping[str, Any], cameras: Sequence[Camera
     node_groups = _split(nodes, n_nodes, f"map {m} direct index", reader)
     n_di = arr("di_n_features", np.int64, rows=nodes.shape[0])
     groups = _split(arr("di_feature", np.int64), n_di, f"map {m} direct index features", reader)
+    rig = _read_rig(reader, m, K, F, n_feat, cameras)
     keyframes: list[KeyFrame] = []
     g = 0
     for i in range(K):
@@ -530,6 +586,7 @@ def _read_map(reader: _Reader, meta: Mapping[str, Any], cameras: Sequence[Camera
             bf=float(bf[i]),
             th_depth_m=float(th_depth[i]),
             sensor=_SENSORS[int(sensor[i])],
+            **rig[i],
         )
         bow: BowDescription | None = None
         k_nodes = node_groups[i].tolist()
@@ -587,6 +644,47 @@ def _read_map(reader: _Reader, meta: Mapping[str, Any], cameras: Sequence[Camera
         first_keyframe_id=None if first is None else int(first),
         epoch=int(meta.get("epoch", 0)),
     )
+
+
+def _read_rig(
+    reader: _Reader, m: int, K: int, F: int, n_feat: NDArray[np.int64], cameras: Sequence[Camera]
+) -> list[dict[str, Any]]:
+    """Per keyframe of map ``m``, the two-camera fields of its Observations (empty for a one-camera keyframe, and for
+    every keyframe of a version-1 file), with their consistency checked: n_left within the features, a listed
+    second camera, a rigid extrinsic, stereo matches linking a camera-1 and a camera-2 keypoint both ways."""
+    if not reader.rig:
+        return [{} for _ in range(K)]
+    n_left = reader.array(m, "kf_n_left", np.int64, (), K)
+    camera2 = reader.array(m, "kf_camera2", np.int64, (), K)
+    T_c2_c1 = reader.array(m, "kf_T_c2_c1", np.float64, (4, 4), K)
+    matches = _split(reader.array(m, "feat_stereo_match", np.int64, (), F), n_feat, f"map {m} stereo matches", reader)
+    xyz = _split(reader.array(m, "feat_xyz_c1", np.float64, (3,), F), n_feat, f"map {m} stereo points", reader)
+    out: list[dict[str, Any]] = []
+    for i in range(K):
+        if n_left[i] < 0:
+            out.append({})
+            continue
+        n = int(n_feat[i])
+        if n_left[i] > n or not 0 <= camera2[i] < len(cameras):
+            raise reader.error(f"map {m}: keyframe {i}'s n_left or second camera is out of range")
+        T = T_c2_c1[i]
+        if not (np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) and np.allclose(T[3], [0, 0, 0, 1])):
+            raise reader.error(f"map {m}: keyframe {i}'s T_c2_c1 is not a rigid transform")
+        sm = matches[i]
+        linked = np.flatnonzero(sm >= 0)
+        left = linked < n_left[i]
+        if np.any(sm >= n) or np.any((sm[linked] < n_left[i]) == left) or np.any(sm[sm[linked]] != linked):
+            raise reader.error(f"map {m}: keyframe {i}'s stereo matches do not link camera 1 and 2 both ways")
+        out.append(
+            {
+                "n_left": int(n_left[i]),
+                "stereo_match": sm,
+                "xyz_c1": xyz[i],
+                "camera_2": cameras[int(camera2[i])],
+                "T_c2_c1": T,
+            }
+        )
+    return out
 
 
 def _cameras(reader: _Reader, reuse: Sequence[Camera]) -> list[Camera]:
@@ -715,6 +813,7 @@ def _info(path: Path, size: int, sha256: str, manifest: Mapping[str, Any]) -> Ma
 
 
 __all__ = [
+    "RIG_SCHEMA_VERSION",
     "RUN_DIR_FILE_NAME",
     "SCHEMA_VERSION",
     "SUFFIX",

@@ -184,7 +184,10 @@ def differences(a: MapContents, b: MapContents, limit: int = 10) -> list[str]:
         fa, fb = ka.features, kb.features
         for name in fa.__dataclass_fields__:
             va, vb = getattr(fa, name), getattr(fb, name)
-            same = _same_array(va, vb) if isinstance(va, np.ndarray) else va == vb
+            if name == "camera_2":  # a rig's second camera: by its parameters, as the keyframe's camera
+                same = _camera_key(va) == _camera_key(vb)
+            else:
+                same = _same_array(va, vb) if isinstance(va, np.ndarray) else va == vb
             if not same and note(f"keyframe {ka.id}: features.{name}"):
                 return out
         if not _same_bow(ka.bow, kb.bow) and note(f"keyframe {ka.id}: bow"):

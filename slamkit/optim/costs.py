@@ -185,10 +185,11 @@ def bundle_cost(problem: BundleProblem, T_c_w: F64, xyz_w: F64, active: B | None
 
 
 def sim3_chi2(problem: Sim3Problem, S_12: F64) -> tuple[F64, F64]:
-    """(N,) chi2 of direction 1 (uv1 vs project_1(S_12 xyz2_c2)) and (N,) of direction 2 (uv2 vs project_2(S_21 xyz1_c1))."""
+    """(N,) chi2 of direction 1 (uv1 vs project_1(S_12 xyz2_c2)) and (N,) of direction 2 (uv2 vs project_2(S_21 xyz1_c1)),
+    each through its keyframe's camera model (``distortion1`` / ``distortion2``: Kannala-Brandt when given)."""
     n = len(problem.xyz1_c1)
 
-    def direction(S: F64, xyz: F64, uv: F64, level: I64, intrinsics: F64) -> F64:
+    def direction(S: F64, xyz: F64, uv: F64, level: I64, intrinsics: F64, distortion: F64 | None) -> F64:
         return _reprojection_chi2(
             np.broadcast_to(S[:3, :3], (n, 3, 3)),
             np.broadcast_to(S[:3, 3], (n, 3)),
@@ -199,15 +200,17 @@ def sim3_chi2(problem: Sim3Problem, S_12: F64) -> tuple[F64, F64]:
             np.broadcast_to(intrinsics, (n, 4)),
             np.zeros(n),
             problem.scale_factor,
+            None if distortion is None else np.broadcast_to(distortion, (n, 4)),
         )
 
-    e1 = direction(S_12, problem.xyz2_c2, problem.uv1_px, problem.level1, problem.intrinsics1)
+    e1 = direction(S_12, problem.xyz2_c2, problem.uv1_px, problem.level1, problem.intrinsics1, problem.distortion1)
     e2 = direction(
         np.asarray(np.linalg.inv(S_12), np.float64),
         problem.xyz1_c1,
         problem.uv2_px,
         problem.level2,
         problem.intrinsics2,
+        problem.distortion2,
     )
     return e1, e2
 

@@ -360,15 +360,44 @@ def with_kannala_brandt(problem: PoseOnlyProblem, truth: PoseTruth, k: F64 = ...
 def with_kannala_brandt(problem: BundleProblem, truth: BundleTruth, k: F64 = ...) -> BundleProblem: ...
 
 
+@overload
+def with_kannala_brandt(problem: Sim3Problem, truth: Sim3Truth, k: F64 = ...) -> Sim3Problem: ...
+
+
 def with_kannala_brandt(
-    problem: PoseOnlyProblem | BundleProblem, truth: PoseTruth | BundleTruth, k: F64 = FISHEYE_K
-) -> PoseOnlyProblem | BundleProblem:
+    problem: PoseOnlyProblem | BundleProblem | Sim3Problem,
+    truth: PoseTruth | BundleTruth | Sim3Truth,
+    k: F64 = FISHEYE_K,
+) -> PoseOnlyProblem | BundleProblem | Sim3Problem:
     """The same problem seen through a Kannala-Brandt lens with k1..k4 ``k`` (4,) and the same intrinsics: each
     observation becomes the raw fisheye pixel of its true point plus the same noise and planted offset the pinhole
-    observation had. Monocular problems only (a fisheye camera has no rectified right image)."""
+    observation had. Monocular problems only (a fisheye camera has no rectified right image). A Sim3 problem's
+    keyframes both get the lens (its fixed points are the true ones: uv1 observes xyz1_c1, uv2 the direction of
+    xyz2_c2)."""
+    if isinstance(problem, Sim3Problem):
+        dist = np.asarray(k, dtype=np.float64).copy()
+        raw: list[F64] = []
+        for xyz, obs, intr in (
+            (problem.xyz1_c1, problem.uv1_px, problem.intrinsics1),
+            (problem.xyz2_c2, problem.uv2_px, problem.intrinsics2),
+        ):
+            n = len(xyz)
+            pin, _ = project(np.eye(4), xyz, intr)
+            u, v = kannala_brandt_project(xyz, np.broadcast_to(intr, (n, 4)), np.broadcast_to(dist, (n, 4)))
+            raw.append(np.stack([u, v], axis=1) + (obs - pin))
+        return replace(
+            problem,
+            uv1_px=raw[0],
+            uv2_px=raw[1],
+            camera_model1=CAMERA_KANNALA_BRANDT,
+            distortion1=dist,
+            camera_model2=CAMERA_KANNALA_BRANDT,
+            distortion2=dist.copy(),
+        )
     if np.any(np.isfinite(problem.u_right_px)):
         raise ValueError("with_kannala_brandt: the problem has stereo observations; expected a monocular one")
     if isinstance(problem, PoseOnlyProblem):
+        assert isinstance(truth, PoseTruth)
         T = np.broadcast_to(truth.T_c_w, (len(problem.xyz_w), 4, 4))
         xyz = problem.xyz_w  # fixed points: the truth
         intr = np.broadcast_to(problem.intrinsics, (len(xyz), 4))

@@ -365,8 +365,9 @@ def validate_sim3_problem(problem: Sim3Problem) -> None:
     """Check a relative-Sim3 problem; raise ProblemError naming the first defect.
 
     Requires N >= 3 matches (a Sim3 has 7 degrees of freedom), finite arrays of matching lengths, a valid
-    Sim3 S_12_init ([[s R, t], [0, 1]], s > 0; s = 1 when fix_scale), fx, fy > 0, and each match's points in
-    front of their own cameras (xyz1_c1 and xyz2_c2 have z > 0).
+    Sim3 S_12_init ([[s R, t], [0, 1]], s > 0; s = 1 when fix_scale), fx, fy > 0, each keyframe's camera model known
+    (a Kannala-Brandt one with its k1..k4), and each match's points in front of their own cameras (xyz1_c1 and
+    xyz2_c2 have z > 0).
     """
     p = "Sim3Problem"
     S = _transform(p, "S_12_init", problem.S_12_init, scaled=True)
@@ -381,6 +382,9 @@ def validate_sim3_problem(problem: Sim3Problem) -> None:
     _levels(p, "level2", problem.level2, n)
     _intrinsics(p, "intrinsics1", problem.intrinsics1, (4,))
     _intrinsics(p, "intrinsics2", problem.intrinsics2, (4,))
+    no_right = np.full(n, np.nan)
+    _camera_model(f"{p} (keyframe 1)", problem.camera_model1, problem.distortion1, (4,), no_right)
+    _camera_model(f"{p} (keyframe 2)", problem.camera_model2, problem.distortion2, (4,), no_right)
     _positive(p, "scale_factor", problem.scale_factor)
     _positive(p, "chi2", problem.chi2)
     _count(p, "iterations_first", problem.iterations_first, 0)

@@ -30,17 +30,19 @@ import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.features import Observations
 from slamkit.geometry.sim3 import Sim3
-from slamkit.geometry.sim3_ransac import ransac_sim3
-from slamkit.interfaces import MapStore, Optimizer, PlaceRecognizer
+from slamkit.geometry.sim3_ransac import Projection, ransac_sim3
+from slamkit.interfaces import Camera, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame
 from slamkit.map.mapfile_contents import check_contents, read_map_contents
-from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of, run_bundle
+from slamkit.pipeline.bundle import BundleSnapshot, intrinsics_of, problem_camera, run_bundle
 from slamkit.pipeline.config import LoopClosingConfig
 from slamkit.pipeline.fusion import fuse_points, replace_point
 from slamkit.pipeline.global_ba import GlobalBAOutcome, commit_global_ba, optimize_global_ba, snapshot_global_ba
@@ -80,7 +82,6 @@ from slamkit.pipeline.map_merging import (
 )
 from slamkit.pipeline.map_points import refresh_points
 from slamkit.pipeline.outcomes import LoopOutcome
-from slamkit.pipeline.projection import require_pinhole_image
 from slamkit.problems import Sim3Problem
 
 log = logging.getLogger("slamkit.loop")
@@ -163,6 +164,42 @@ class _Hypothesis:
 def _pinhole(K: NDArray[np.float64], xyz_c: NDArray[np.float64]) -> NDArray[np.float64]:
     """(N, 2) px: camera-frame points (N, 3), z > 0, through the pinhole K (3, 3)."""
     return np.stack([K[0, 0] * xyz_c[:, 0] / xyz_c[:, 2] + K[0, 2], K[1, 1] * xyz_c[:, 1] / xyz_c[:, 2] + K[1, 2]], 1)
+
+
+def _image_projection(camera: Camera) -> Projection | None:
+    """The Sim3 RANSAC's projection into ``camera``'s pipeline image: None (the pinhole K) for an undistorted pinhole
+    image, else the camera's own model (a fisheye camera's raw pixels; ORB-SLAM3 Sim3Solver: mpCamera->project)."""
+    return None if camera.image_undistorted else camera.project_image
+
+
+def _project_camera(camera: Camera, xyz_c: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 2) px: camera-frame points (N, 3), z > 0, in ``camera``'s pipeline image (the pinhole K for an undistorted
+    image, else the camera's model: ORB-SLAM3 pKF->mpCamera->project)."""
+    if camera.image_undistorted:
+        return _pinhole(camera.K, xyz_c)
+    uv, _ = camera.project_image(xyz_c)
+    return np.asarray(uv, np.float64)
+
+
+def _sim3_cameras(camera_1: Camera, camera_2: Camera) -> dict[str, Any]:
+    """The camera-model fields of a Sim3Problem between keyframes seen by ``camera_1`` and ``camera_2`` (ORB-SLAM3
+    OptimizeSim3: vSim3->pCamera1 / pCamera2)."""
+    c1, c2 = problem_camera(camera_1), problem_camera(camera_2)
+    return {
+        "camera_model1": c1["camera_model"],
+        "distortion1": c1["distortion"],
+        "camera_model2": c2["camera_model"],
+        "distortion2": c2["distortion"],
+    }
+
+
+def _camera_1(features: Observations, idx: I64) -> NDArray[np.bool_]:
+    """(M,) bool: which keypoints ``idx`` (M,) are camera 1's. Loop closing's Sim3 (ORB-SLAM3 Sim3Solver and
+    OptimizeSim3 take a point's keypoint in a keyframe as get<0> of GetIndexInKeyFrame, its camera-1 keypoint, and
+    project with mpCamera) works on camera 1's keypoints of a two-camera record; all keypoints of a one-camera one."""
+    if not features.two_cameras:
+        return np.ones(idx.shape[0], bool)
+    return np.asarray(idx < features.n_left)
 
 
 @dataclass
@@ -699,8 +736,11 @@ class LoopCloser:
                     info["rejected"] = f"{pairs.shape[0]} BoW matches < {cfg.sim3_min_bow_matches}"
                     continue
                 i1, i2 = pairs[:, 0], pairs[:, 1]
-                require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
-                require_pinhole_image(cand.camera, "loop closing (Sim3 RANSAC and optimization)")
+                left = _camera_1(kf.features, i1) & _camera_1(cand.features, i2)
+                i1, i2 = i1[left], i2[left]
+                if i1.shape[0] < cfg.sim3_min_bow_matches:
+                    info["rejected"] = f"{i1.shape[0]} BoW matches in camera 1 < {cfg.sim3_min_bow_matches}"
+                    continue
                 xyz1, xyz2 = self._points_c(kf, i1), self._points_c(cand, i2)
                 loop_pids = cand.point_ids[i2].copy()
             uv1 = kf.features.uv_undist_px[i1].astype(np.float64)
@@ -721,6 +761,8 @@ class LoopCloser:
                 min_inliers=cfg.sim3_ransac_min_inliers,
                 max_iterations=cfg.sim3_ransac_max_iterations,
                 chi2=cfg.chi2.sim3_ransac,
+                project1=_image_projection(kf.camera),
+                project2=_image_projection(cand.camera),
             )
             info["ransac_inliers"] = int(ransac.inliers.sum())
             if ransac.S_12 is None:
@@ -739,6 +781,7 @@ class LoopCloser:
                 scale_factor=kf.features.scale_factor,
                 chi2=cfg.chi2.sim3,
                 fix_scale=kf.features.bf > 0.0,  # stereo/RGB-D: scale observable (ORB-SLAM2 mbFixScale)
+                **_sim3_cameras(kf.camera, cand.camera),
             )
             opt = self.optimizer.optimize_sim3(problem)
             info["optimized_inliers"] = int(opt.inliers.sum())
@@ -856,7 +899,8 @@ class LoopCloser:
                     rotation_bins=cfg.matcher.rotation_bins,
                 )
                 counts.append(int(pairs.shape[0]))
-                for f, g in pairs:
+                left = _camera_1(kf.features, pairs[:, 0]) if pairs.shape[0] else np.zeros(0, bool)
+                for f, g in pairs[left]:
                     pid = int(kf_j.point_ids[int(g)])
                     if int(f) in pooled or pid in used:
                         continue
@@ -868,8 +912,6 @@ class LoopCloser:
                 return None
             matched_id = group[int(np.argmax(counts))]
             matched = cs.get_keyframe(matched_id)
-            require_pinhole_image(kf.camera, "loop closing (Sim3 RANSAC and optimization)")
-            require_pinhole_image(matched.camera, "loop closing (Sim3 RANSAC and optimization)")
             i1 = np.array(sorted(pooled), dtype=np.int64)
             xyz1 = self._points_c(kf, i1)
             T_m_w = matched.T_c_w.copy()
@@ -882,7 +924,7 @@ class LoopCloser:
         i1, xyz1, xyz2, level2 = i1[front], xyz1[front], xyz2[front], level2[front]
         K1, K2 = kf.camera.K, matched.camera.K
         uv1 = kf.features.uv_undist_px[i1].astype(np.float64)
-        uv2 = _pinhole(K2, xyz2)
+        uv2 = _project_camera(matched.camera, xyz2)
         sigma2_2 = np.power(matched.features.scale_factor, 2.0 * level2.astype(np.float64))
         ransac = ransac_sim3(
             xyz1,
@@ -899,6 +941,8 @@ class LoopCloser:
             min_inliers=cfg.common_regions_ransac_min_inliers,
             max_iterations=cfg.sim3_ransac_max_iterations,
             chi2=cfg.chi2.sim3_ransac,
+            project1=_image_projection(kf.camera),
+            project2=_image_projection(matched.camera),
         )
         info["ransac_inliers"] = int(ransac.inliers.sum())
         if ransac.S_12 is None:
@@ -968,14 +1012,21 @@ class LoopCloser:
         T_c_w, T_m_w = kf.T_c_w, matched.T_c_w
         xyz1 = np.stack([store.get_point(r[1]).xyz_w for r in rows]) @ T_c_w[:3, :3].T + T_c_w[:3, 3]
         xyz2 = np.stack([ms.get_point(r[2]).xyz_w for r in rows]) @ T_m_w[:3, :3].T + T_m_w[:3, 3]
-        uv2 = _pinhole(matched.camera.K, xyz2)
+        uv2 = _project_camera(matched.camera, xyz2)
         level1 = kf.features.level[feats].astype(np.int64)
         level2 = level1.copy()
         for n, (_, _, pid) in enumerate(rows):
             g = ms.get_point(pid).observations.get(matched_id)
-            if g is not None:
+            # a camera-2 keypoint is no observation here (ORB-SLAM3: get<0> of GetIndexInKeyFrame is -1)
+            if g is not None and _camera_1(matched.features, np.array([g], np.int64))[0]:
                 uv2[n] = matched.features.uv_undist_px[g]
                 level2[n] = int(matched.features.level[g])
+        seen = np.isfinite(uv2).all(axis=1)  # a fisheye model's projection can be undefined (beyond its field of view)
+        if not seen.all():
+            feats, level1, level2 = feats[seen], level1[seen], level2[seen]
+            xyz1, xyz2, uv2 = xyz1[seen], xyz2[seen], uv2[seen]
+            if feats.shape[0] < 3:
+                return None
         return Sim3Problem(
             S_12_init=S_cm.matrix(),
             xyz1_c1=xyz1,
@@ -989,6 +1040,7 @@ class LoopCloser:
             scale_factor=kf.features.scale_factor,
             chi2=self.cfg.chi2.sim3,
             fix_scale=kf.features.bf > 0.0,  # stereo/RGB-D: scale observable (ORB-SLAM2 mbFixScale)
+            **_sim3_cameras(kf.camera, matched.camera),
         )
 
     # ---- ORB-SLAM3 sec. VI: geometric verification -----------------------------------------------------

@@ -207,7 +207,8 @@ def project_window(
     """ORB-SLAM SearchByProjection(Scw): project the window's points into ``kf`` with the hypothesis S_k_w,
     keep those predicted visible, search each in a radius of ``radius_px`` x the scale of its predicted level
     among features of that level or the one below, best Hamming distance <= max_distance (ORB-SLAM: TH_LOW), each
-    feature once.
+    feature once. For a two-camera keyframe the points are projected into camera 1 through its own model and matched
+    among camera 1's keypoints only (ORB-SLAM3: pKF->mpCamera->project and GetFeaturesInArea of the left grid).
 
     window: point ids; taken: (F,) bool, features of ``kf`` not to match (None: all free).
     """
@@ -235,9 +236,12 @@ def project_window(
     if vis.size == 0:
         return WindowProjection(0, {})
     level = test.predicted_level[vis]
+    blocked = np.zeros(len(feats), bool) if taken is None else taken
+    if feats.two_cameras:
+        blocked = blocked | (feats.camera_index() != 0)
     m = match_projected(
         feats,
-        np.zeros(len(feats), bool) if taken is None else taken,
+        blocked,
         bounds,
         test.uv_px[vis],
         np.stack([points[i].descriptor for i in vis]),

@@ -189,9 +189,15 @@ def test_bundle_abort_returns_valid_partial_result(optimizer: Optimizer, checks:
 # ---- relative Sim3 ---------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("fix_scale", [False, True], ids=["free-scale", "fixed-scale"])
-def test_sim3_recovers_truth_and_flags_outliers(optimizer: Optimizer, fix_scale: bool) -> None:
+@pytest.mark.parametrize(
+    ("fix_scale", "fisheye"),
+    [(False, False), (True, False), (True, True)],
+    ids=["free-scale", "fixed-scale", "fixed-scale-fisheye"],
+)
+def test_sim3_recovers_truth_and_flags_outliers(optimizer: Optimizer, fix_scale: bool, fisheye: bool) -> None:
     problem, truth = make_sim3_problem(np.random.default_rng(31), n_matches=150, fix_scale=fix_scale)
+    if fisheye:  # both keyframes' observations raw Kannala-Brandt pixels (a fisheye rig's loop; ORB-SLAM3 pCamera1/2)
+        problem = with_kannala_brandt(problem, truth)
     result = optimizer.optimize_sim3(problem)
     s = float(np.cbrt(np.linalg.det(result.S_12[:3, :3])))
     s_true = float(np.cbrt(np.linalg.det(truth.S_12[:3, :3])))
@@ -404,9 +410,11 @@ def test_backends_agree_on_fisheye(all_optimizers: list[Optimizer]) -> None:
 
 @needs_two
 def test_backends_agree_on_sim3(all_optimizers: list[Optimizer]) -> None:
-    problem, _ = make_sim3_problem(np.random.default_rng(63), n_matches=150)
+    problem, truth = make_sim3_problem(np.random.default_rng(63), n_matches=150)
     problem.iterations_second = 30
     _pairwise([opt.optimize_sim3(problem).S_12 for opt in all_optimizers], sim3_errors)
+    fisheye = with_kannala_brandt(problem, truth)
+    _pairwise([opt.optimize_sim3(fisheye).S_12 for opt in all_optimizers], sim3_errors)
 
 
 @needs_two

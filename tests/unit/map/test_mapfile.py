@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from mapfile_atlas import FISHEYE, RecordingPlace, build_atlas, new_store
+from mapfile_atlas import FISHEYE, FISHEYE_2, RecordingPlace, build_atlas, build_rig_atlas, new_store
 from slamkit_dbow.recognizer import DbowPlaceRecognizer
 
 from slamkit.errors import ConfigError, MapFileError
@@ -62,6 +62,41 @@ def test_round_trip_is_exact(tmp_path: Path, place: DbowPlaceRecognizer) -> None
     with np.load(path, allow_pickle=False) as npz:
         assert npz["m1/kf_id"].tolist() == atlas.get(1).keyframe_ids()
     assert mapfile.read_manifest(path)["config"] == {"seed": 0, "pipeline": {"x": 1.5}}
+
+
+def test_a_rig_map_round_trips_with_its_second_camera(tmp_path: Path, place: DbowPlaceRecognizer) -> None:
+    """frontend=stereo_rig's keyframes (ORB-SLAM3 sec. I-B): camera 2's keypoints, the stereo matches, the triangulated
+    points, the second camera's model and T_c2_c1 come back exactly, in a file of schema version 2 (a reader of
+    version 1 refuses it rather than dropping the second camera); a file without them stays version 1."""
+    atlas = build_rig_atlas(place)
+    path = tmp_path / "rig.slamkit"
+    info = save_atlas(atlas, path)
+    assert info.schema_version == mapfile.RIG_SCHEMA_VERSION
+    loaded = load_atlas(path, new_store, DbowPlaceRecognizer())
+    assert_same_atlas(atlas, loaded)
+    rig = loaded.get(1)
+    for k in rig.keyframe_ids():
+        f = rig.get_keyframe(k).features
+        assert f.two_cameras and f.n_left == 40 and f.camera_2.to_dict() == FISHEYE_2.to_dict()
+    mono = loaded.get(0)
+    assert not any(mono.get_keyframe(k).features.two_cameras for k in mono.keyframe_ids())
+    # the run's cameras are reused for the second camera too
+    again = load_atlas(path, new_store, DbowPlaceRecognizer(), cameras=[FISHEYE, FISHEYE_2])
+    assert all(again.get(1).get_keyframe(k).features.camera_2 is FISHEYE_2 for k in again.get(1).keyframe_ids())
+    # a one-way stereo link is inconsistent: refused, nothing loaded
+    with zipfile.ZipFile(path) as zf:
+        members = [(n, np.load(zf.open(n), allow_pickle=False)) for n in zf.namelist() if n.endswith(".npy")]
+    broken = []
+    for name, array in members:
+        if name == "m1/feat_stereo_match.npy":
+            array = array.copy()
+            array[int(np.flatnonzero(array >= 0)[0])] = 41  # camera 1 -> another camera-2 keypoint
+        broken.append((name, array))
+    bad = tmp_path / "bad.slamkit"
+    mapfile._write(bad, mapfile.read_manifest(path), broken, mapfile.RIG_SCHEMA_VERSION)
+    refused(bad, "stereo matches do not link camera 1 and 2 both ways")
+    # without a two-camera keyframe the file stays schema version 1
+    assert save_atlas(build_atlas(place), tmp_path / "plain.slamkit").schema_version == mapfile.SCHEMA_VERSION
 
 
 def test_read_atlas_for_tools(tmp_path: Path, place: DbowPlaceRecognizer) -> None:
@@ -130,13 +165,13 @@ def test_flipped_byte(saved: Path) -> None:
 
 def test_future_schema_version(saved: Path, tmp_path: Path) -> None:
     manifest = mapfile.read_manifest(saved)
-    manifest["schema_version"] = mapfile.SCHEMA_VERSION + 1
+    manifest["schema_version"] = mapfile.RIG_SCHEMA_VERSION + 1
     with zipfile.ZipFile(saved) as zf:
         members = [(n, np.load(zf.open(n), allow_pickle=False)) for n in zf.namelist() if n.endswith(".npy")]
     future = tmp_path / "future.slamkit"
-    mapfile._write(future, manifest, members, mapfile.SCHEMA_VERSION + 1)
-    err = refused(future, "schema version 2")
-    assert "reads schema version 1" in str(err)
+    mapfile._write(future, manifest, members, mapfile.RIG_SCHEMA_VERSION + 1)
+    err = refused(future, "schema version 3")
+    assert "reads schema versions 1, 2" in str(err)
 
 
 def test_other_vocabulary(saved: Path, place: DbowPlaceRecognizer) -> None:
