@@ -248,6 +248,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             events=events,
             bad_frames=bad_frames,
             record_reference=str(cfg.runner.get("record_reference", "tracked")),
+            modelled_mapping_ms=float(cfg.runner.get("modelled_mapping_ms", 0.0)),
         )
     return runner, dataset
 
