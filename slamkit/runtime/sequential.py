@@ -50,11 +50,16 @@ class ModelledMapping:
     KITTI's 10 Hz and TUM's 30 Hz frames see the same mapping time as a camera would.
 
     busy_s: modelled local mapping time per keyframe, s (0: local mapping always idle, the runner's behaviour
-    without the model). The cost is a constant: the same for every keyframe whatever its local window, so the
-    model stays a function of the timestamps alone.
+    without the model). new_map_busy_s: the time of each of the keyframes a new map is created with (None: busy_s).
+    ORB-SLAM2/3's local mapping runs no local BA while the map holds at most two keyframes (LocalMapping::Run:
+    ``KeyFramesInMap() > 2``) and triangulates and fuses them against one neighbour, so they take a few ms where a
+    keyframe of a grown map takes 100-300 ms (ORB-SLAM3 on fr1_xyz makes a keyframe at the frame after its
+    initialisation, 0.20 s after 0.17 s). Each cost is a constant, whatever the keyframe's local window, so the model
+    stays a function of the timestamps alone.
     """
 
     busy_s: float = 0.0
+    new_map_busy_s: float | None = None
     busy_until_s: float | None = None  # sequence time local mapping finishes the keyframes made so far, s
 
     def state(self, timestamp_s: float) -> MappingState:
@@ -63,13 +68,15 @@ class ModelledMapping:
         busy = self.busy_until_s is not None and timestamp_s < self.busy_until_s
         return MappingState(idle=not busy, accepting_keyframes=True)
 
-    def keyframes_made(self, timestamp_s: float, n: int) -> None:
-        """``n`` keyframes were made at the frame captured at ``timestamp_s`` (s): local mapping works on them one
-        after the other, starting when it is done with the earlier ones."""
-        if n <= 0 or self.busy_s <= 0.0:
+    def keyframes_made(self, timestamp_s: float, n: int, new_map: bool = False) -> None:
+        """``n`` keyframes were made at the frame captured at ``timestamp_s`` (s) (new_map: the keyframes a new map
+        was created with): local mapping works on them one after the other, starting when it is done with the
+        earlier ones."""
+        each = self.new_map_busy_s if new_map and self.new_map_busy_s is not None else self.busy_s
+        if n <= 0 or each <= 0.0:
             return
         start = timestamp_s if self.busy_until_s is None else max(self.busy_until_s, timestamp_s)
-        self.busy_until_s = start + n * self.busy_s
+        self.busy_until_s = start + n * each
 
     def reset(self) -> None:
         """The map was reset or a new map started: local mapping's queue is emptied (ORB-SLAM RequestReset)."""
@@ -90,6 +97,7 @@ class SequentialRunner:
         bad_frames: str = "skip",
         record_reference: str = "tracked",
         modelled_mapping_ms: float = 0.0,
+        modelled_mapping_new_map_ms: float | None = None,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: tracking makes no keyframe).
         events: fires the plugins' lifecycle hooks (None: nobody listens). bad_frames: what to do with a frame
@@ -99,7 +107,8 @@ class SequentialRunner:
         "mapped" (the keyframe as it is after the frame's keyframes were mapped: a keyframe's own frame then carries
         the inverse of its first local BA's correction). modelled_mapping_ms: local mapping's modelled time per
         keyframe, ms of sequence time, during which monocular tracking sees local mapping busy and makes no keyframe
-        (:class:`ModelledMapping`; 0: always idle). Stereo/RGB-D frames always see it idle."""
+        (:class:`ModelledMapping`; 0: always idle); modelled_mapping_new_map_ms: the same for each of the keyframes a
+        new map is created with (None: modelled_mapping_ms). Stereo/RGB-D frames always see it idle."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -112,9 +121,14 @@ class SequentialRunner:
                 f"runner.record_reference = {record_reference!r}: expected one of {', '.join(RECORD_REFERENCES)}"
             )
         self.record_reference = record_reference
-        if not modelled_mapping_ms >= 0.0:
-            raise ConfigError(f"runner.modelled_mapping_ms = {modelled_mapping_ms!r}: expected a time >= 0 (ms)")
-        self.modelled_mapping = ModelledMapping(modelled_mapping_ms / 1e3)
+        for key, ms in (
+            ("modelled_mapping_ms", modelled_mapping_ms),
+            ("modelled_mapping_new_map_ms", modelled_mapping_new_map_ms),
+        ):
+            if ms is not None and not ms >= 0.0:
+                raise ConfigError(f"runner.{key} = {ms!r}: expected a time >= 0 (ms)")
+        new_map_s = None if modelled_mapping_new_map_ms is None else modelled_mapping_new_map_ms / 1e3
+        self.modelled_mapping = ModelledMapping(modelled_mapping_ms / 1e3, new_map_s)
         self._depth_frames = False  # the frames tracked so far carry depth (stereo/RGB-D: the model does not apply)
         self.log = RunLog()
         self.events = events
@@ -231,7 +245,7 @@ class SequentialRunner:
         frame = self.tracker.current_frame
         if frame is not None and frame.index == out.frame_index:
             self._depth_frames = frame.features.bf > 0.0
-        self.modelled_mapping.keyframes_made(data.timestamp_s, len(out.new_keyframes))
+        self.modelled_mapping.keyframes_made(data.timestamp_s, len(out.new_keyframes), out.initialized_map)
         if out.lost_decision == LostDecision.RESET_MAP:
             self.tracker.reset()
             self.modelled_mapping.reset()

@@ -60,3 +60,18 @@ def test_zero_is_always_idle_and_a_negative_time_is_refused() -> None:
     assert model.state(1.0).idle and model.state(1.01).idle
     with pytest.raises(ConfigError, match="modelled_mapping_ms"):
         SequentialRunner(None, None, None, modelled_mapping_ms=-1.0)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="modelled_mapping_new_map_ms"):
+        SequentialRunner(None, None, None, modelled_mapping_new_map_ms=float("nan"))  # type: ignore[arg-type]
+
+
+def test_a_new_maps_keyframes_can_cost_their_own_time() -> None:
+    # ORB-SLAM's local mapping runs no local BA on a new map's two keyframes: modelled_mapping_new_map_ms=0
+    model = ModelledMapping(busy_s=0.2, new_map_busy_s=0.0)
+    model.keyframes_made(0.17, 2, new_map=True)
+    assert model.state(0.20).idle  # the next frame may become a keyframe, as ORB-SLAM3's does on fr1_xyz
+    model.keyframes_made(0.20, 1)
+    assert not model.state(0.39).idle and model.state(0.41).idle
+    # None: a new map's keyframes cost the same as the others
+    model = ModelledMapping(busy_s=0.2)
+    model.keyframes_made(0.17, 2, new_map=True)
+    assert not model.state(0.56).idle and model.state(0.58).idle
