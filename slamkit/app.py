@@ -236,6 +236,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             bad_frames=bad_frames,
         )
     else:
+        new_map_ms = cfg.runner.get("modelled_mapping_new_map_ms", None)  # null: runner.modelled_mapping_ms
         runner = SequentialRunner(
             tracker,
             mapper,
@@ -245,6 +246,8 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             events=events,
             bad_frames=bad_frames,
             record_reference=str(cfg.runner.get("record_reference", "tracked")),
+            modelled_mapping_ms=float(cfg.runner.get("modelled_mapping_ms", 0.0)),
+            modelled_mapping_new_map_ms=None if new_map_ms is None else float(new_map_ms),
         )
     return runner, dataset
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +35,54 @@ log = logging.getLogger("slamkit.runner")
 RECORD_REFERENCES = ("tracked", "mapped")  # runner.record_reference (SequentialRunner)
 
 
+@dataclass
+class ModelledMapping:
+    """A deterministic model of a busy local mapping thread for the sequential runner (``runner.modelled_mapping_ms``).
+
+    The sequential runner maps every keyframe to completion before the next frame, so local mapping is always idle
+    when a frame is tracked and ORB-SLAM's keyframe condition c1b ("local mapping is idle", mMinFrames = 0) holds at
+    every frame. A real camera does not wait: ORB-SLAM2/3's local mapping takes about 100-300 ms per keyframe, and
+    its monocular tracking makes no keyframe while it is busy (Tracking::NeedNewKeyFrame: ``!bLocalMappingIdle`` ->
+    InterruptBA, monocular returns false). This model gives tracking that state without any clock: each keyframe
+    made at a frame of timestamp t (s) keeps local mapping busy for ``busy_s`` of sequence time, queued behind the
+    keyframes before it (a new map's two keyframes: twice as long), and a frame is tracked with
+    ``MappingState(idle=False)`` while its timestamp is before the end of that work. Timestamps, not frame counts:
+    KITTI's 10 Hz and TUM's 30 Hz frames see the same mapping time as a camera would.
+
+    busy_s: modelled local mapping time per keyframe, s (0: local mapping always idle, the runner's behaviour
+    without the model). new_map_busy_s: the time of each of the keyframes a new map is created with (None: busy_s).
+    ORB-SLAM2/3's local mapping runs no local BA while the map holds at most two keyframes (LocalMapping::Run:
+    ``KeyFramesInMap() > 2``) and triangulates and fuses them against one neighbour, so they take a few ms where a
+    keyframe of a grown map takes 100-300 ms (ORB-SLAM3 on fr1_xyz makes a keyframe at the frame after its
+    initialisation, 0.20 s after 0.17 s). Each cost is a constant, whatever the keyframe's local window, so the model
+    stays a function of the timestamps alone.
+    """
+
+    busy_s: float = 0.0
+    new_map_busy_s: float | None = None
+    busy_until_s: float | None = None  # sequence time local mapping finishes the keyframes made so far, s
+
+    def state(self, timestamp_s: float) -> MappingState:
+        """Local mapping's state for a frame captured at ``timestamp_s`` (s): busy while the modelled work of the
+        keyframes made so far is not done (``timestamp_s < busy_until_s``)."""
+        busy = self.busy_until_s is not None and timestamp_s < self.busy_until_s
+        return MappingState(idle=not busy, accepting_keyframes=True)
+
+    def keyframes_made(self, timestamp_s: float, n: int, new_map: bool = False) -> None:
+        """``n`` keyframes were made at the frame captured at ``timestamp_s`` (s) (new_map: the keyframes a new map
+        was created with): local mapping works on them one after the other, starting when it is done with the
+        earlier ones."""
+        each = self.new_map_busy_s if new_map and self.new_map_busy_s is not None else self.busy_s
+        if n <= 0 or each <= 0.0:
+            return
+        start = timestamp_s if self.busy_until_s is None else max(self.busy_until_s, timestamp_s)
+        self.busy_until_s = start + n * each
+
+    def reset(self) -> None:
+        """The map was reset or a new map started: local mapping's queue is emptied (ORB-SLAM RequestReset)."""
+        self.busy_until_s = None
+
+
 class SequentialRunner:
     """Runs a dataset through tracking and local mapping, one frame at a time."""
 
@@ -47,6 +96,8 @@ class SequentialRunner:
         events: EventDispatcher | None = None,
         bad_frames: str = "skip",
         record_reference: str = "tracked",
+        modelled_mapping_ms: float = 0.0,
+        modelled_mapping_new_map_ms: float | None = None,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: tracking makes no keyframe).
         events: fires the plugins' lifecycle hooks (None: nobody listens). bad_frames: what to do with a frame
@@ -54,7 +105,10 @@ class SequentialRunner:
         record_reference: the reference keyframe pose a frame's pose is recorded against (its T_c_r), "tracked"
         (the pose tracking read, ORB-SLAM2/3 Tracking::Track's mlRelativeFramePoses and the threaded runner) or
         "mapped" (the keyframe as it is after the frame's keyframes were mapped: a keyframe's own frame then carries
-        the inverse of its first local BA's correction)."""
+        the inverse of its first local BA's correction). modelled_mapping_ms: local mapping's modelled time per
+        keyframe, ms of sequence time, during which monocular tracking sees local mapping busy and makes no keyframe
+        (:class:`ModelledMapping`; 0: always idle); modelled_mapping_new_map_ms: the same for each of the keyframes a
+        new map is created with (None: modelled_mapping_ms). Stereo/RGB-D frames always see it idle."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -67,6 +121,15 @@ class SequentialRunner:
                 f"runner.record_reference = {record_reference!r}: expected one of {', '.join(RECORD_REFERENCES)}"
             )
         self.record_reference = record_reference
+        for key, ms in (
+            ("modelled_mapping_ms", modelled_mapping_ms),
+            ("modelled_mapping_new_map_ms", modelled_mapping_new_map_ms),
+        ):
+            if ms is not None and not ms >= 0.0:
+                raise ConfigError(f"runner.{key} = {ms!r}: expected a time >= 0 (ms)")
+        new_map_s = None if modelled_mapping_new_map_ms is None else modelled_mapping_new_map_ms / 1e3
+        self.modelled_mapping = ModelledMapping(modelled_mapping_ms / 1e3, new_map_s)
+        self._depth_frames = False  # the frames tracked so far carry depth (stereo/RGB-D: the model does not apply)
         self.log = RunLog()
         self.events = events
         self._run_events = RunEvents(None, "sequential", atlas)
@@ -149,6 +212,7 @@ class SequentialRunner:
         self._run_events.started(dataset, run_dir, config, threaded=False)
         self._first_t = None
         self._start = time.perf_counter()
+        self.modelled_mapping.reset()
 
     def end(self, ended_by: BaseException | None = None) -> RunLog:
         """End the run ``begin`` started (ended_by: the exception that ended it, None when it completed): record
@@ -166,17 +230,28 @@ class SequentialRunner:
         returns what tracking did with it (also appended to ``self.log.tracking``). The one per-frame step of
         ``run`` and of slamkit.api.System.track.
 
-        Local mapping is always idle when a frame is tracked here (it runs to completion in between), so every
-        keyframe tracking wants is made. A map reset or a new map tracking asks for is carried out right after the
-        frame."""
+        Local mapping runs to completion in between frames, so it is idle when a frame is tracked and every
+        keyframe tracking wants is made — unless ``runner.modelled_mapping_ms`` > 0: then a monocular frame
+        captured within that time of a keyframe sees local mapping busy (:class:`ModelledMapping`) and tracking
+        makes no keyframe from it (ORB-SLAM's monocular NeedNewKeyFrame). A map reset or a new map tracking asks for
+        is carried out right after the frame."""
         self._first_t = data.timestamp_s if self._first_t is None else self._first_t
         self.log.sequence_s = data.timestamp_s - self._first_t
         map_before = self.atlas.active_id
-        out = self.tracker.step(data, camera, MappingState(idle=True, accepting_keyframes=True))
+        mapping = MappingState(idle=True, accepting_keyframes=True)
+        if not self._depth_frames:
+            mapping = self.modelled_mapping.state(data.timestamp_s)
+        out = self.tracker.step(data, camera, mapping)
+        frame = self.tracker.current_frame
+        if frame is not None and frame.index == out.frame_index:
+            self._depth_frames = frame.features.bf > 0.0
+        self.modelled_mapping.keyframes_made(data.timestamp_s, len(out.new_keyframes), out.initialized_map)
         if out.lost_decision == LostDecision.RESET_MAP:
             self.tracker.reset()
+            self.modelled_mapping.reset()
         elif out.lost_decision == LostDecision.NEW_MAP:
             self.tracker.start_new_map()
+            self.modelled_mapping.reset()
         map_change = self.atlas.change_since(map_before)  # reset, or a new map with the old one kept
         map_was_reset = map_change == MapChange.RESET
         log_tracking_outcome(self.log, self.recorder, out, map_change)
