@@ -122,8 +122,9 @@ def save_atlas(
     config that built the map (JSON-able), kept in the manifest; ``frames``: map id -> the frames of the sessions
     that built it (a runner's ``map_frames()``; None or a map missing: none), each relative to a keyframe of that
     map (a frame whose reference keyframe is not in the map when it is read is left out). Each map is read under its
-    read lock. Returns what was written. MapFileError (naming the file) when the path cannot be written or the map holds something the
-    format cannot keep (a camera model without ``to_dict``); the previous file at ``path``, if any, is untouched."""
+    read lock. Returns what was written. MapFileError (naming the file) when the path cannot be written or the map
+    holds something the format cannot keep (a camera model without ``to_dict``); the previous file at ``path``, if
+    any, is untouched."""
     target = Path(path)
     cameras: list[dict[str, Any]] = []
     camera_index: dict[str, int] = {}

@@ -61,7 +61,7 @@ class SequentialRunner:
         self.atlas = atlas
         self.recorder = TrajectoryRecorder()
         #: the frames of the Atlas's maps the recorder does not hold (earlier sessions', other maps'): map_frames()
-        self.kept_frames = KeptFrames(atlas.loaded_frames)
+        self.kept_frames = KeptFrames(getattr(atlas, "loaded_frames", None) or {})
         self.progress = progress
         self.bad_frames = check_bad_frames_policy(bad_frames)
         if record_reference not in RECORD_REFERENCES:

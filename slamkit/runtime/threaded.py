@@ -111,7 +111,7 @@ class ThreadedRunner:
         self.atlas = atlas
         self.recorder = TrajectoryRecorder()
         #: the frames of the Atlas's maps the recorder does not hold (earlier sessions', other maps'): map_frames()
-        self.kept_frames = KeptFrames(atlas.loaded_frames)
+        self.kept_frames = KeptFrames(getattr(atlas, "loaded_frames", None) or {})
         self.progress = progress
         self.realtime = realtime
         self.speed = speed

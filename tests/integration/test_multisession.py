@@ -129,8 +129,8 @@ def test_the_room_in_two_sessions_merges_into_the_first_sessions_frame(
     file kept, so the second run's trajectory.tum holds both sessions' frames in the first run's frame (one Sim3
     alignment: centimetres, where separate frames would be off by metres), and the map saved after it holds both
     sessions' keyframes and frames. Measured (docs/BENCHMARKS.md, "Multi-session: the sessions' frames in the map
-    file"): 1.36 cm sequential, 1.35-1.36 cm threaded (1.66x the single run), as the two sessions are welded at one end of
-    the room only; issue 17's 1.5x is met by the default start (the test below)."""
+    file"): 1.36 cm sequential, 1.35-1.36 cm threaded (1.66x the single run), as the two sessions are welded at one
+    end of the room only; issue 17's 1.5x is met by the default start (the test below)."""
     first, first_dir = first_half
     saved = tmp_path / "both.slamkit"
     runner, dataset = _second_session(first, HALF, "new_map", runner_name, tmp_path / "second", saved)
