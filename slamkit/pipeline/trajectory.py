@@ -177,7 +177,12 @@ class TrajectoryRecorder:
             poses.append(invert_T(rec.T_c_r @ T_r_w))
         if not poses:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        return Trajectory(np.array(t), np.stack(poses))
+        times, T_w_c = np.array(t), np.stack(poses)
+        if loaded and any(rec.loaded for rec in self._records):
+            # this run's frames come after the loaded ones in the list, and two sessions' times may overlap: time order
+            order = np.argsort(times, kind="stable")
+            times, T_w_c = times[order], T_w_c[order]
+        return Trajectory(times, T_w_c)
 
     @staticmethod
     def keyframes(store: MapStore) -> Trajectory:

@@ -58,8 +58,11 @@ def test_loaded_frames_join_in_time_order_and_can_be_left_out() -> None:
     traj = later.frames_at({1: np.eye(4)})
     assert traj.t_s.tolist() == [0.0, 1.0, 2.0, 5.0]
     assert later.frames_at({1: np.eye(4)}, loaded=False).t_s.tolist() == [5.0]
+    # a session whose times overlap the loaded ones (the same ground again): its frames come out in time order
+    later.record_relative(11, 0.5, 1, _T(-3.5))
+    assert later.frames_at({1: np.eye(4)}).t_s.tolist() == [0.0, 0.5, 1.0, 2.0, 5.0]
     # exported again (a third session's map file): every frame, loaded ones included
-    assert later.export([1]).t_s.tolist() == [0.0, 1.0, 2.0, 5.0]
+    assert sorted(later.export([1]).t_s.tolist()) == [0.0, 0.5, 1.0, 2.0, 5.0]
 
 
 def test_kept_frames_follow_new_maps_merges_and_resets() -> None:
