@@ -335,8 +335,9 @@ class System:
         """Write every map of the Atlas to ``path`` (slamkit's map file: docs/atlas.md, "Saved maps"), atomically,
         with this run's config; ``slamkit run map.load=PATH`` (or ``open_system(["map.load=PATH"])``) reads it back.
         Works during the run (each map is read under its read lock) and after ``close``. Returns what was written;
-        MapFileError naming the file when it cannot be written."""
-        return save_atlas(self.atlas, path, self.config)
+        MapFileError naming the file when it cannot be written. The file keeps every map's frames too (this run's
+        and the earlier sessions' of a loaded map), for a later session's trajectory."""
+        return save_atlas(self.atlas, path, self.config, self.runner.map_frames())
 
     # ---- internals --------------------------------------------------------------------------------
 

@@ -176,6 +176,9 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
         raise ConfigError(
             f"mode=localization: the active map of map.load={map_node.get('load')} has no keyframe to localize against"
         )
+    if localization:
+        # a localization run's trajectory is its own pass, not a session of the map (docs/atlas.md, "Multi-session")
+        atlas.loaded_frames = {}
     init_extractor = None
     factor = pipeline.tracking.init_feature_factor
     if factor != 1 and "n_features" in cfg.features:
@@ -366,7 +369,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
     try:
         # the outputs plugin writes the run directory when the run finishes, also when it fails; map.save=FILE
         # writes the Atlas then too (slamkit/map/mapfile_run.py)
-        with mapfile_run.saving_map(cfg.map, system.atlas, out_dir, system.config):
+        with mapfile_run.saving_map(cfg.map, system.atlas, out_dir, system.config, system.runner.map_frames):
             system.run_dataset()
     except BaseException as exc:
         error = "".join(traceback.format_exception_only(type(exc), exc)).strip()

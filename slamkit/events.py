@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.interfaces import MapStore
-from slamkit.sensors import Trajectory
+from slamkit.sensors import FrameRecords, Trajectory
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -38,6 +38,9 @@ class RunStarted:
     notebook driving the runner). config: the run's composed config, resolved, as plain containers (empty when
     the caller gave none). ground_truth: the dataset's ground-truth trajectory (T_w_c per timestamp), if any.
     K: (3, 3) the (left) camera's pinhole intrinsics, px, and image_size (width, height) px — None when unknown.
+    loaded_frames: map id -> the frames of earlier sessions a loaded map file kept for that map (``map.load``;
+    docs/atlas.md, "Multi-session"), each relative to a keyframe of the map: a recorder of the run's trajectory
+    starts from them, so it holds every session's frames against the keyframes as this run leaves them.
     """
 
     run_id: int
@@ -49,6 +52,7 @@ class RunStarted:
     ground_truth: Trajectory | None = None
     K: F64 | None = None
     image_size: tuple[int, int] | None = None
+    loaded_frames: Mapping[int, FrameRecords] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -88,3 +88,37 @@ class Trajectory:
     def positions_m(self) -> F64:
         """(N, 3) m: the camera centres in the world frame (translation of T_w_c)."""
         return self.T_w_c[:, :3, 3]
+
+
+@dataclass(frozen=True)
+class FrameRecords:
+    """A map's frames as ORB-SLAM records its trajectory (System::SaveTrajectoryTUM: mlRelativeFramePoses,
+    mlpReferences, mlFrameTimes): each frame as its reference keyframe and its pose relative to it, so the frames
+    follow every later correction of the keyframes. What a map file keeps of a session's frames (docs/atlas.md,
+    "Multi-session") and what a later session's trajectory recorders start from.
+
+    t_s: (N,) s, the frames' timestamps, non-decreasing. frame_index: (N,) int64, each frame's index in its session.
+    ref_kf_id: (N,) int64, the reference keyframe of each frame (a keyframe of the map). T_c_r: (N, 4, 4) float64,
+    the frame's pose relative to it, T_c_w @ T_w_r (a monocular map's translation in the map's scale).
+    """
+
+    t_s: F64
+    frame_index: NDArray[np.int64]
+    ref_kf_id: NDArray[np.int64]
+    T_c_r: F64
+
+    def __post_init__(self) -> None:
+        n = self.t_s.shape[0] if self.t_s.ndim == 1 else -1
+        if n < 0 or self.frame_index.shape != (n,) or self.ref_kf_id.shape != (n,) or self.T_c_r.shape != (n, 4, 4):
+            raise ValueError(
+                f"FrameRecords expects t_s (N,), frame_index (N,), ref_kf_id (N,), T_c_r (N, 4, 4); got "
+                f"{self.t_s.shape}, {self.frame_index.shape}, {self.ref_kf_id.shape}, {self.T_c_r.shape}"
+            )
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    @staticmethod
+    def empty() -> FrameRecords:
+        """No frame."""
+        return FrameRecords(np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)))

@@ -14,6 +14,7 @@ from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.ids import IdAllocator
 from slamkit.map.store import InMemoryMapStore
+from slamkit.sensors import FrameRecords
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0, dist=(0.01, -0.002, 0.0, 0.0, 0.0))
 FISHEYE = KannalaBrandtCamera(640, 480, 300.0, 300.0, 320.0, 240.0, k=(0.01, 0.0, 0.0, 0.0))
@@ -161,6 +162,32 @@ def build_rig_atlas(place: DbowPlaceRecognizer, seed: int = 0) -> Atlas:
     atlas.create_map()
     fill_map(atlas, rng, 6, FISHEYE, stereo="rig")
     return atlas
+
+
+def build_frames(atlas: Atlas, seed: int = 0, per_map: int = 12) -> dict[int, FrameRecords]:
+    """map id -> ``per_map`` frames of a session (increasing timestamps, each relative to a keyframe of that map by a
+    rigid pose): what a runner's ``map_frames()`` gives a map file."""
+    rng = np.random.default_rng(seed)
+    out: dict[int, FrameRecords] = {}
+    for map_id, store in atlas.items():
+        kf_ids = np.array(store.keyframe_ids(), np.int64)
+        T = np.tile(np.eye(4), (per_map, 1, 1))
+        for i in range(per_map):
+            q = rng.normal(size=4)
+            w, x, y, z = q / np.linalg.norm(q)
+            T[i, :3, :3] = [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            ]
+            T[i, :3, 3] = rng.normal(scale=0.2, size=3)
+        out[map_id] = FrameRecords(
+            np.cumsum(rng.uniform(0.01, 0.1, per_map)) + 10.0 * map_id,
+            np.arange(per_map, dtype=np.int64),
+            rng.choice(kf_ids, per_map),
+            T,
+        )
+    return out
 
 
 class RecordingPlace(DbowPlaceRecognizer):

@@ -6,7 +6,10 @@ the run's account from its events (slamkit/eval/run_record.py) and, at ``slamkit
 failure or Ctrl-C: a run that fails late keeps what it has), writes:
 
 - trajectory.tum: every frame with an estimated pose, T_w_c (TUM: t x y z qx qy qz qw), in the run's main map:
-  the map of the Atlas with the most keyframes (ORB-SLAM3 SaveTrajectoryEuRoC), the only one in most runs;
+  the map of the Atlas with the most keyframes (ORB-SLAM3 SaveTrajectoryEuRoC), the only one in most runs; in a
+  run on a loaded map file (``map.load``, multi-session) with the frames of the earlier sessions the file kept for
+  that map too, in timestamp order, all placed against the keyframes as this run leaves them (one trajectory in one
+  frame); metrics.json's frame counts and ATE are of this run's frames;
 - keyframes.tum: that map's keyframes;
 - maps/<id>/trajectory.tum, maps/<id>/keyframes.tum, maps/<id>/frames.csv: the same for each map of the Atlas
   (frames.csv: the frames tracking handled while that map was active);
@@ -133,9 +136,11 @@ def write_outputs(out_dir: Path, record: RunRecord) -> dict[str, Any]:
     if finished is None:
         raise ValueError("write_outputs: the run has not finished (no slamkit_run_finished event)")
     out_dir.mkdir(parents=True, exist_ok=True)
-    frames = record.frames()
+    # the map's trajectory: with the earlier sessions' frames a loaded map file kept (map.load); the metrics and the
+    # plot are this run's frames (its ground truth, its frame counts)
+    frames = record.frames(loaded=False)
     keyframes = record.keyframes()
-    write_trajectory(out_dir / "trajectory.tum", frames, "tum")
+    write_trajectory(out_dir / "trajectory.tum", record.frames(), "tum")
     write_trajectory(out_dir / "keyframes.tum", keyframes, "tum")
     (out_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(dict(started.config))))
     gt = started.ground_truth
@@ -144,8 +149,8 @@ def write_outputs(out_dir: Path, record: RunRecord) -> dict[str, Any]:
     for snap in record.maps:
         map_dir = out_dir / "maps" / str(snap.map_id)
         map_dir.mkdir(parents=True, exist_ok=True)
-        map_frames, map_keyframes = record.frames(snap), record.keyframes(snap)
-        write_trajectory(map_dir / "trajectory.tum", map_frames, "tum")
+        map_frames, map_keyframes = record.frames(snap, loaded=False), record.keyframes(snap)
+        write_trajectory(map_dir / "trajectory.tum", record.frames(snap), "tum")
         write_trajectory(map_dir / "keyframes.tum", map_keyframes, "tum")
         _write_frames_csv(map_dir / "frames.csv", [o for o in record.tracking if o.map_id == snap.map_id])
         metrics["maps"].append(map_metrics(snap, map_frames, map_keyframes, gt))

@@ -5,7 +5,9 @@ closing processed) and the trajectory the way ORB-SLAM records it (each frame re
 resolved against the keyframes' final poses at the end), so :func:`slamkit.eval.run_metrics.run_metrics` gives the
 same numbers from either. Frames are recorded per map of the Atlas (``FrameTracked.map_id``): each map has its own
 trajectory, and the run's main trajectory is that of the map with the most keyframes (ORB-SLAM3
-System::SaveTrajectoryEuRoC writes the biggest map's).
+System::SaveTrajectoryEuRoC writes the biggest map's). A run on a loaded map file starts each map's trajectory from
+the frames the file kept for it (earlier sessions: ``RunStarted.loaded_frames``), so a map's trajectory holds every
+session's frames, placed against the keyframes as this run leaves them.
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ class RunRecord:
         self.merges: list[MapsMerged] = []
         self.finished: RunFinished | None = None
         self._trajectories: dict[int, TrajectoryRecorder] = {}  # map id -> that map's frames
+        for map_id, records in started.loaded_frames.items():  # earlier sessions' frames (map.load): theirs too
+            self._trajectory(map_id).load(records)
 
     def _trajectory(self, map_id: int) -> TrajectoryRecorder:
         recorder = self._trajectories.get(map_id)
@@ -158,10 +162,11 @@ class RunRecord:
 
     # ---- trajectories ----------------------------------------------------------------------------
 
-    def frames(self, snapshot: MapSnapshot | None = None) -> Trajectory:
-        """Every frame recorded in a map (default: the main map), T_w_c against its keyframes' final poses."""
+    def frames(self, snapshot: MapSnapshot | None = None, loaded: bool = True) -> Trajectory:
+        """Every frame recorded in a map (default: the main map), T_w_c against its keyframes' final poses; loaded:
+        with the frames of earlier sessions a loaded map file kept for it (False: this run's frames only)."""
         snap = self.main_map if snapshot is None else snapshot
-        return self._trajectory(snap.map_id).frames_at(snap.keyframe_poses())
+        return self._trajectory(snap.map_id).frames_at(snap.keyframe_poses(), loaded)
 
     def keyframes(self, snapshot: MapSnapshot | None = None) -> Trajectory:
         """A map's keyframes (default: the main map's), T_w_c in time order."""

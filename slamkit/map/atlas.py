@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 from slamkit.errors import ConfigError, SlamkitError
 from slamkit.interfaces import MapStore, PlaceRecognizer
 from slamkit.map.ids import IdAllocator
+from slamkit.sensors import FrameRecords
 
 if TYPE_CHECKING:
     from slamkit.map.mapfile_contents import MapContents
@@ -66,6 +67,10 @@ class Atlas:
         self._maps: dict[int, MapStore] = {}
         self._next_map_id = 0
         self._active_id = self._add(first if first is not None else self._build())
+        #: map id -> the frames of earlier sessions a map file kept for that map (slamkit/map/mapfile.py; empty for
+        #: an Atlas not loaded from a file): the runners' trajectory recorders start from them (docs/atlas.md,
+        #: "Multi-session"). As loaded: nothing updates it during a run.
+        self.loaded_frames: dict[int, FrameRecords] = {}
 
     @classmethod
     def of(cls, store: MapStore, place: PlaceRecognizer | None = None) -> Atlas:
@@ -106,6 +111,7 @@ class Atlas:
             atlas._maps[map_id] = store
         atlas._next_map_id = next_map_id
         atlas._active_id = active_id
+        atlas.loaded_frames = {}
         if place is not None:
             for _, contents in sorted(maps, key=lambda mc: mc[0]):
                 for kf in contents.keyframes:

@@ -28,6 +28,12 @@ Members:
   ORB-SLAM3 mTrl; identity for none); per feature ``feat_stereo_match`` (the other camera's keypoint of its stereo
   match, -1 for none) and ``feat_xyz_c1`` (F, 3) (the triangulated point in camera 1, NaN elsewhere). A file without
   a two-camera keyframe is written as version 1, as before, and both versions are read.
+- ``m{map_id}/fr_*.npy`` per map, optional (files written before them have none, and load with no frames): the
+  frames of the sessions that built the map, as ORB-SLAM records a trajectory (System::SaveTrajectoryTUM): ``fr_t_s``
+  (N,) timestamps s, ``fr_frame_index`` (N,), ``fr_ref_kf`` (N,) each frame's reference keyframe, a keyframe of the
+  map (a culled reference was resolved to a surviving one when the file was written), ``fr_T_c_r`` (N, 4, 4) the
+  frame's pose relative to it; the manifest's map entry gives their count (``frames``). A later session's
+  trajectory holds them, placed against the keyframes as it leaves them (docs/atlas.md, "Multi-session").
 
 Integrity: the zip comment, the file's last 89 bytes, is ``slamkit-map v0001 sha256=`` and the hex sha256 of every
 byte before the 64 hex digits. A reader checks the comment (absent: truncated or not a map file), the schema version
@@ -64,9 +70,11 @@ from slamkit.map.atlas import Atlas, StoreFactory
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.ids import IdAllocator
 from slamkit.map.mapfile_contents import MapContents
+from slamkit.sensors import FrameRecords
 
 #: The layout this code writes for a map without a two-camera keyframe (a change to the members or their meaning
-#: bumps it).
+#: bumps it; the optional ``fr_*`` members were added without a bump: files without them load with no frames, and a
+#: reader without them ignores them).
 SCHEMA_VERSION = 1
 #: The layout of a file holding a non-rectified rig's keyframes: version 1 plus the rig members (module docstring), so
 #: that a reader that knows version 1 only refuses it rather than losing the second camera.
@@ -88,7 +96,8 @@ _CHUNK = 1 << 20
 @dataclass(frozen=True)
 class MapFileInfo:
     """What ``slamkit map info`` prints: path, size_bytes, schema_version, slamkit_version, created_utc, sha256,
-    vocabulary (identity or None), active_map_id, and per map (id, keyframes, points)."""
+    vocabulary (identity or None), active_map_id, per map (id, keyframes, points), and n_frames: the sessions' frames
+    the file keeps (0 for a file written before it kept frames)."""
 
     path: Path
     size_bytes: int
@@ -99,6 +108,7 @@ class MapFileInfo:
     vocabulary: dict[str, Any] | None
     active_map_id: int
     maps: tuple[tuple[int, int, int], ...]
+    n_frames: int = 0
 
     @property
     def n_keyframes(self) -> int:
@@ -112,11 +122,19 @@ class MapFileInfo:
 # ---- saving ------------------------------------------------------------------------------------------------------
 
 
-def save_atlas(atlas: Atlas, path: str | os.PathLike[str], config: Mapping[str, Any] | None = None) -> MapFileInfo:
+def save_atlas(
+    atlas: Atlas,
+    path: str | os.PathLike[str],
+    config: Mapping[str, Any] | None = None,
+    frames: Mapping[int, FrameRecords] | None = None,
+) -> MapFileInfo:
     """Write every map of ``atlas`` to ``path`` atomically (see the module docstring); ``config``: the resolved
-    config that built the map (JSON-able), kept in the manifest. Each map is read under its read lock. Returns what
-    was written. MapFileError (naming the file) when the path cannot be written or the map holds something the
-    format cannot keep (a camera model without ``to_dict``); the previous file at ``path``, if any, is untouched."""
+    config that built the map (JSON-able), kept in the manifest; ``frames``: map id -> the frames of the sessions
+    that built it (a runner's ``map_frames()``; None or a map missing: none), each relative to a keyframe of that
+    map (a frame whose reference keyframe is not in the map when it is read is left out). Each map is read under its
+    read lock. Returns what was written. MapFileError (naming the file) when the path cannot be written or the map
+    holds something the format cannot keep (a camera model without ``to_dict``); the previous file at ``path``, if
+    any, is untouched."""
     target = Path(path)
     cameras: list[dict[str, Any]] = []
     camera_index: dict[str, int] = {}
@@ -128,6 +146,8 @@ def save_atlas(atlas: Atlas, path: str | os.PathLike[str], config: Mapping[str, 
             with store.read():  # the arrays are copies: the map may change again once they are made
                 arrays, meta = _map_arrays(store, lambda cam: _camera_id(cam, cameras, camera_index, target))
                 rig = _rig_arrays(store, lambda cam: _camera_id(cam, cameras, camera_index, target))
+                arrays.update(_frame_arrays((frames or {}).get(map_id), arrays["kf_id"]))
+                meta["frames"] = int(arrays["fr_t_s"].shape[0])
         except ValueError as exc:
             raise MapFileError(f"map file {target}: map {map_id} cannot be saved ({exc})") from None
         maps_meta.append({"id": map_id, **meta})
@@ -402,6 +422,20 @@ def _rig_arrays(store: MapStore, camera_id: Callable[[Camera], int]) -> dict[str
         "kf_T_c2_c1": T_c2_c1.reshape(K, 4, 4),
         "feat_stereo_match": np.concatenate(matches) if matches else np.zeros(0, np.int64),
         "feat_xyz_c1": np.concatenate(xyz) if xyz else np.zeros((0, 3)),
+    }
+
+
+def _frame_arrays(records: FrameRecords | None, kf_ids: NDArray[np.int64]) -> dict[str, NDArray[Any]]:
+    """The ``fr_*`` members of one map: ``records`` without the frames whose reference keyframe is not one of the
+    map's ``kf_ids`` (None: no frame)."""
+    if records is None:
+        records = FrameRecords.empty()
+    keep = np.isin(records.ref_kf_id, kf_ids)
+    return {
+        "fr_t_s": np.asarray(records.t_s, np.float64)[keep],
+        "fr_frame_index": np.asarray(records.frame_index, np.int64)[keep],
+        "fr_ref_kf": np.asarray(records.ref_kf_id, np.int64)[keep],
+        "fr_T_c_r": np.asarray(records.T_c_r, np.float64)[keep].reshape(-1, 4, 4),
     }
 
 
@@ -687,6 +721,29 @@ def _read_rig(
     return out
 
 
+def _read_frames(reader: _Reader, meta: Mapping[str, Any], contents: MapContents) -> FrameRecords | None:
+    """A map's ``fr_*`` members (None when the manifest lists no frames for it: a file written before they were
+    kept), checked: finite timestamps and rigid-looking relative poses, every reference a keyframe of the map."""
+    if "frames" not in meta:
+        return None
+    m, n = int(meta["id"]), int(meta["frames"])
+    if n < 0:
+        raise reader.error(f"map {m}: {n} frames")
+    t_s = reader.array(m, "fr_t_s", np.float64, (), n)
+    index = reader.array(m, "fr_frame_index", np.int64, (), n)
+    ref = reader.array(m, "fr_ref_kf", np.int64, (), n)
+    T_c_r = reader.array(m, "fr_T_c_r", np.float64, (4, 4), n)
+    if not (np.all(np.isfinite(t_s)) and np.all(np.isfinite(T_c_r))):
+        raise reader.error(f"map {m}: a frame's timestamp or pose is not finite")
+    if n and not np.array_equal(T_c_r[:, 3, :], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (n, 4))):
+        raise reader.error(f"map {m}: a frame's relative pose is not a 4x4 rigid transform (last row)")
+    kf_ids = np.array([kf.id for kf in contents.keyframes], np.int64)
+    if not np.all(np.isin(ref, kf_ids)):
+        bad = int(ref[~np.isin(ref, kf_ids)][0])
+        raise reader.error(f"map {m}: a frame's reference keyframe {bad} is not a keyframe of the map")
+    return FrameRecords(np.array(t_s), np.array(index), np.array(ref), np.array(T_c_r))
+
+
 def _cameras(reader: _Reader, reuse: Sequence[Camera]) -> list[Camera]:
     """The manifest's cameras; one whose parameters equal a camera of ``reuse`` (the run's) is that object."""
     known = {}
@@ -750,10 +807,17 @@ def _load(reader: _Reader, new_store: StoreFactory, place: PlaceRecognizer | Non
         atlas_meta = manifest["atlas"]
         cams = _cameras(reader, cameras)
         maps = [(int(meta["id"]), _read_map(reader, meta, cams)) for meta in manifest["maps"]]
+        frames = {
+            map_id: records
+            for meta, (map_id, contents) in zip(manifest["maps"], maps, strict=True)
+            if (records := _read_frames(reader, meta, contents)) is not None
+        }
         ids = IdAllocator(int(atlas_meta["next_keyframe_id"]), int(atlas_meta["next_point_id"]))
-        return Atlas.restore(
+        atlas = Atlas.restore(
             new_store, place, ids, maps, int(atlas_meta["active_map_id"]), int(atlas_meta["next_map_id"])
         )
+        atlas.loaded_frames = frames
+        return atlas
     except MapFileError:
         raise
     except (KeyError, TypeError, ValueError, IndexError) as exc:
@@ -807,6 +871,7 @@ def _info(path: Path, size: int, sha256: str, manifest: Mapping[str, Any]) -> Ma
             vocabulary=manifest.get("vocabulary"),
             active_map_id=int(manifest["atlas"]["active_map_id"]),
             maps=tuple((int(m["id"]), int(m["keyframes"]), int(m["points"])) for m in manifest["maps"]),
+            n_frames=sum(int(m.get("frames", 0)) for m in manifest["maps"]),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise MapFileError(f"map file {path}: malformed manifest ({type(exc).__name__}: {exc})") from None

@@ -36,6 +36,7 @@ def _info_command(args: argparse.Namespace) -> int:
             "maps": [{"id": m, "keyframes": k, "points": p} for m, k, p in info.maps],
             "keyframes": info.n_keyframes,
             "points": info.n_points,
+            "frames": info.n_frames,
         }
         print(json.dumps(out, indent=2))
         return 0
@@ -52,4 +53,5 @@ def _info_command(args: argparse.Namespace) -> int:
     for map_id, n_kfs, n_points in info.maps:
         active = "  (active)" if map_id == info.active_map_id else ""
         print(f"  map {map_id:<4} {n_kfs:>6} keyframes {n_points:>8} points{active}")
+    print(f"frames          {info.n_frames} (the sessions' trajectory, each frame relative to a keyframe)")
     return 0

@@ -17,7 +17,7 @@ Keys nothing but this module reads are taken out of the ``map`` node before the 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -25,7 +25,8 @@ from typing import Any
 from slamkit.errors import ConfigError
 from slamkit.interfaces import Camera, PlaceRecognizer
 from slamkit.map.atlas import Atlas, StoreFactory
-from slamkit.map.mapfile import RUN_DIR_FILE_NAME, load_atlas, save_atlas
+from slamkit.map.mapfile import RUN_DIR_FILE_NAME, MapFileInfo, load_atlas, save_atlas
+from slamkit.sensors import FrameRecords
 
 log = logging.getLogger("slamkit")
 
@@ -78,19 +79,29 @@ def save_path(map_node: Mapping[str, Any], run_dir: Path) -> Path | None:
 
 @contextmanager
 def saving_map(
-    map_node: Mapping[str, Any], atlas: Atlas, run_dir: Path, config: Mapping[str, Any] | None
+    map_node: Mapping[str, Any],
+    atlas: Atlas,
+    run_dir: Path,
+    config: Mapping[str, Any] | None,
+    frames: Callable[[], Mapping[int, FrameRecords]] | None = None,
 ) -> Iterator[None]:
-    """Around the run: on the way out, write the Atlas to ``map.save`` (if set). A run that ends normally gets any
+    """Around the run: on the way out, write the Atlas to ``map.save`` (if set), with ``frames()`` (the runner's
+    ``map_frames``: every map's frames, earlier sessions' included) when given. A run that ends normally gets any
     save failure raised (MapFileError); a failed or interrupted run keeps its own exception, and a map it made is still
     saved (a save failure then is logged)."""
     target = save_path(map_node, run_dir)
+
+    def save() -> MapFileInfo:
+        assert target is not None
+        return save_atlas(atlas, target, config, None if frames is None else frames())
+
     try:
         yield
     except BaseException:
         if target is not None:
             if any(store.n_keyframes() for _, store in atlas.items()):
                 try:
-                    info = save_atlas(atlas, target, config)
+                    info = save()
                     log.warning(
                         "the run failed; the map it made is saved in %s (%d keyframes)", target, info.n_keyframes
                     )
@@ -100,7 +111,7 @@ def saving_map(
                 log.warning("the run failed before it made a map: %s is left as it was", target)
         raise
     if target is not None:
-        info = save_atlas(atlas, target, config)
+        info = save()
         log.info("map saved in %s: %d keyframes, %d points, %d bytes", target, info.n_keyframes, info.n_points,
                  info.size_bytes)  # fmt: skip
 

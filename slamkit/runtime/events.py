@@ -218,6 +218,7 @@ class RunEvents:
             ground_truth=getattr(dataset, "ground_truth", None),
             K=None if K is None else np.array(K, dtype=np.float64),
             image_size=None if K is None else (int(camera.width), int(camera.height)),  # type: ignore[union-attr]
+            loaded_frames=dict(getattr(self.atlas, "loaded_frames", None) or {}),
         )
         self.dispatcher.start(threaded)
         self.dispatcher.emit("slamkit_run_started", event)

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from slamkit.map.atlas import MapChange
+from slamkit.map.atlas import Atlas, MapChange
 from slamkit.pipeline.outcomes import LoopOutcome, MappingOutcome, TrackingOutcome
-from slamkit.pipeline.trajectory import TrajectoryRecorder
+from slamkit.pipeline.trajectory import KeptFrames, TrajectoryRecorder
+from slamkit.sensors import FrameRecords
 
 
 @dataclass
@@ -53,13 +54,21 @@ class RunLog:
 
 
 def log_tracking_outcome(
-    log: RunLog, recorder: TrajectoryRecorder, out: TrackingOutcome, map_change: MapChange | None
+    log: RunLog,
+    recorder: TrajectoryRecorder,
+    out: TrackingOutcome,
+    map_change: MapChange | None,
+    kept: KeptFrames | None = None,
+    map_before: int | None = None,
 ) -> None:
     """What every runner does after tracking a frame: count a map reset or a new map, log the outcome, and record
     the initialisation's reference frame, which became keyframe 0 and has an estimated pose too. The runner's
     recorder holds the active map's frames: it starts again when the active map changes (the run directory keeps
-    every map's frames: the outputs plugin records them per map from the lifecycle events)."""
+    every map's frames: the outputs plugin records them per map from the lifecycle events; ``kept``, the runner's
+    frames of the other maps for its map file, takes those of the map ``map_before`` left for a new one)."""
     if map_change is not None:
+        if kept is not None and map_before is not None:
+            kept.map_changed(map_change, map_before, recorder)
         recorder.clear()
     if map_change == MapChange.RESET:
         log.resets += 1
@@ -70,3 +79,14 @@ def log_tracking_outcome(
     if out.initialized_map and out.new_keyframes and out.new_keyframes[0].frame_index != out.frame_index:
         kf_ini = out.new_keyframes[0]
         recorder.record(kf_ini.frame_index, kf_ini.timestamp_s, kf_ini.T_c_w, kf_ini.id, kf_ini.T_c_w)
+
+
+def map_frames(atlas: Atlas, recorder: TrajectoryRecorder, kept: KeptFrames) -> dict[int, FrameRecords]:
+    """map id -> every frame of that map a runner knows (this run's and, from a loaded map file, the earlier
+    sessions'), each relative to a keyframe the map has now: what ``map.save`` writes with the Atlas
+    (slamkit/map/mapfile.py). The keyframe ids are read under each map's read lock."""
+    kf_ids: dict[int, list[int]] = {}
+    for map_id, store in atlas.items():
+        with store.read():
+            kf_ids[map_id] = list(store.keyframe_ids())
+    return kept.export(kf_ids, atlas.active_id, recorder)

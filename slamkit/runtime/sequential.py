@@ -23,12 +23,12 @@ from slamkit.pipeline.loop_correction import pose_of_sim3, sim3_of_pose
 from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.outcomes import MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.tracking import Tracker
-from slamkit.pipeline.trajectory import TrajectoryRecorder
+from slamkit.pipeline.trajectory import KeptFrames, TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
-from slamkit.runtime.log import RunLog, log_tracking_outcome
+from slamkit.runtime.log import RunLog, log_tracking_outcome, map_frames
 from slamkit.runtime.source import check_bad_frames_policy, frame_count, is_live, readable_frames
 from slamkit.runtime.workers import raised_by_ctrl_c
-from slamkit.sensors import FrameData
+from slamkit.sensors import FrameData, FrameRecords
 
 log = logging.getLogger("slamkit.runner")
 
@@ -114,6 +114,8 @@ class SequentialRunner:
         self.loop_closer = loop_closer
         self.atlas = atlas
         self.recorder = TrajectoryRecorder()
+        #: the frames of the Atlas's maps the recorder does not hold (earlier sessions', other maps'): map_frames()
+        self.kept_frames = KeptFrames(getattr(atlas, "loaded_frames", None) or {})
         self.progress = progress
         self.bad_frames = check_bad_frames_policy(bad_frames)
         if record_reference not in RECORD_REFERENCES:
@@ -143,12 +145,18 @@ class SequentialRunner:
         """Loop closing moves the active map into another map's frame to merge them: the frames recorded relative to
         the moved keyframes follow the move's scale; slamkit_maps_merged fires."""
         self.recorder.rescale(merge.moved_kf_ids, merge.G.s)
+        self.kept_frames.merged(merge.into_map_id, merge.merged_map_id, merge.moved_kf_ids, merge.G.s)
         self.tracker.map_moved(merge.G)  # the motion model's velocity follows the move's scale
         self._merge_G = merge.G
         self.log.maps_merged += 1
         self._run_events.maps_merged(
             merge.kf_id, merge.matched_kf_id, merge.merged_map_id, merge.into_map_id, merge.G.matrix()
         )
+
+    def map_frames(self) -> dict[int, FrameRecords]:
+        """map id -> every frame of that map, this run's and the earlier sessions' a loaded map file kept, each
+        relative to a keyframe the map has now (slamkit.runtime.log.map_frames): what ``map.save`` writes."""
+        return map_frames(self.atlas, self.recorder, self.kept_frames)
 
     @property
     def store(self) -> MapStore:
@@ -254,7 +262,7 @@ class SequentialRunner:
             self.modelled_mapping.reset()
         map_change = self.atlas.change_since(map_before)  # reset, or a new map with the old one kept
         map_was_reset = map_change == MapChange.RESET
-        log_tracking_outcome(self.log, self.recorder, out, map_change)
+        log_tracking_outcome(self.log, self.recorder, out, map_change, self.kept_frames, map_before)
         self._run_events.map_events(out)
         merges_before = self.log.maps_merged
         for kf in out.new_keyframes:
@@ -264,6 +272,7 @@ class SequentialRunner:
             self.log.mapping.append(mapped)
             for culled in mapped.culled_keyframes:
                 self.recorder.on_culled(culled)
+                self.kept_frames.on_culled(self.atlas.active_id, culled)
             self._run_events.keyframe_mapped(mapped)
             if self.loop_closer is not None and self.store.has_keyframe(kf.id):
                 self.log.loops.append(self.loop_closer.step(kf))

@@ -53,13 +53,13 @@ from slamkit.pipeline.loop_closing import LoopCloser, MapMerge
 from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.tracking import Tracker
-from slamkit.pipeline.trajectory import TrajectoryRecorder
+from slamkit.pipeline.trajectory import KeptFrames, TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
-from slamkit.runtime.log import RunLog, log_tracking_outcome
+from slamkit.runtime.log import RunLog, log_tracking_outcome, map_frames
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
 from slamkit.runtime.source import END, FrameSource, check_bad_frames_policy, frame_count, is_live, readable_frames
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault, raised_by_ctrl_c
-from slamkit.sensors import FrameData
+from slamkit.sensors import FrameData, FrameRecords
 
 log = logging.getLogger("slamkit.runner")
 
@@ -110,6 +110,8 @@ class ThreadedRunner:
         self.loop_closer = loop_closer
         self.atlas = atlas
         self.recorder = TrajectoryRecorder()
+        #: the frames of the Atlas's maps the recorder does not hold (earlier sessions', other maps'): map_frames()
+        self.kept_frames = KeptFrames(getattr(atlas, "loaded_frames", None) or {})
         self.progress = progress
         self.realtime = realtime
         self.speed = speed
@@ -131,6 +133,11 @@ class ThreadedRunner:
         self._live_workers: list[PipelineWorker[KeyFrame]] = []
         self._live_start = time.perf_counter()
         self._live_first_t: float | None = None
+
+    def map_frames(self) -> dict[int, FrameRecords]:
+        """map id -> every frame of that map, this run's and the earlier sessions' a loaded map file kept, each
+        relative to a keyframe the map has now (slamkit.runtime.log.map_frames): what ``map.save`` writes."""
+        return map_frames(self.atlas, self.recorder, self.kept_frames)
 
     @property
     def store(self) -> MapStore:
@@ -171,6 +178,7 @@ class ThreadedRunner:
             self.log.local_ba_wall_s.append((ba_start, ba_start + outcome.timings_ms["local_ba_ms"] / 1e3))
         for culled in outcome.culled_keyframes:
             self.recorder.on_culled(culled)
+            self.kept_frames.on_culled(self.atlas.active_id, culled)
         self._run_events.keyframe_mapped(outcome)
         if self._closing is not None and self.store.has_keyframe(kf.id):
             self._closing.submit(kf)
@@ -206,6 +214,7 @@ class ThreadedRunner:
         before the move and not yet recorded follows it in ``_track``: Tracker.follow_map_moves);
         slamkit_maps_merged is queued."""
         self.recorder.rescale(merge.moved_kf_ids, merge.G.s)
+        self.kept_frames.merged(merge.into_map_id, merge.merged_map_id, merge.moved_kf_ids, merge.G.s)
         self.tracker.map_moved(merge.G)  # the motion model's velocity follows the move's scale
         self.log.maps_merged += 1
         self._run_events.maps_merged(
@@ -299,7 +308,7 @@ class ThreadedRunner:
         # the move, and no other move comes before its frame is recorded and its keyframe queued for local mapping
         with self.store.read():
             self.tracker.follow_map_moves(out)
-            log_tracking_outcome(self.log, self.recorder, out, map_change)
+            log_tracking_outcome(self.log, self.recorder, out, map_change, self.kept_frames, map_before)
             self._run_events.map_events(out)
             if out.new_keyframes and self._mapping is None:
                 raise RuntimeError(f"frame {out.frame_index}: a keyframe was made in a run without local mapping")

@@ -21,11 +21,13 @@ from omegaconf import OmegaConf
 from slamkit.app import build_runner
 from slamkit.config import compose_config
 from slamkit.eval.metrics import compute_ate
+from slamkit.io.trajectory_io import read_trajectory
 from slamkit.map import mapfile_run
 from slamkit.map.atlas import Atlas
 from slamkit.map.mapfile import load_atlas, map_file_info, save_atlas
 from slamkit.map.mapfile_contents import differences, read_map_contents
 from slamkit.pipeline.tracking import TrackingState
+from slamkit.pipeline.trajectory import TrajectoryRecorder
 from slamkit.plugins import ComponentRegistry
 
 pytestmark = pytest.mark.timeout(900)
@@ -50,7 +52,7 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, Path]]
     """The room's 300-frame run and its map saved to a file."""
     runner, config = _first_run()
     path = tmp_path_factory.mktemp("maps") / "room.slamkit"
-    save_atlas(runner.atlas, path, config)
+    save_atlas(runner.atlas, path, config, runner.map_frames())
     yield runner, path
 
 
@@ -79,6 +81,18 @@ def test_a_real_room_map_round_trips_exactly(room: tuple[Any, Path]) -> None:
     info = map_file_info(path)
     assert info.n_keyframes == sum(s.n_keyframes() for _, s in atlas.items())
     assert info.size_bytes == path.stat().st_size
+    # the run's frames (each relative to a keyframe of the map, culled references resolved) come back bit for bit,
+    # and placed against the loaded keyframes they are the run's trajectory
+    frames = runner.map_frames()[atlas.active_id]
+    back = loaded.loaded_frames[atlas.active_id]
+    assert info.n_frames == len(back) == len(frames) == len(runner.recorder)
+    for name in ("t_s", "frame_index", "ref_kf_id", "T_c_r"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(frames, name))
+    replayed = TrajectoryRecorder()
+    replayed.load(back)
+    trajectory = runner.recorder.frames(active)
+    np.testing.assert_array_equal(replayed.frames(loaded.active).t_s, trajectory.t_s)
+    np.testing.assert_allclose(replayed.frames(loaded.active).T_w_c, trajectory.T_w_c, atol=1e-9)
 
 
 def _second_run(atlas_source: str, path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Any, Any]:
@@ -150,6 +164,8 @@ def test_slamkit_run_saves_and_loads_a_map(tmp_path: Path) -> None:
     saved = run1 / "map.slamkit"
     info = map_file_info(saved)
     assert info.n_keyframes >= 2
+    first = read_trajectory(run1 / "trajectory.tum", "tum")
+    assert info.n_frames == len(first) >= 40, "the run's frames are in the file"
     # frames 40..59 again on the loaded map, saved to another file: relocalized in it, the map kept and extended
     again = tmp_path / "again.slamkit"
     later = [*quick, "dataset.skip=[0,39]", "dataset.max_frames=20"]
@@ -158,6 +174,10 @@ def test_slamkit_run_saves_and_loads_a_map(tmp_path: Path) -> None:
     assert map_file_info(again).n_keyframes >= info.n_keyframes
     metrics = json.loads((tmp_path / "r2" / "metrics.json").read_text())
     assert metrics["frames_tracked"] == 20, "every frame tracked on the loaded map"
+    # the second run's trajectory.tum: both sessions' frames (metrics.json counts its own); its map file keeps them
+    both = read_trajectory(tmp_path / "r2" / "trajectory.tum", "tum")
+    assert len(both) == len(first) + 20 and np.all(np.diff(both.t_s) >= 0)
+    assert map_file_info(again).n_frames == len(both)
     shown = _slamkit(tmp_path, "map", "info", str(again))
     assert shown.returncode == 0 and "schema version  1" in shown.stdout
     bad = tmp_path / "bad.slamkit"

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from mapfile_atlas import FISHEYE, FISHEYE_2, RecordingPlace, build_atlas, build_rig_atlas, new_store
+from mapfile_atlas import FISHEYE, FISHEYE_2, RecordingPlace, build_atlas, build_frames, build_rig_atlas, new_store
 from slamkit_dbow.recognizer import DbowPlaceRecognizer
 
 from slamkit.errors import ConfigError, MapFileError
@@ -22,6 +22,7 @@ from slamkit.map import mapfile
 from slamkit.map.atlas import Atlas
 from slamkit.map.mapfile import load_atlas, map_file_info, save_atlas
 from slamkit.map.mapfile_contents import differences, read_map_contents
+from slamkit.sensors import FrameRecords
 
 
 @pytest.fixture(scope="module")
@@ -126,6 +127,86 @@ def test_info(tmp_path: Path, place: DbowPlaceRecognizer) -> None:
     assert info.n_keyframes == sum(s.n_keyframes() for _, s in atlas.items())
     assert info.n_points == sum(s.n_points() for _, s in atlas.items())
     assert info.vocabulary is not None and info.vocabulary["sha256"] == place.vocabulary.identity()["sha256"]
+
+
+def assert_same_frames(a: FrameRecords, b: FrameRecords) -> None:
+    for name in ("t_s", "frame_index", "ref_kf_id", "T_c_r"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert getattr(a, name).dtype == getattr(b, name).dtype, name
+
+
+def test_round_trip_keeps_the_sessions_frames(tmp_path: Path, place: DbowPlaceRecognizer) -> None:
+    """The frames a runner hands ``save_atlas`` (each relative to a keyframe of its map) come back bit for bit as the
+    loaded Atlas's ``loaded_frames`` (what a later session's trajectory starts from), map by map; the map contents are
+    the same as without them; a frame whose reference keyframe is not in the map is left out."""
+    atlas = build_atlas(place)
+    frames = build_frames(atlas)
+    stray = frames[0]
+    frames[0] = FrameRecords(  # one more frame, relative to a keyframe id that is in no map
+        np.append(stray.t_s, 99.0), np.append(stray.frame_index, 99), np.append(stray.ref_kf_id, 10_000),
+        np.concatenate([stray.T_c_r, np.eye(4)[None]]),
+    )  # fmt: skip
+    path = tmp_path / "frames.slamkit"
+    info = save_atlas(atlas, path, frames=frames)
+    assert info.n_frames == map_file_info(path).n_frames == len(stray) + len(frames[1])
+    loaded = load_atlas(path, new_store, DbowPlaceRecognizer())
+    assert_same_atlas(atlas, loaded)
+    assert sorted(loaded.loaded_frames) == [0, 1]
+    assert_same_frames(loaded.loaded_frames[0], stray)
+    assert_same_frames(loaded.loaded_frames[1], frames[1])
+    # saved again from the loaded Atlas with the frames it loaded: the same frames
+    again = tmp_path / "again.slamkit"
+    save_atlas(loaded, again, frames=loaded.loaded_frames)
+    reloaded = load_atlas(again, new_store, DbowPlaceRecognizer())
+    for map_id in (0, 1):
+        assert_same_frames(reloaded.loaded_frames[map_id], loaded.loaded_frames[map_id])
+    # saved with no frames: every map has none
+    none = tmp_path / "none.slamkit"
+    save_atlas(atlas, none)
+    assert map_file_info(none).n_frames == 0
+    assert all(len(f) == 0 for f in load_atlas(none, new_store, DbowPlaceRecognizer()).loaded_frames.values())
+
+
+def _members(path: Path) -> list[tuple[str, np.ndarray]]:
+    with zipfile.ZipFile(path) as zf:
+        return [(n, np.load(zf.open(n), allow_pickle=False)) for n in zf.namelist() if n.endswith(".npy")]
+
+
+def test_a_file_written_before_it_kept_frames_loads_with_none(tmp_path: Path, place: DbowPlaceRecognizer) -> None:
+    """Schema 1 as written before the ``fr_*`` members: no ``frames`` in the manifest's map entries, no members."""
+    atlas = build_atlas(place)
+    path = tmp_path / "new.slamkit"
+    save_atlas(atlas, path, frames=build_frames(atlas))
+    manifest = mapfile.read_manifest(path)
+    for meta in manifest["maps"]:
+        del meta["frames"]
+    old = tmp_path / "old.slamkit"
+    mapfile._write(old, manifest, [(n, a) for n, a in _members(path) if "/fr_" not in n], mapfile.SCHEMA_VERSION)
+    loaded = load_atlas(old, new_store, DbowPlaceRecognizer())
+    assert_same_atlas(atlas, loaded)
+    assert loaded.loaded_frames == {} and map_file_info(old).n_frames == 0
+
+
+@pytest.mark.parametrize(
+    ("member", "change", "match"),
+    [
+        ("m0/fr_ref_kf.npy", lambda a: a + 10_000, "reference keyframe 100"),
+        ("m1/fr_T_c_r.npy", lambda a: a * np.nan, "not finite"),
+        ("m1/fr_T_c_r.npy", lambda a: a + 1.0, "last row"),
+        ("m0/fr_t_s.npy", lambda a: a[:-1], "fr_t_s is"),
+    ],
+)
+def test_bad_frames_load_nothing(
+    tmp_path: Path, place: DbowPlaceRecognizer, member: str, change: Any, match: str
+) -> None:
+    """Frames behind a valid checksum that do not fit the map: a MapFileError naming the file, nothing loaded."""
+    atlas = build_atlas(place)
+    path = tmp_path / "m.slamkit"
+    save_atlas(atlas, path, frames=build_frames(atlas))
+    members = [(n, change(a) if n == member else a) for n, a in _members(path)]
+    bad = tmp_path / "bad.slamkit"
+    mapfile._write(bad, mapfile.read_manifest(path), members, mapfile.SCHEMA_VERSION)
+    refused(bad, match)
 
 
 # ---- bad input: a clear error naming the file, nothing loaded --------------------------------------------------

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mapfile_atlas import RecordingPlace, build_atlas, new_store
+from mapfile_atlas import RecordingPlace, build_atlas, build_frames, new_store
 
 from slamkit.errors import MapFileError
 from slamkit.map import mapfile
@@ -28,10 +28,11 @@ from slamkit.map.mapfile_contents import check_contents, read_map_contents
 
 @functools.cache
 def saved() -> tuple[bytes, dict[str, Any], list[tuple[str, np.ndarray]]]:
-    """A saved two-map Atlas: the file's bytes, its manifest and its members (built once per session)."""
+    """A saved two-map Atlas with its frames: the file's bytes, its manifest and its members (built once per session)."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "m.slamkit"
-        save_atlas(build_atlas(RecordingPlace()), path)
+        atlas = build_atlas(RecordingPlace())
+        save_atlas(atlas, path, frames=build_frames(atlas))  # the sessions' frames are fuzzed too
         with zipfile.ZipFile(path) as zf:
             members = [(n, np.load(zf.open(n), allow_pickle=False)) for n in zf.namelist() if n.endswith(".npy")]
         return path.read_bytes(), mapfile.read_manifest(path), members
