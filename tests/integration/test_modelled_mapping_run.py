@@ -38,28 +38,28 @@ def _run(overrides: list[str]) -> list[tuple[MappingState, TrackingOutcome]]:
 def test_monocular_keyframes_wait_for_the_modelled_local_mapping() -> None:
     busy_s = 0.2
     seen = _run(["dataset.max_frames=45", f"runner.modelled_mapping_ms={busy_s * 1e3:g}"])
-    made = [(m, o) for m, o in seen if o.new_keyframes]
+    made = [(m, o) for m, o in seen if o.keyframe_ids]
     assert made[0][1].initialized_map and len(made) >= 3
     # no keyframe from a frame that saw local mapping busy; each one made after the modelled time of the last
     assert all(m.idle for m, _ in made)
     busy_frames = [o for m, o in seen if not m.idle]
     assert busy_frames and all(o.keyframe != KeyFrameDecision.INSERT for o in busy_frames)
     for (_, prev), (_, cur) in itertools.pairwise(made):
-        n_prev = len(prev.new_keyframes)  # a new map's two keyframes keep local mapping busy twice as long
+        n_prev = len(prev.keyframe_ids)  # a new map's two keyframes keep local mapping busy twice as long
         assert cur.timestamp_s >= prev.timestamp_s + n_prev * busy_s - 1e-9
     # and a frame tracked busy came right after a keyframe: within its modelled time
     for o in busy_frames:
         last = [p for _, p in made if p.timestamp_s < o.timestamp_s][-1]
-        assert o.timestamp_s < last.timestamp_s + len(last.new_keyframes) * busy_s
+        assert o.timestamp_s < last.timestamp_s + len(last.keyframe_ids) * busy_s
     # the model keeps monocular keyframes that c2 alone would make every few frames apart
     without = _run(["dataset.max_frames=45"])
     assert all(m.idle for m, _ in without)
-    assert len(made) < sum(bool(o.new_keyframes) for _, o in without)
+    assert len(made) < sum(bool(o.keyframe_ids) for _, o in without)
 
 
 def test_stereo_frames_always_see_local_mapping_idle() -> None:
     seen = _run(["frontend=stereo", "dataset.stereo=true", "dataset.max_frames=12", "runner.modelled_mapping_ms=300"])
     # the stereo map starts with one keyframe at the first frame; the next 11 frames (0.37 s at 30 Hz) are within the
     # modelled 300 ms of it or of a keyframe after it, and all see local mapping idle
-    assert len(seen) == 12 and seen[0][1].new_keyframes
+    assert len(seen) == 12 and seen[0][1].keyframe_ids
     assert all(m.idle for m, _ in seen)
