@@ -142,26 +142,25 @@ def fill_map(atlas: Atlas, rng: np.random.Generator, n_kfs: int, camera: Any, st
     store.bump_epoch()
 
 
-def build_atlas(place: DbowPlaceRecognizer, seed: int = 0) -> Atlas:
-    """Two maps: map 0 monocular pinhole, map 1 (active) RGB-D-like keyframes on a fisheye camera."""
+def _two_maps(place: DbowPlaceRecognizer, seed: int, n_first: int, stereo: bool | str) -> Atlas:
+    """Map 0: ``n_first`` monocular pinhole keyframes; map 1 (active): 6 fisheye keyframes of kind ``stereo``."""
     place.database.clear()
     atlas = Atlas(new_store, place)
     rng = np.random.default_rng(seed)
-    fill_map(atlas, rng, 8, CAMERA)
+    fill_map(atlas, rng, n_first, CAMERA)
     atlas.create_map()
-    fill_map(atlas, rng, 6, FISHEYE, stereo=True)
+    fill_map(atlas, rng, 6, FISHEYE, stereo=stereo)
     return atlas
+
+
+def build_atlas(place: DbowPlaceRecognizer, seed: int = 0) -> Atlas:
+    """Two maps: map 0 monocular pinhole, map 1 (active) RGB-D-like keyframes on a fisheye camera."""
+    return _two_maps(place, seed, 8, True)
 
 
 def build_rig_atlas(place: DbowPlaceRecognizer, seed: int = 0) -> Atlas:
     """Two maps: map 0 monocular pinhole, map 1 (active) a fisheye rig's two-camera keyframes."""
-    place.database.clear()
-    atlas = Atlas(new_store, place)
-    rng = np.random.default_rng(seed)
-    fill_map(atlas, rng, 5, CAMERA)
-    atlas.create_map()
-    fill_map(atlas, rng, 6, FISHEYE, stereo="rig")
-    return atlas
+    return _two_maps(place, seed, 5, "rig")
 
 
 def build_frames(atlas: Atlas, seed: int = 0, per_map: int = 12) -> dict[int, FrameRecords]:
