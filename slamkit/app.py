@@ -223,6 +223,8 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
     bad_frames = str(cfg.runner.get("bad_frames", "skip"))  # checked by the runner
     events = EventDispatcher(registry.hook, critical={OUTPUTS_PLUGIN})
     runner: Runner
+    new_map_ms = cfg.runner.get("modelled_mapping_new_map_ms", None)  # null: runner.modelled_mapping_ms
+    modelled_ms = float(cfg.runner.get("modelled_mapping_ms", 0.0))
     if kind == "threaded":
         runner = ThreadedRunner(
             tracker,
@@ -237,9 +239,10 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             gil_switch_interval_s=_switch_interval_s(cfg.runner),
             events=events,
             bad_frames=bad_frames,
+            modelled_mapping_ms=modelled_ms,
+            modelled_mapping_new_map_ms=None if new_map_ms is None else float(new_map_ms),
         )
     else:
-        new_map_ms = cfg.runner.get("modelled_mapping_new_map_ms", None)  # null: runner.modelled_mapping_ms
         runner = SequentialRunner(
             tracker,
             mapper,
@@ -249,7 +252,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             events=events,
             bad_frames=bad_frames,
             record_reference=str(cfg.runner.get("record_reference", "tracked")),
-            modelled_mapping_ms=float(cfg.runner.get("modelled_mapping_ms", 0.0)),
+            modelled_mapping_ms=modelled_ms,
             modelled_mapping_new_map_ms=None if new_map_ms is None else float(new_map_ms),
         )
     return runner, dataset

@@ -56,6 +56,7 @@ from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import KeptFrames, TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
 from slamkit.runtime.log import RunLog, log_tracking_outcome, map_frames
+from slamkit.runtime.modelled_mapping import modelled_mapping
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
 from slamkit.runtime.source import END, FrameSource, check_bad_frames_policy, frame_count, is_live, readable_frames
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault, raised_by_ctrl_c
@@ -101,10 +102,16 @@ class ThreadedRunner:
         gil_switch_interval_s: float | None = None,
         events: EventDispatcher | None = None,
         bad_frames: str = "skip",
+        modelled_mapping_ms: float = 0.0,
+        modelled_mapping_new_map_ms: float | None = None,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
-        (logged and reported) or "stop" (slamkit.runtime.source.readable_frames)."""
+        (logged and reported) or "stop" (slamkit.runtime.source.readable_frames). modelled_mapping_ms /
+        modelled_mapping_new_map_ms: as fast as possible only (not ``realtime``), local mapping's modelled time per
+        keyframe in sequence time, ms (:class:`~slamkit.runtime.modelled_mapping.ModelledMapping`): a monocular frame
+        within it of the last keyframe makes no keyframe, as in ORB-SLAM at a camera's rate; 0: the runner waits for
+        local mapping whenever tracking wants a keyframe."""
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -119,6 +126,9 @@ class ThreadedRunner:
         self.background_niceness = background_niceness
         self.gil_switch_interval_s = gil_switch_interval_s
         self.bad_frames = check_bad_frames_policy(bad_frames)
+        self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
+        self._modelled_busy = False  # the frame being tracked saw local mapping busy by the model, not by the thread
+        self._depth_frames = False  # the frames tracked so far carry depth (stereo/RGB-D: the model does not apply)
         self.log = RunLog(runner="threaded")
         self.events = events
         self._run_events = RunEvents(None, "threaded", atlas)
@@ -253,14 +263,20 @@ class ThreadedRunner:
 
     # ---- tracking (the calling thread) --------------------------------------------------------------
 
-    def _mapping_state(self) -> MappingState:
-        """Local mapping's state for the tracker (ORB-SLAM AcceptKeyFrames / isStopped || stopRequested); as fast
-        as possible the runner waits for a busy local mapping (``waits_for_idle``), as a camera's frame period
-        would give it time to finish. Without local mapping (localization only) it accepts nothing, as ORB-SLAM's
-        stopped local mapping."""
+    def _mapping_state(self, timestamp_s: float) -> MappingState:
+        """Local mapping's state for the tracker (ORB-SLAM AcceptKeyFrames / isStopped || stopRequested) at a frame
+        captured at ``timestamp_s`` (s); as fast as possible the runner waits for a busy local mapping
+        (``waits_for_idle``), as a camera's frame period would give it time to finish — unless the modelled mapping
+        time (``modelled_mapping_ms``) says a camera's frame would still find it busy: then it is busy, and a
+        monocular frame makes no keyframe, as in ORB-SLAM. Without local mapping (localization only) it accepts
+        nothing, as ORB-SLAM's stopped local mapping."""
+        self._modelled_busy = False
         if self._mapping is None:
             return MappingState(idle=False, accepting_keyframes=False)
         stopping = self._mapping.stopping()
+        if not self.realtime and not self._depth_frames and not self.modelled_mapping.state(timestamp_s).idle:
+            self._modelled_busy = True
+            return MappingState(idle=False, accepting_keyframes=not stopping)
         return MappingState(
             idle=self._mapping.idle() and not stopping,
             accepting_keyframes=not stopping,
@@ -277,6 +293,8 @@ class ThreadedRunner:
         the time the frame period leaves it, and aborting every local BA because frames come faster than any camera
         would starve the map of its optimization. The wait is reported as ``mapping_wait_ms``."""
         assert self._mapping is not None
+        if self._modelled_busy:  # busy in sequence time: no keyframe, as the sequential runner's model
+            return out
         if self.realtime:
             self._mapping.abort.set()
             return out
@@ -292,15 +310,21 @@ class ThreadedRunner:
 
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
         map_before = self.atlas.active_id
-        out = self.tracker.step(data, camera, self._mapping_state())
+        out = self.tracker.step(data, camera, self._mapping_state(data.timestamp_s))
+        frame = self.tracker.current_frame
+        if frame is not None and frame.index == out.frame_index:
+            self._depth_frames = frame.features.bf > 0.0
         if out.keyframe == KeyFrameDecision.MAPPING_BUSY:
             out = self._keyframe_wanted_while_mapping_busy(out)
+        self.modelled_mapping.keyframes_made(data.timestamp_s, len(out.new_keyframes), out.initialized_map)
         if out.lost_decision == LostDecision.RESET_MAP:
             with self._quiesced_for_reset():
                 self.tracker.reset()
+            self.modelled_mapping.reset()
         elif out.lost_decision == LostDecision.NEW_MAP:
             with self._quiesced_for_reset():
                 self.tracker.start_new_map()
+            self.modelled_mapping.reset()
         map_change = self.atlas.change_since(map_before)  # reset, or a new map with the old one kept
         map_was_reset = map_change == MapChange.RESET
         ref_id, T_ref_w = None, None

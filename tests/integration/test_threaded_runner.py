@@ -64,6 +64,24 @@ def test_threaded_run_tracks_the_room_as_accurately_as_the_sequential_one(
     assert metrics["realtime_factor"] is not None and metrics["realtime_factor"] > 0
 
 
+def test_as_fast_as_possible_the_modelled_mapping_time_keeps_keyframes_apart_in_sequence_time() -> None:
+    """``runner.modelled_mapping_ms`` as fast as possible: a monocular frame within the modelled time of the last
+    keyframe makes none (ORB-SLAM's monocular NeedNewKeyFrame while local mapping is busy), whatever the local
+    mapping thread is doing; past it keyframes are still made and the room is tracked."""
+    busy_s = 0.25
+    runner, dataset = _runner(f"runner.modelled_mapping_ms={busy_s * 1e3:g}", "runner.modelled_mapping_new_map_ms=0")
+    log = runner.run(dataset, dataset.camera)
+    made = [out.timestamp_s for out in log.tracking if out.keyframe_ids and not out.initialized_map]
+    assert len(made) >= 5
+    gaps = np.diff(made)
+    assert gaps.min() >= busy_s - 1e-9, gaps
+    # frames inside a keyframe's modelled time never wait for the local mapping thread
+    inside = [out for out in log.tracking if any(0 < out.timestamp_s - t < busy_s for t in made)]
+    assert inside and all("mapping_wait_ms" not in out.timings_ms for out in inside)
+    metrics = runner_metrics(runner, dataset)
+    assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
+
+
 @pytest.mark.parametrize(
     ("thread", "target"),
     [("tracking", "tracker"), ("local-mapping", "mapper"), ("loop-closing", "loop_closer"), ("frame-source", None)],

@@ -10,7 +10,8 @@ from slamkit.errors import ConfigError
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.outcomes import KeyFrameDecision
 from slamkit.pipeline.tracking.keyframe_decision import KeyFrameFacts, decide_keyframe
-from slamkit.runtime.sequential import ModelledMapping, SequentialRunner
+from slamkit.runtime.modelled_mapping import ModelledMapping
+from slamkit.runtime.sequential import SequentialRunner
 
 
 def _wanted_keyframe(model: ModelledMapping, timestamp_s: float, frame_index: int) -> KeyFrameDecision:
