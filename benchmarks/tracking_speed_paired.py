@@ -104,7 +104,7 @@ def main() -> None:
         )
         runner, dataset = build_runner(cfg)
         runner.begin(dataset, dataset.camera)
-        runner.tracker.step = _cpu_timed(runner.tracker.step, cpu_ms.setdefault(mode, []))
+        runner.tracker.step = _cpu_timed(runner.tracker.step, cpu_ms.setdefault(mode, []))  # type: ignore[method-assign]
         runs[mode] = (runner, dataset, iter(dataset))
     # per mode, per frame: (state ok, track_ms wall, extract_ms wall, step cpu ms)
     rows: dict[str, list[tuple[bool, float, float, float]]] = {m: [] for m in modes}
