@@ -1,0 +1,159 @@
+"""Tracking time per frame of the monocular, stereo and RGB-D pipelines on the room, paired frame by frame
+(issue 16's speed bars: stereo at most 1.6x, RGB-D at most 1.2x the monocular tracking median).
+
+Usage: python benchmarks/tracking_speed_paired.py [--frames 300] [--seed 0] [--modes mono,stereo,rgbd] [--json F]
+       [overrides for every run ...]; a mode may carry overrides of its own: ``--modes mono,stereo,stereo+features.n_threads=1``
+
+Builds one sequential runner per sensor (the commands' ``slamkit run runner=sequential seed=S dataset.max_frames=N
+[frontend=stereo dataset.stereo=true | frontend=rgbd]``, each with its own dataset, extractor and map) and steps
+them in turn, frame by frame, the order rotating each frame: frame k of every sensor is tracked within a fraction
+of a second of the others, so a change of machine load (a shared machine) hits all alike. Each run is the same as
+its ``slamkit run`` (the sequential runner is deterministic: the trajectories do not depend on the interleaving).
+
+Prints, per sensor: the median tracking time (``timings_ms["track_ms"]``, the whole ``Tracker.step``: extraction
+included; metrics.json's ``tracking_ms_median``), the median extraction time, the median process CPU time of the
+step (all threads: robust to other processes' load, but blind to how well the step's threads overlap), and the
+median of the per-frame ratio to the monocular step (paired). The CPU time is the tracker's step alone (the
+runner's local mapping after a keyframe is not in it). Frames before the monocular map exists (its
+two-view initialisation) are left out of every sensor's figures, as are frames a sensor did not track.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numba
+import numpy as np
+
+from slamkit.app import build_runner
+from slamkit.config import compose_config
+
+MODES: dict[str, list[str]] = {
+    "mono": [],
+    "stereo": ["frontend=stereo", "dataset.stereo=true"],
+    "rgbd": ["frontend=rgbd"],
+}
+
+
+@numba.njit(nogil=True, cache=True)
+def _spin(n: int) -> float:  # pragma: no cover - compiled
+    """A compute-bound loop without memory traffic (the core check's work unit)."""
+    x = 0.0
+    for i in range(n):
+        x += (i % 7) * 0.5
+    return x
+
+
+def core_scaling(n: int = 50_000_000) -> float:
+    """How many times the work of two GIL-free threads goes faster than in one (2.0: two real cores free; near 1:
+    the two vCPUs share one core, or another process holds one)."""
+    _spin(1000)
+    t0 = time.perf_counter()
+    _spin(n)
+    _spin(n)
+    serial = time.perf_counter() - t0
+    with ThreadPoolExecutor(2) as pool:
+        t0 = time.perf_counter()
+        list(pool.map(_spin, [n, n]))
+        parallel = time.perf_counter() - t0
+    return serial / parallel
+
+
+def _cpu_timed(step: Callable[..., Any], out: list[float]) -> Callable[..., Any]:
+    """``step`` that appends its process CPU time (ms, all threads) to ``out``."""
+
+    def timed(*args: Any, **kwargs: Any) -> Any:
+        c0 = time.process_time()
+        try:
+            return step(*args, **kwargs)
+        finally:
+            out.append((time.process_time() - c0) * 1e3)
+
+    return timed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--modes", default="mono,stereo,rgbd")
+    parser.add_argument("--json", type=Path, default=None, help="write the per-frame timings here")
+    parser.add_argument("overrides", nargs="*", help="config overrides given to every run")
+    parser.add_argument("--core-check", action="store_true", help="first time two compute-bound threads against one")
+    args = parser.parse_args()
+    if args.core_check:
+        print(f"two threads against one: {core_scaling():.2f}x faster (2.00: two free cores)")
+    modes = args.modes.split(",")
+    if "mono" not in modes:
+        raise SystemExit("--modes must include mono (the ratios' reference)")
+    runs: dict[str, Any] = {}
+    cpu_ms: dict[str, list[float]] = {}  # the process CPU time of each Tracker.step (local mapping not included)
+    for mode in modes:
+        cfg = compose_config(
+            ["runner=sequential", "runner.progress=false", f"seed={args.seed}", f"dataset.max_frames={args.frames}"]
+            + MODES[mode.split("+")[0]]
+            + mode.split("+")[1:]
+            + list(args.overrides)
+        )
+        runner, dataset = build_runner(cfg)
+        runner.begin(dataset, dataset.camera)
+        runner.tracker.step = _cpu_timed(runner.tracker.step, cpu_ms.setdefault(mode, []))  # type: ignore[method-assign]
+        runs[mode] = (runner, dataset, iter(dataset))
+    # per mode, per frame: (state ok, track_ms wall, extract_ms wall, step cpu ms)
+    rows: dict[str, list[tuple[bool, float, float, float]]] = {m: [] for m in modes}
+    load = [os.getloadavg()[0]]
+    for k in range(args.frames):
+        order = modes[k % len(modes) :] + modes[: k % len(modes)]
+        for mode in order:
+            runner, dataset, frames = runs[mode]
+            data = next(frames)
+            out = runner.step(data, dataset.camera)
+            cpu = cpu_ms[mode].pop()
+            rows[mode].append(
+                (
+                    out.state.value == "ok",
+                    out.timings_ms.get("track_ms", np.nan),
+                    out.timings_ms.get("extract_ms", np.nan),
+                    cpu,
+                )
+            )
+        if k % 50 == 0:
+            load.append(os.getloadavg()[0])
+    for runner, _, _ in runs.values():
+        runner.end()
+    load.append(os.getloadavg()[0])
+    mono_init = next((i for i, r in enumerate(rows["mono"]) if r[0]), 0)
+    use = np.zeros(args.frames, bool)
+    use[mono_init + 1 :] = True
+    for mode in modes:
+        use &= np.array([r[0] for r in rows[mode]])
+    print(
+        f"frames used: {int(use.sum())} of {args.frames} (mono initialised at {mono_init}); 1-minute load {min(load):.1f}-{max(load):.1f}"
+    )
+    mono = np.array([r[1] for r in rows["mono"]])
+    mono_cpu = np.array([r[3] for r in rows["mono"]])
+    print(
+        f"{'sensor':8s} {'track ms':>9s} {'extract':>8s} {'cpu ms':>8s} {'ratio of medians':>17s} {'paired ratio':>13s} {'cpu ratio':>10s}"
+    )
+    for mode in modes:
+        t = np.array([r[1] for r in rows[mode]])
+        e = np.array([r[2] for r in rows[mode]])
+        c = np.array([r[3] for r in rows[mode]])
+        print(
+            f"{mode:8s} {np.median(t[use]):9.2f} {np.median(e[use]):8.2f} {np.median(c[use]):8.2f} "
+            f"{np.median(t[use]) / np.median(mono[use]):17.3f} {np.median(t[use] / mono[use]):13.3f} "
+            f"{np.median(c[use]) / np.median(mono_cpu[use]):10.3f}"
+        )
+    if args.json is not None:
+        args.json.write_text(json.dumps({"load": load, "rows": rows, "frames_used": use.tolist()}))
+
+
+if __name__ == "__main__":
+    main()
