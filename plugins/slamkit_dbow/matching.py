@@ -11,10 +11,6 @@ ORB-SLAM's ORBmatcher has them.
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
-from collections.abc import Mapping
-
 import numba
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +20,7 @@ from slamkit.interfaces import BowDescription
 from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent, row_distance
 from slamkit_dbow.vocabulary import VocabularyError
 
+I32 = NDArray[np.int32]
 I64 = NDArray[np.int64]
 
 
@@ -66,10 +63,12 @@ def match_by_bow(
     q_all: list[I64] = []
     t_all: list[I64] = []
     dist_all: list[NDArray[np.int32]] = []
-    for node, idx1 in bow1.direct_index.items():
-        idx2 = bow2.direct_index.get(node)
-        if idx2 is None:
-            continue
+    di1, di2 = bow1.direct, bow2.direct
+    _, g1, g2 = np.intersect1d(di1.nodes, di2.nodes, assume_unique=True, return_indices=True)
+    o1, o2 = di1.offsets.tolist(), di2.offsets.tolist()
+    for a, b in zip(g1.tolist(), g2.tolist(), strict=True):  # the shared nodes in ascending id
+        idx1 = di1.features[o1[a] : o1[a + 1]]
+        idx2 = di2.features[o2[b] : o2[b + 1]]
         if m1 is not None:
             idx1 = idx1[m1[idx1]]
         if m2 is not None:
@@ -104,19 +103,19 @@ def match_by_bow(
 
 @numba.njit(cache=True, nogil=True)
 def _node_pair_matches(
-    nodes1: I64,
+    nodes1: I32,
     ptr1: I64,
-    feats1: I64,
-    nodes2: I64,
+    feats1: I32,
+    nodes2: I32,
     ptr2: I64,
-    feats2: I64,
+    feats2: I32,
     mask1: NDArray[np.bool_],
     mask2: NDArray[np.bool_],
     desc1: NDArray[np.uint64],
     desc2: NDArray[np.uint64],
     max_distance: int,
 ) -> tuple[I64, I64, I64]:  # pragma: no cover - compiled
-    """Merge the two sorted node lists; for every shared node, every (allowed feature of 1, allowed feature of 2)
+    """Merge the two sorted node lists (direct indexes as CSR arrays: ``DirectIndex``); for every shared node, every (allowed feature of 1, allowed feature of 2)
     pair within max_distance bits -> (a, b, distance), in node order, then a's, then b's (direct-index order)."""
     n_pairs = 0
     i = j = 0
@@ -159,42 +158,6 @@ def _node_pair_matches(
     return a[:n], b[:n], d[:n]
 
 
-def _direct_index_arrays(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
-    """A direct index (node -> feature indices) as sorted node ids (K,), offsets (K + 1,), features."""
-    nodes = sorted(di)
-    parts = [np.asarray(di[n], np.int64).ravel() for n in nodes]
-    sizes = np.array([p.size for p in parts], np.int64)
-    ptr = np.concatenate([np.zeros(1, np.int64), np.cumsum(sizes)]).astype(np.int64)
-    feats = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
-    return np.array(nodes, np.int64), ptr, feats
-
-
-#: The flat arrays of the direct indices last used (keyed by the mapping's id, which the entry keeps alive so the id
-#: cannot be reused): local mapping pairs each new keyframe with its ~20 neighbours, which were paired with the
-#: keyframes before it, so most direct indices are flattened once instead of once per pair. Direct indices are never
-#: changed after ``transform`` made them.
-_FLAT_INDICES: OrderedDict[int, tuple[Mapping[int, I64], tuple[I64, I64, I64]]] = OrderedDict()
-_FLAT_INDICES_MAX = 128
-_FLAT_INDICES_LOCK = threading.Lock()
-
-
-def _direct_index_arrays_cached(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
-    """``_direct_index_arrays(di)``, from the cache of recently used direct indices when ``di`` is in it."""
-    key = id(di)
-    with _FLAT_INDICES_LOCK:
-        hit = _FLAT_INDICES.get(key)
-        if hit is not None and hit[0] is di:
-            _FLAT_INDICES.move_to_end(key)
-            return hit[1]
-    arrays = _direct_index_arrays(di)  # writeable (a read-only array would compile another numba signature)
-    with _FLAT_INDICES_LOCK:
-        _FLAT_INDICES[key] = (di, arrays)
-        _FLAT_INDICES.move_to_end(key)
-        while len(_FLAT_INDICES) > _FLAT_INDICES_MAX:
-            _FLAT_INDICES.popitem(last=False)
-    return arrays
-
-
 def node_pairs(
     feats1: Features,
     bow1: BowDescription,
@@ -217,6 +180,17 @@ def node_pairs(
     d2 = np.ascontiguousarray(feats2.descriptors, np.uint8)
     if d1.shape[1] % 8 or d1.shape[1] != d2.shape[1]:
         raise VocabularyError(f"descriptors must be (N, D) uint8 with one D, a multiple of 8: {d1.shape}, {d2.shape}")
-    n1, p1, f1 = _direct_index_arrays_cached(bow1.direct_index)
-    n2, p2, f2 = _direct_index_arrays_cached(bow2.direct_index)
-    return _node_pair_matches(n1, p1, f1, n2, p2, f2, m1, m2, d1.view(np.uint64), d2.view(np.uint64), int(max_distance))
+    x, y = bow1.direct, bow2.direct
+    return _node_pair_matches(
+        x.nodes,
+        x.offsets,
+        x.features,
+        y.nodes,
+        y.offsets,
+        y.features,
+        m1,
+        m2,
+        d1.view(np.uint64),
+        d2.view(np.uint64),
+        int(max_distance),
+    )
