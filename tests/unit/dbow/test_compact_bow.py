@@ -127,3 +127,70 @@ def test_inverted_index_lists_keep_the_insertion_order_of_an_ordered_set() -> No
     db.remove(3)
     assert db.keyframes_with_word(1) == [8, 5] and db.keyframes_with_word(3) == []
     assert db.common_words(BowDescription({1: 0.5, 8: 0.5})) == {8: 2, 5: 1}
+
+
+def _numpy_search_by_bow(f1, bow1, f2, bow2, ratio, max_distance, rotation_bins, mask1, mask2):  # type: ignore[no-untyped-def]
+    """The former ``match_by_bow``: per shared node, numpy's argmin and partition over the Hamming matrix."""
+    from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent
+
+    q_all, t_all, d_all = [], [], []
+    for node, idx1 in bow1.direct_index.items():
+        idx2 = bow2.direct_index.get(node)
+        if idx2 is None:
+            continue
+        idx1, idx2 = np.asarray(idx1, np.int64), np.asarray(idx2, np.int64)
+        idx1, idx2 = idx1[mask1[idx1]], idx2[mask2[idx2]]
+        if idx1.size == 0 or idx2.size == 0:
+            continue
+        dist = hamming_matrix(f1.descriptors[idx1], f2.descriptors[idx2])
+        best_j = np.argmin(dist, axis=1)
+        best = dist[np.arange(idx1.size), best_j]
+        second = np.full(idx1.size, np.inf)
+        if idx2.size > 1:
+            second = np.partition(dist, 1, axis=1)[:, 1].astype(np.float64)
+        ok = (best <= max_distance) & (best < ratio * second)
+        q_all.append(idx1[ok])
+        t_all.append(idx2[best_j[ok]])
+        d_all.append(best[ok])
+    q, t, d = np.concatenate(q_all), np.concatenate(t_all), np.concatenate(d_all)
+    keep = resolve_one_to_one(q, t, d)
+    q, t = q[keep], t[keep]
+    ok = rotation_consistent(f1.angle_deg[q].astype(np.float64) - f2.angle_deg[t].astype(np.float64), rotation_bins)
+    q, t = q[ok], t[ok]
+    order = np.argsort(q, kind="stable")
+    return np.stack([q[order], t[order]], axis=1)
+
+
+def test_search_by_bow_compiled_is_the_numpy_search(builtin_vocab: Vocabulary, orb: object) -> None:
+    """match_by_bow's compiled per-node search gives exactly the pairs of the numpy search it replaced (nearest =
+    first of equal distances, second = second smallest, lone candidates pass the ratio test), with and without
+    masks, for SearchByBoW's ratios."""
+    from slamkit_dbow.matching import match_by_bow
+
+    from slamkit.io.synthetic.dataset import SyntheticDataset
+
+    ds = SyntheticDataset(scene="room", seed=0, imu=False, depth=False)
+    feats = [orb.extract(ds[i].image) for i in (40, 46, 70)]  # type: ignore[attr-defined]
+    bows = [builtin_vocab.transform(f.descriptors, 2) for f in feats]
+    rng = np.random.default_rng(1)
+    n_checked = 0
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        for ratio in (0.6, 0.75, 0.9):
+            for masked in (False, True):
+                m1 = rng.random(len(feats[a])) < 0.6 if masked else np.ones(len(feats[a]), bool)
+                m2 = rng.random(len(feats[b])) < 0.6 if masked else np.ones(len(feats[b]), bool)
+                got = match_by_bow(
+                    feats[a],
+                    bows[a],
+                    feats[b],
+                    bows[b],
+                    ratio,
+                    50,
+                    30,
+                    mask1=m1 if masked else None,
+                    mask2=m2 if masked else None,
+                )
+                want = _numpy_search_by_bow(feats[a], bows[a], feats[b], bows[b], ratio, 50, 30, m1, m2)
+                assert np.array_equal(got, want), (a, b, ratio, masked)
+                n_checked += got.shape[0]
+    assert n_checked > 1000  # the views overlap: hundreds of matches per pair
