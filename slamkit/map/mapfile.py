@@ -18,10 +18,10 @@ Members:
   the observation record's scalars, feature counts), their features concatenated (``feat_*``: raw and
   pipeline-image pixels, level, angle, response, descriptors, bearing, right coordinate, depth, and the map point
   of each feature), bags of words (``bow_*``: word ids and weights; ``di_*``: direct index nodes and feature
-  indices, in the recognizer's dict order), map points (``pt_*``: ids, xyz_w, normal, depth range, descriptor,
-  reference and first keyframes, visible/found counters; ``obs_*``: observations in the store's order), and the
-  graphs (``cov_edges`` (E, 3) with their saved weights, ``tree`` (T, 2) child/parent with -1 for a root,
-  ``loop_edges`` (L, 2)). Variable-length parts are concatenated with a count per owner.
+  indices; words and nodes in ascending id, as ``BowDescription`` holds them), map points (``pt_*``: ids, xyz_w,
+  normal, depth range, descriptor, reference and first keyframes, visible/found counters; ``obs_*``: observations
+  in the store's order), and the graphs (``cov_edges`` (E, 3) with their saved weights, ``tree`` (T, 2)
+  child/parent with -1 for a root, ``loop_edges`` (L, 2)). Variable-length parts are concatenated with a count per owner.
 - A map of a non-rectified rig (``frontend=stereo_rig``, ORB-SLAM3 sec. I-B; schema version 2, the only difference
   from version 1): per keyframe ``kf_n_left`` (ORB-SLAM3's Nleft, -1 for a one-camera keyframe), ``kf_camera2`` (the
   second camera's index in the manifest's cameras, -1 for none) and ``kf_T_c2_c1`` (K, 4, 4) (the fixed extrinsic,
