@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, cast, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -159,18 +159,183 @@ class FrontEnd(Protocol):
         ...
 
 
+def _frozen(array: NDArray[Any]) -> NDArray[Any]:
+    array.setflags(write=False)
+    return array
+
+
+class WordWeights(Mapping[int, float]):
+    """A bag of words' weights as two arrays: a read-only ``Mapping`` word id -> weight, iterated in ascending id.
+
+    ids: (K,) int32 word ids, strictly ascending. weights: (K,) float64, each word's weight.
+    12 bytes a word (a dict of Python ints and floats costs ~100): a keyframe's ~900 words are its largest part after
+    its features (docs/BENCHMARKS.md, "Memory per keyframe"). Both arrays are read-only.
+    """
+
+    __slots__ = ("ids", "weights")
+
+    def __init__(self, ids: NDArray[np.integer], weights: NDArray[np.floating]) -> None:
+        i = np.array(ids, np.int32, copy=True).reshape(-1)
+        w = np.array(weights, np.float64, copy=True).reshape(-1)
+        if i.shape != w.shape:
+            raise ValueError(f"WordWeights: {i.shape[0]} ids but {w.shape[0]} weights")
+        if i.size > 1 and not bool(np.all(i[1:] > i[:-1])):
+            raise ValueError("WordWeights: word ids must be strictly ascending")
+        self.ids: NDArray[np.int32] = _frozen(i)
+        self.weights: NDArray[np.float64] = _frozen(w)
+
+    @classmethod
+    def of(cls, words: Mapping[int, float]) -> WordWeights:
+        """``words`` itself if it is a WordWeights, else its items sorted by word id."""
+        if isinstance(words, WordWeights):
+            return words
+        keys = np.fromiter((int(k) for k in words), np.int64, len(words))
+        vals = np.fromiter((float(words[k]) for k in words), np.float64, len(words))
+        order = np.argsort(keys, kind="stable")
+        return cls(keys[order], vals[order])
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.ids.tolist())
+
+    def __contains__(self, word: object) -> bool:
+        return self._find(word) >= 0
+
+    def __getitem__(self, word: int) -> float:
+        at = self._find(word)
+        if at < 0:
+            raise KeyError(word)
+        return float(self.weights[at])
+
+    def _find(self, word: object) -> int:
+        if isinstance(word, bool) or not isinstance(word, int | np.integer):
+            return -1
+        at = int(np.searchsorted(self.ids, word))
+        return at if at < self.ids.shape[0] and int(self.ids[at]) == int(word) else -1
+
+    def items(self) -> Iterator[tuple[int, float]]:  # type: ignore[override]
+        """(word, weight) pairs in ascending word id."""
+        return zip(self.ids.tolist(), self.weights.tolist(), strict=True)
+
+    def values(self) -> list[float]:  # type: ignore[override]
+        """The weights in ascending word id."""
+        return list(self.weights.tolist())
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (WordWeights, (self.ids, self.weights))
+
+    def __repr__(self) -> str:
+        return f"WordWeights({len(self)} words)"
+
+
+class DirectIndex(Mapping[int, NDArray[np.int32]]):
+    """A direct index as three arrays (CSR): a read-only ``Mapping`` node id -> (k,) int32 feature indices,
+    iterated in ascending node id.
+
+    nodes: (G,) int32 node ids, strictly ascending. offsets: (G + 1,) int64, node g's features are
+    ``features[offsets[g]:offsets[g + 1]]``. features: (M,) int32 feature indices of the image. Read-only arrays.
+    """
+
+    __slots__ = ("features", "nodes", "offsets")
+
+    def __init__(self, nodes: NDArray[np.integer], offsets: NDArray[np.integer], features: NDArray[np.integer]) -> None:
+        n = np.array(nodes, np.int32, copy=True).reshape(-1)
+        o = np.array(offsets, np.int64, copy=True).reshape(-1)
+        f = np.array(features, np.int32, copy=True).reshape(-1)
+        if o.shape != (n.size + 1,) or o[0] != 0 or o[-1] != f.size or bool(np.any(np.diff(o) < 0)):
+            raise ValueError(f"DirectIndex: offsets must be (G + 1,) = ({n.size + 1},) from 0 to {f.size}, ascending")
+        if n.size > 1 and not bool(np.all(n[1:] > n[:-1])):
+            raise ValueError("DirectIndex: node ids must be strictly ascending")
+        self.nodes: NDArray[np.int32] = _frozen(n)
+        self.offsets: NDArray[np.int64] = _frozen(o)
+        self.features: NDArray[np.int32] = _frozen(f)
+
+    @classmethod
+    def of(cls, groups: Mapping[int, NDArray[np.integer]]) -> DirectIndex:
+        """``groups`` itself if it is a DirectIndex, else its groups in ascending node id (each group's order kept)."""
+        if isinstance(groups, DirectIndex):
+            return groups
+        nodes = sorted(int(k) for k in groups)
+        parts = [np.asarray(groups[k], np.int64).reshape(-1) for k in nodes]
+        offsets = np.zeros(len(nodes) + 1, np.int64)
+        np.cumsum([p.size for p in parts], out=offsets[1:])
+        feats = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+        return cls(np.array(nodes, np.int64), offsets, feats)
+
+    def __len__(self) -> int:
+        return int(self.nodes.shape[0])
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.nodes.tolist())
+
+    def __contains__(self, node: object) -> bool:
+        return self._find(node) >= 0
+
+    def __getitem__(self, node: int) -> NDArray[np.int32]:
+        at = self._find(node)
+        if at < 0:
+            raise KeyError(node)
+        return self.features[self.offsets[at] : self.offsets[at + 1]]
+
+    def _find(self, node: object) -> int:
+        if isinstance(node, bool) or not isinstance(node, int | np.integer):
+            return -1
+        at = int(np.searchsorted(self.nodes, node))
+        return at if at < self.nodes.shape[0] and int(self.nodes[at]) == int(node) else -1
+
+    def items(self) -> Iterator[tuple[int, NDArray[np.int32]]]:  # type: ignore[override]
+        """(node, its features) in ascending node id."""
+        o = self.offsets.tolist()
+        return ((n, self.features[o[g] : o[g + 1]]) for g, n in enumerate(self.nodes.tolist()))
+
+    def values(self) -> list[NDArray[np.int32]]:  # type: ignore[override]
+        """Each node's features, in ascending node id."""
+        return [v for _, v in self.items()]
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (DirectIndex, (self.nodes, self.offsets, self.features))
+
+    def __repr__(self) -> str:
+        return f"DirectIndex({len(self)} nodes, {self.features.shape[0]} features)"
+
+
+_NO_WORDS = WordWeights(np.zeros(0, np.int32), np.zeros(0, np.float64))
+_NO_DIRECT_INDEX = DirectIndex(np.zeros(0, np.int32), np.zeros(1, np.int64), np.zeros(0, np.int32))
+
+
 @dataclass(frozen=True)
 class BowDescription:
     """A bag-of-words description of one image.
 
-    words: word id -> TF-IDF weight (L1-normalised).
+    words: word id -> TF-IDF weight (L1-normalised), stored as a ``WordWeights`` (arrays, ascending word id).
     direct_index: the recognizer's own grouping of the image's features (DBoW: vocabulary node id at the
-        configured level -> (k,) indices of the image's features; empty for a recognizer without one). Only the
-        recognizer that made it reads it (its ``match`` and ``candidate_pairs``); the pipeline never does.
+        configured level -> (k,) indices of the image's features; empty for a recognizer without one), stored as a
+        ``DirectIndex`` (CSR arrays, ascending node id). Only the recognizer that made it reads it (its ``match`` and
+        ``candidate_pairs``); the pipeline never does.
+    Any mappings given are converted (sorted by id) when the description is made, so every description a keyframe
+    holds is compact: ~13 KB for 1000 features, where dicts of Python numbers took ~110 KB.
     """
 
-    words: Mapping[int, float]
-    direct_index: Mapping[int, NDArray[np.int64]] = field(default_factory=dict)
+    words: Mapping[int, float] = field(default_factory=lambda: _NO_WORDS)
+    direct_index: Mapping[int, NDArray[np.integer]] = field(default_factory=lambda: _NO_DIRECT_INDEX)
+
+    def __post_init__(self) -> None:
+        words = _NO_WORDS if not self.words else WordWeights.of(self.words)
+        direct = _NO_DIRECT_INDEX if not self.direct_index else DirectIndex.of(self.direct_index)
+        object.__setattr__(self, "words", words)
+        object.__setattr__(self, "direct_index", direct)
+
+    @property
+    def word_weights(self) -> WordWeights:
+        """``words`` as its arrays (typed)."""
+        return cast(WordWeights, self.words)
+
+    @property
+    def direct(self) -> DirectIndex:
+        """``direct_index`` as its arrays (typed)."""
+        return cast(DirectIndex, self.direct_index)
 
 
 #: (keyframe id, n) -> its n best covisible keyframes, best first (``store.covisibility.best_neighbors``).

@@ -35,7 +35,9 @@ class KeyframeDatabase:
 
     def __init__(self, score: ScoreFn) -> None:
         self._score = score
-        self._inverted: dict[int, dict[int, None]] = {}  # word -> keyframe ids (dict as an ordered set)
+        # word -> keyframe ids in insertion order (ORB-SLAM's vector<list<KeyFrame*>> mvInvertedFile): a list of the
+        # keyframes' shared int objects costs 8 bytes an entry, where a dict as an ordered set cost ~40
+        self._inverted: dict[int, list[int]] = {}
         self._bows: dict[int, BowDescription] = {}
 
     def __len__(self) -> int:
@@ -61,19 +63,25 @@ class KeyframeDatabase:
         if kf in self._bows:
             self.remove(kf)
         self._bows[kf] = bow
+        inverted = self._inverted
         for word in bow.words:
-            self._inverted.setdefault(word, {})[kf] = None
+            entry = inverted.get(word)
+            if entry is None:
+                inverted[word] = [kf]
+            else:
+                entry.append(kf)
 
     def remove(self, keyframe_id: int) -> None:
         """Erase a keyframe from the inverted index (keyframe culling). Unknown ids are ignored, as ORB-SLAM's
         KeyFrameDatabase::erase."""
-        bow = self._bows.pop(int(keyframe_id), None)
+        kf = int(keyframe_id)
+        bow = self._bows.pop(kf, None)
         if bow is None:
             return
         for word in bow.words:
             entry = self._inverted.get(word)
-            if entry is not None:
-                entry.pop(int(keyframe_id), None)
+            if entry is not None and kf in entry:
+                entry.remove(kf)
                 if not entry:
                     del self._inverted[word]
 

@@ -247,3 +247,32 @@ def tokens_per_line(text: NDArray[np.uint8]) -> I32:  # pragma: no cover - numba
             line += 1
         prev_blank = blank
     return counts
+
+
+@numba.njit(cache=True, nogil=True)
+def l1_common_sum(ids_a: I32, w_a: F64, ids_b: I32, w_b: F64) -> float:  # pragma: no cover - numba
+    """Sum over the words two bags share of |va| + |vb| - |va - vb| (DBoW2's L1Scoring before its factor 1/2).
+
+    ids_a / ids_b: (Ka,) / (Kb,) strictly ascending word ids; w_a / w_b: their weights. The two sorted lists are
+    merged and the terms added one at a time in ascending word id (no pairwise summation), so the float result is
+    the same whichever bag is the smaller and the same as a Python loop over the shared words in that order.
+    """
+    s = 0.0
+    i = 0
+    j = 0
+    na = ids_a.shape[0]
+    nb = ids_b.shape[0]
+    while i < na and j < nb:
+        a = ids_a[i]
+        b = ids_b[j]
+        if a < b:
+            i += 1
+        elif a > b:
+            j += 1
+        else:
+            va = w_a[i]
+            vb = w_b[j]
+            s += abs(va) + abs(vb) - abs(va - vb)
+            i += 1
+            j += 1
+    return s

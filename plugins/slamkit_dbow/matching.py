@@ -11,19 +11,16 @@ ORB-SLAM's ORBmatcher has them.
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
-from collections.abc import Mapping
-
 import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.features import Features
 from slamkit.interfaces import BowDescription
-from slamkit.pipeline.matching import hamming_matrix, resolve_one_to_one, rotation_consistent, row_distance
+from slamkit.pipeline.matching import resolve_one_to_one, rotation_consistent, row_distance
 from slamkit_dbow.vocabulary import VocabularyError
 
+I32 = NDArray[np.int32]
 I64 = NDArray[np.int64]
 
 
@@ -62,36 +59,27 @@ def match_by_bow(
     """
     n1, n2 = len(feats1), len(feats2)
     m1, m2 = _mask(mask1, n1, "mask1"), _mask(mask2, n2, "mask2")
-    d1, d2 = feats1.descriptors, feats2.descriptors
-    q_all: list[I64] = []
-    t_all: list[I64] = []
-    dist_all: list[NDArray[np.int32]] = []
-    for node, idx1 in bow1.direct_index.items():
-        idx2 = bow2.direct_index.get(node)
-        if idx2 is None:
-            continue
-        if m1 is not None:
-            idx1 = idx1[m1[idx1]]
-        if m2 is not None:
-            idx2 = idx2[m2[idx2]]
-        if idx1.size == 0 or idx2.size == 0:
-            continue
-        dist = hamming_matrix(d1[idx1], d2[idx2])
-        best_j = np.argmin(dist, axis=1)
-        best = dist[np.arange(idx1.size), best_j]
-        # second-nearest distance; a lone candidate has none (inf: it passes the ratio test)
-        second = np.full(idx1.size, np.inf)
-        if idx2.size > 1:
-            second = np.partition(dist, 1, axis=1)[:, 1].astype(np.float64)
-        ok = (best <= max_distance) & (best < ratio * second)
-        q_all.append(idx1[ok])
-        t_all.append(idx2[best_j[ok]])
-        dist_all.append(best[ok])
-    if not q_all:
+    d1 = np.ascontiguousarray(feats1.descriptors, np.uint8)
+    d2 = np.ascontiguousarray(feats2.descriptors, np.uint8)
+    if d1.shape[1] % 8 or d1.shape[1] != d2.shape[1]:
+        raise VocabularyError(f"descriptors must be (N, D) uint8 with one D, a multiple of 8: {d1.shape}, {d2.shape}")
+    x, y = bow1.direct, bow2.direct
+    q, t, dist = _nearest_in_shared_nodes(
+        x.nodes,
+        x.offsets,
+        x.features,
+        y.nodes,
+        y.offsets,
+        y.features,
+        np.ones(n1, bool) if m1 is None else m1,
+        np.ones(n2, bool) if m2 is None else m2,
+        d1.view(np.uint64),
+        d2.view(np.uint64),
+        int(max_distance),
+        float(ratio),
+    )
+    if q.size == 0:
         return np.zeros((0, 2), np.int64)
-    q = np.concatenate(q_all).astype(np.int64)
-    t = np.concatenate(t_all).astype(np.int64)
-    dist = np.concatenate(dist_all)
     keep = resolve_one_to_one(q, t, dist)
     q, t = q[keep], t[keep]
     if rotation_bins and q.size:
@@ -103,20 +91,91 @@ def match_by_bow(
 
 
 @numba.njit(cache=True, nogil=True)
-def _node_pair_matches(
-    nodes1: I64,
+def _nearest_in_shared_nodes(
+    nodes1: I32,
     ptr1: I64,
-    feats1: I64,
-    nodes2: I64,
+    feats1: I32,
+    nodes2: I32,
     ptr2: I64,
-    feats2: I64,
+    feats2: I32,
+    mask1: NDArray[np.bool_],
+    mask2: NDArray[np.bool_],
+    desc1: NDArray[np.uint64],
+    desc2: NDArray[np.uint64],
+    max_distance: int,
+    ratio: float,
+) -> tuple[I64, I64, I64]:  # pragma: no cover - compiled
+    """SearchByBoW's per-node search: merge the two sorted node lists; for every shared node and every allowed feature
+    a of image 1 in it, the nearest allowed feature b of image 2 in the node (the first of equal ones) and the second
+    smallest distance (equal to the nearest when two are as close; none for a lone candidate). Keeps (a, b, distance)
+    when distance <= max_distance and distance < ratio * second (a lone candidate passes), in node order then a's
+    direct-index order: the numpy version's argmin / partition per node, in one compiled pass (GIL released)."""
+    n_out = 0
+    i = j = 0
+    while i < nodes1.shape[0] and j < nodes2.shape[0]:
+        if nodes1[i] < nodes2[j]:
+            i += 1
+        elif nodes1[i] > nodes2[j]:
+            j += 1
+        else:
+            n_out += ptr1[i + 1] - ptr1[i]
+            i += 1
+            j += 1
+    q = np.empty(n_out, np.int64)
+    t = np.empty(n_out, np.int64)
+    d = np.empty(n_out, np.int64)
+    n = 0
+    i = j = 0
+    while i < nodes1.shape[0] and j < nodes2.shape[0]:
+        if nodes1[i] < nodes2[j]:
+            i += 1
+        elif nodes1[i] > nodes2[j]:
+            j += 1
+        else:
+            for s in range(ptr1[i], ptr1[i + 1]):
+                a = feats1[s]
+                if not mask1[a]:
+                    continue
+                best = -1
+                best_b = -1
+                second = np.inf
+                for u in range(ptr2[j], ptr2[j + 1]):
+                    b = feats2[u]
+                    if not mask2[b]:
+                        continue
+                    dist = row_distance(desc1, a, desc2, b)
+                    if best < 0 or dist < best:
+                        if best >= 0:
+                            second = float(best)
+                        best = dist
+                        best_b = b
+                    elif dist < second:
+                        second = float(dist)
+                if best >= 0 and best <= max_distance and best < ratio * second:
+                    q[n] = a
+                    t[n] = best_b
+                    d[n] = best
+                    n += 1
+            i += 1
+            j += 1
+    return q[:n], t[:n], d[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def _node_pair_matches(
+    nodes1: I32,
+    ptr1: I64,
+    feats1: I32,
+    nodes2: I32,
+    ptr2: I64,
+    feats2: I32,
     mask1: NDArray[np.bool_],
     mask2: NDArray[np.bool_],
     desc1: NDArray[np.uint64],
     desc2: NDArray[np.uint64],
     max_distance: int,
 ) -> tuple[I64, I64, I64]:  # pragma: no cover - compiled
-    """Merge the two sorted node lists; for every shared node, every (allowed feature of 1, allowed feature of 2)
+    """Merge the two sorted node lists (direct indexes as CSR arrays: ``DirectIndex``); for every shared node, every (allowed feature of 1, allowed feature of 2)
     pair within max_distance bits -> (a, b, distance), in node order, then a's, then b's (direct-index order)."""
     n_pairs = 0
     i = j = 0
@@ -159,42 +218,6 @@ def _node_pair_matches(
     return a[:n], b[:n], d[:n]
 
 
-def _direct_index_arrays(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
-    """A direct index (node -> feature indices) as sorted node ids (K,), offsets (K + 1,), features."""
-    nodes = sorted(di)
-    parts = [np.asarray(di[n], np.int64).ravel() for n in nodes]
-    sizes = np.array([p.size for p in parts], np.int64)
-    ptr = np.concatenate([np.zeros(1, np.int64), np.cumsum(sizes)]).astype(np.int64)
-    feats = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
-    return np.array(nodes, np.int64), ptr, feats
-
-
-#: The flat arrays of the direct indices last used (keyed by the mapping's id, which the entry keeps alive so the id
-#: cannot be reused): local mapping pairs each new keyframe with its ~20 neighbours, which were paired with the
-#: keyframes before it, so most direct indices are flattened once instead of once per pair. Direct indices are never
-#: changed after ``transform`` made them.
-_FLAT_INDICES: OrderedDict[int, tuple[Mapping[int, I64], tuple[I64, I64, I64]]] = OrderedDict()
-_FLAT_INDICES_MAX = 128
-_FLAT_INDICES_LOCK = threading.Lock()
-
-
-def _direct_index_arrays_cached(di: Mapping[int, I64]) -> tuple[I64, I64, I64]:
-    """``_direct_index_arrays(di)``, from the cache of recently used direct indices when ``di`` is in it."""
-    key = id(di)
-    with _FLAT_INDICES_LOCK:
-        hit = _FLAT_INDICES.get(key)
-        if hit is not None and hit[0] is di:
-            _FLAT_INDICES.move_to_end(key)
-            return hit[1]
-    arrays = _direct_index_arrays(di)  # writeable (a read-only array would compile another numba signature)
-    with _FLAT_INDICES_LOCK:
-        _FLAT_INDICES[key] = (di, arrays)
-        _FLAT_INDICES.move_to_end(key)
-        while len(_FLAT_INDICES) > _FLAT_INDICES_MAX:
-            _FLAT_INDICES.popitem(last=False)
-    return arrays
-
-
 def node_pairs(
     feats1: Features,
     bow1: BowDescription,
@@ -217,6 +240,17 @@ def node_pairs(
     d2 = np.ascontiguousarray(feats2.descriptors, np.uint8)
     if d1.shape[1] % 8 or d1.shape[1] != d2.shape[1]:
         raise VocabularyError(f"descriptors must be (N, D) uint8 with one D, a multiple of 8: {d1.shape}, {d2.shape}")
-    n1, p1, f1 = _direct_index_arrays_cached(bow1.direct_index)
-    n2, p2, f2 = _direct_index_arrays_cached(bow2.direct_index)
-    return _node_pair_matches(n1, p1, f1, n2, p2, f2, m1, m2, d1.view(np.uint64), d2.view(np.uint64), int(max_distance))
+    x, y = bow1.direct, bow2.direct
+    return _node_pair_matches(
+        x.nodes,
+        x.offsets,
+        x.features,
+        y.nodes,
+        y.offsets,
+        y.features,
+        m1,
+        m2,
+        d1.view(np.uint64),
+        d2.view(np.uint64),
+        int(max_distance),
+    )

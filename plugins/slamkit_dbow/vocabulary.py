@@ -22,8 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import SlamkitError
-from slamkit.interfaces import BowDescription
-from slamkit_dbow.kernels import descend
+from slamkit.interfaces import BowDescription, DirectIndex, WordWeights
+from slamkit_dbow.kernels import descend, l1_common_sum
 
 
 class Scoring(IntEnum):
@@ -208,10 +208,10 @@ class Vocabulary:
     def transform(self, descriptors: NDArray[np.uint8], direct_index_level: int) -> BowDescription:
         """descriptors: (N, D) uint8 of one image -> its bag of words and direct index.
 
-        words: word id -> weight, L1-normalised (sum 1). TF-IDF/TF: a word's weight is the sum of its idf
+        words: word id -> weight, L1-normalised (sum 1), as arrays (``WordWeights``: ascending word id). TF-IDF/TF: a word's weight is the sum of its idf
         over the image's features that reach it; IDF/BINARY: its idf once. Features reaching a stopped
         word (weight 0) are left out of both. direct_index: node id at depth ``direct_index_level`` (0 =
-        root) -> (n,) int64 feature indices, ascending.
+        root) -> (n,) int32 feature indices, ascending, as CSR arrays (``DirectIndex``: ascending node id).
         """
         if self.scoring != Scoring.L1_NORM:
             raise VocabularyError(f"scoring {self.scoring.name} is not supported; slamkit implements L1_NORM")
@@ -219,7 +219,7 @@ class Vocabulary:
         idf = self.word_weights[wn.words]
         keep = np.flatnonzero(idf > 0)
         if keep.size == 0:
-            return BowDescription({}, {})
+            return BowDescription()
         w = wn.words[keep]
         uniq, inverse = np.unique(w, return_inverse=True)
         if self.weighting in (Weighting.TF_IDF, Weighting.TF):
@@ -230,26 +230,19 @@ class Vocabulary:
                 self.word_weights[uniq] if self.weighting == Weighting.IDF else np.ones(uniq.size), np.float64
             )
         values = values / np.sum(np.abs(values))
-        words = dict(zip(uniq.tolist(), values.tolist(), strict=True))
         nodes = wn.nodes[keep]
         order = np.argsort(nodes, kind="stable")
         sorted_nodes = nodes[order]
-        cuts = np.flatnonzero(np.diff(sorted_nodes)) + 1
-        groups = np.split(keep[order].astype(np.int64), cuts)
-        starts = np.concatenate(([0], cuts))
-        direct = {int(sorted_nodes[s]): g for s, g in zip(starts, groups, strict=True)}
-        return BowDescription(words, direct)
+        starts = np.flatnonzero(np.diff(sorted_nodes)) + 1
+        offsets = np.concatenate(([0], starts, [sorted_nodes.size])).astype(np.int64)
+        direct = DirectIndex(sorted_nodes[offsets[:-1]], offsets, keep[order])
+        return BowDescription(WordWeights(uniq, values), direct)
 
     @staticmethod
     def score(a: BowDescription, b: BowDescription) -> float:
         """DBoW2's L1 score of two L1-normalised vectors: 1 - ||a - b||_1 / 2, in [0, 1]
-        (1 for identical vectors, 0 when no word is shared)."""
-        wa, wb = a.words, b.words
-        if len(wa) > len(wb):
-            wa, wb = wb, wa
-        s = 0.0
-        for word, va in wa.items():
-            vb = wb.get(word)
-            if vb is not None:
-                s += abs(va) + abs(vb) - abs(va - vb)
-        return 0.5 * s
+        (1 for identical vectors, 0 when no word is shared). The sum |va| + |vb| - |va - vb| over the shared words
+        is taken in ascending word id, one word after the other (DBoW2's L1Scoring walks its sorted map the same way),
+        so a score is bit-for-bit the one the former dict loop gave."""
+        wa, wb = a.word_weights, b.word_weights
+        return 0.5 * l1_common_sum(wa.ids, wa.weights, wb.ids, wb.weights)

@@ -18,10 +18,10 @@ Members:
   the observation record's scalars, feature counts), their features concatenated (``feat_*``: raw and
   pipeline-image pixels, level, angle, response, descriptors, bearing, right coordinate, depth, and the map point
   of each feature), bags of words (``bow_*``: word ids and weights; ``di_*``: direct index nodes and feature
-  indices, in the recognizer's dict order), map points (``pt_*``: ids, xyz_w, normal, depth range, descriptor,
-  reference and first keyframes, visible/found counters; ``obs_*``: observations in the store's order), and the
-  graphs (``cov_edges`` (E, 3) with their saved weights, ``tree`` (T, 2) child/parent with -1 for a root,
-  ``loop_edges`` (L, 2)). Variable-length parts are concatenated with a count per owner.
+  indices; words and nodes in ascending id, as ``BowDescription`` holds them), map points (``pt_*``: ids, xyz_w,
+  normal, depth range, descriptor, reference and first keyframes, visible/found counters; ``obs_*``: observations
+  in the store's order), and the graphs (``cov_edges`` (E, 3) with their saved weights, ``tree`` (T, 2)
+  child/parent with -1 for a root, ``loop_edges`` (L, 2)). Variable-length parts are concatenated with a count per owner.
 - A map of a non-rectified rig (``frontend=stereo_rig``, ORB-SLAM3 sec. I-B; schema version 2, the only difference
   from version 1): per keyframe ``kf_n_left`` (ORB-SLAM3's Nleft, -1 for a one-camera keyframe), ``kf_camera2`` (the
   second camera's index in the manifest's cameras, -1 for none) and ``kf_T_c2_c1`` (K, 4, 4) (the fixed extrinsic,
@@ -65,7 +65,7 @@ from numpy.typing import NDArray
 from slamkit.errors import MapFileError
 from slamkit.features import Observations
 from slamkit.geometry.camera import camera_from_config
-from slamkit.interfaces import BowDescription, Camera, MapStore, PlaceRecognizer
+from slamkit.interfaces import BowDescription, Camera, DirectIndex, MapStore, PlaceRecognizer, WordWeights
 from slamkit.map.atlas import Atlas, StoreFactory
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.ids import IdAllocator
@@ -338,20 +338,19 @@ def _map_arrays(store: MapStore, camera_id: Callable[[Camera], int]) -> tuple[di
             at += len(f)
         a[f"feat_{name}"] = column
     a["feat_point_id"] = np.concatenate([kf.point_ids for kf in kfs]) if kfs else np.zeros(0, np.int64)
-    # bags of words, in the dicts' own orders (scores sum in that order: bit-for-bit the same results)
+    # bags of words: each one's arrays (words by ascending id, the order a score sums them in; direct-index nodes by
+    # ascending id), written as int64 / float64 columns as they always were
     bows = [kf.bow for kf in kfs]
-    words = [b.words if b is not None else {} for b in bows]
-    direct = [b.direct_index if b is not None else {} for b in bows]
     a["kf_has_bow"] = np.array([b is not None for b in bows], np.bool_)
-    a["bow_n_words"] = _counts(len(w) for w in words)
-    n_words = int(a["bow_n_words"].sum())
-    a["bow_word"] = np.fromiter((k for w in words for k in w), np.int64, n_words)
-    a["bow_weight"] = np.fromiter((v for w in words for v in w.values()), np.float64, n_words)
-    a["di_n_nodes"] = _counts(len(d) for d in direct)
-    a["di_node"] = np.fromiter((k for d in direct for k in d), np.int64, int(a["di_n_nodes"].sum()))
-    a["di_n_features"] = _counts(len(g) for d in direct for g in d.values())
-    groups = [np.asarray(g, np.int64).reshape(-1) for d in direct for g in d.values()]
-    a["di_feature"] = np.concatenate(groups) if groups else np.zeros(0, np.int64)
+    words = [b.word_weights for b in bows if b is not None]
+    direct = [b.direct for b in bows if b is not None]
+    a["bow_n_words"] = _counts(len(b.words) if b is not None else 0 for b in bows)
+    a["bow_word"] = _joined([w.ids for w in words], np.int64)
+    a["bow_weight"] = _joined([w.weights for w in words], np.float64)
+    a["di_n_nodes"] = _counts(len(b.direct_index) if b is not None else 0 for b in bows)
+    a["di_node"] = _joined([d.nodes for d in direct], np.int64)
+    a["di_n_features"] = _joined([np.diff(d.offsets) for d in direct], np.int64)
+    a["di_feature"] = _joined([d.features for d in direct], np.int64)
     pids = np.array(store.point_ids(), np.int64)
     pts = store.get_points(pids.tolist())
     P = len(pts)
@@ -549,6 +548,31 @@ class _Reader:
         return out
 
 
+def _joined(parts: Sequence[NDArray[Any]], dtype: type) -> NDArray[Any]:
+    """The 1-D arrays ``parts`` end to end as ``dtype`` (an empty array of it when there are none)."""
+    return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
+
+
+def _read_bow(
+    word: NDArray[np.int64], weight: NDArray[np.float64], nodes: NDArray[np.int64], groups: Sequence[NDArray[np.int64]]
+) -> BowDescription:
+    """A keyframe's bag of words from its rows of the file: words (K,) and their weights (K,), direct-index nodes (G,)
+    and each node's feature indices. Rows come in ascending id from slamkit's writer; any other order is sorted."""
+    if word.size > 1 and not bool(np.all(word[1:] > word[:-1])):
+        return BowDescription(
+            dict(zip(word.tolist(), weight.tolist(), strict=True)),
+            {n: g for n, g in zip(nodes.tolist(), groups, strict=True)},
+        )
+    direct: Mapping[int, NDArray[np.integer]]
+    if nodes.size > 1 and not bool(np.all(nodes[1:] > nodes[:-1])):
+        direct = {n: g for n, g in zip(nodes.tolist(), groups, strict=True)}
+    else:
+        offsets = np.zeros(nodes.shape[0] + 1, np.int64)
+        np.cumsum([g.shape[0] for g in groups], out=offsets[1:])
+        direct = DirectIndex(nodes, offsets, _joined(list(groups), np.int32))
+    return BowDescription(WordWeights(word, weight), direct)
+
+
 def _split(array: NDArray[Any], counts: NDArray[np.int64], what: str, reader: _Reader) -> list[NDArray[Any]]:
     if np.any(counts < 0) or int(counts.sum()) != array.shape[0]:
         raise reader.error(f"{what}: counts add up to {int(counts.sum())}, the array has {array.shape[0]} rows")
@@ -623,11 +647,10 @@ def _read_map(reader: _Reader, meta: Mapping[str, Any], cameras: Sequence[Camera
             **rig[i],
         )
         bow: BowDescription | None = None
-        k_nodes = node_groups[i].tolist()
+        k_nodes = node_groups[i]
         if has_bow[i]:
-            direct = {node: groups[g + j] for j, node in enumerate(k_nodes)}
-            bow = BowDescription(dict(zip(words[i].tolist(), weights[i].tolist(), strict=True)), direct)
-        g += len(k_nodes)
+            bow = _read_bow(words[i], weights[i], k_nodes, groups[g : g + k_nodes.shape[0]])
+        g += k_nodes.shape[0]
         keyframes.append(
             KeyFrame(
                 int(kf_id[i]),
