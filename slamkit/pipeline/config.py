@@ -205,6 +205,7 @@ class LoopClosingConfig:
     merge_ba_iterations_first: int = 5
     merge_ba_iterations_second: int = 10
     merge_essential_graph: bool = True
+    merge_global_ba: bool = False
     # the shared sections pipeline.matcher and pipeline.chi2 (set by PipelineConfig.from_node)
     matcher: MatcherConfig = field(default_factory=MatcherConfig, metadata={"shared": True})
     chi2: Chi2Config = field(default_factory=Chi2Config, metadata={"shared": True})

@@ -394,19 +394,21 @@ class LoopCloser:
 
     # ---- ORB-SLAM3 sec. III-B: map merging (local mapping parked) -------------------------------------------
 
-    def merge(self, detection: LoopDetection) -> LoopOutcome:
+    def merge(self, detection: LoopDetection, global_ba_stopped: bool = False) -> LoopOutcome:
         """Merge the map ``detection`` found (ORB-SLAM3 MergeLocal, slamkit/pipeline/map_merging.py) into the
         active map; the caller keeps local mapping stopped meanwhile (ORB-SLAM3: RequestStop). Tracking goes on: it
         waits only while the map is written (the rigid move, the import and the fusion, then the welding BA's and the
-        essential graph's results). Releases the keyframe detection pinned."""
+        essential graph's results). A global BA follows only when one was running and stopped for the merge (here,
+        or by the caller: ``global_ba_stopped``), as ORB-SLAM3's bRelaunchBA, unless ``merge_global_ba`` asks for one
+        after every merge. Releases the keyframe detection pinned."""
         merge = detection.merge
         if merge is None:
             raise ValueError(f"keyframe {detection.outcome.kf_id}: detection accepted no merge")
         kf, out = detection.kf, detection.outcome
         try:
-            self.abort_global_ba()
+            relaunch = self.abort_global_ba() or global_ba_stopped
             t0 = time.perf_counter()
-            self._merge(kf, merge, out)
+            self._merge(kf, merge, out, relaunch)
             out.timings_ms["merge_ms"] = (time.perf_counter() - t0) * 1e3
             self.last_loop_kf_id = kf.id
             self._pending = None
@@ -429,7 +431,7 @@ class LoopCloser:
         )
         return out
 
-    def _merge(self, kf: KeyFrame, merge: AcceptedMerge, out: LoopOutcome) -> None:
+    def _merge(self, kf: KeyFrame, merge: AcceptedMerge, out: LoopOutcome, relaunch_global_ba: bool) -> None:
         cfg = self.cfg
         store = self.store
         other = self.atlas.get(merge.map_id)  # not the active map: nobody changes it
@@ -519,7 +521,9 @@ class LoopCloser:
                 out.timings_ms["merge_locked_essential_graph_ms"] = (time.perf_counter() - t_write) * 1e3
                 out.essential_graph_edges = int(problem.edge_i.shape[0])
             out.timings_ms["merge_essential_graph_ms"] = (time.perf_counter() - t_eg) * 1e3
-        if cfg.global_ba:
+        # ORB-SLAM3 MergeLocal: "if(bRelaunchBA && (!pCurrentMap->isImuInitialized() || ...))" -> a global BA on the
+        # merged map only in place of one the merge stopped (a visual map is never IMU-initialised)
+        if cfg.global_ba and (relaunch_global_ba or cfg.merge_global_ba):
             self.start_global_ba(kf.id)
 
     # ---- VII-A: detection ----------------------------------------------------------------------------
@@ -1266,12 +1270,16 @@ class LoopCloser:
             out.propagated_points,
         )
 
-    def abort_global_ba(self) -> None:
+    def abort_global_ba(self) -> bool:
         """Stop a running global BA (a new loop, a map reset; ORB-SLAM2 mbStopGBA) and wait for its thread; an
-        aborted global BA writes nothing."""
+        aborted global BA writes nothing. Returns whether one was running (ORB-SLAM3 isRunningGBA(): a merge
+        relaunches it on the merged map)."""
+        thread = self._gba_thread
+        running = thread is not None and thread.is_alive()
         if self._gba_abort is not None:
             self._gba_abort.set()
         self.join_global_ba()
+        return running
 
     def join_global_ba(self) -> None:
         """Wait for a running global BA to finish (the end of a run: ORB-SLAM2 Shutdown waits for it)."""

@@ -25,8 +25,9 @@ The steps, each a function here, run by ``LoopCloser.merge`` with local mapping 
 4. **Duplicate fusion** (ORB-SLAM3 SearchAndFuse): the points of the matched keyframe's window projected into the
    current window, the incoming point winning; then the connections of both windows are updated.
 5. **Welding BA** (:func:`welding_bundle`, ORB-SLAM3 ``Optimizer::LocalBundleAdjustment(pMainKF, vpAdjustKF,
-   vpFixedKF)``): the current window's keyframes and every point the two windows see are optimized, the matched
-   window and every other keyframe seeing those points are fixed.
+   vpFixedKF)``): the current window's keyframes and every point the two windows see are optimized against the
+   matched window, fixed; only the two windows' observations are in it (ORB-SLAM3), not the other keyframes seeing
+   those points.
 6. **Essential graph** of the merged map (:func:`merge_essential_graph_problem`; paper sec. III-B; the released
    code runs it for stereo/RGB-D only and moves a monocular map rigidly): the keyframes of the matched map and the
    welded windows fixed, the rest of the former active map free, so the welding BA's correction spreads over it.
@@ -214,17 +215,18 @@ def welding_bundle(
     chi2_stereo: float,
 ) -> BundleSnapshot | None:
     """The welding BA's problem (ORB-SLAM3 LocalBundleAdjustment(pMainKF, vpAdjustKF, vpFixedKF)): the current
-    window's keyframes free, the matched window's fixed, every point either window sees, and every other keyframe
-    observing those points fixed. None when there is nothing to optimize. Called under the read lock."""
+    window's keyframes free, the matched window's fixed, every point either window sees, and only the two windows'
+    observations of them: ORB-SLAM3 adds an edge only for a keyframe of one of the windows (``mnBALocalForMerge``),
+    unlike local mapping's BA, which holds every other observer fixed. The active map's keyframes outside the current
+    window carry the detection's error after the rigid move; held fixed here they kept the window (and through the
+    essential graph the whole former active map) half-way between the two maps. None when there is nothing to
+    optimize. Called under the read lock."""
     free = [k for k in current_window if store.has_keyframe(k)]
     fixed_window = [k for k in merge_window if store.has_keyframe(k) and k not in set(free)]
     pids = window_points(store, [*free, *fixed_window])
     if not free or not pids:
         return None
-    others = sorted({o for p in pids for o in store.get_point(p).observations} - set(free) - set(fixed_window))
-    return snapshot_bundle(
-        store, free, [*fixed_window, *others], pids, iterations_first, iterations_second, chi2_mono, chi2_stereo
-    )
+    return snapshot_bundle(store, free, fixed_window, pids, iterations_first, iterations_second, chi2_mono, chi2_stereo)
 
 
 def merge_essential_graph_problem(

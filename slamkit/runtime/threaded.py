@@ -203,14 +203,15 @@ class ThreadedRunner:
         if detection.loop is not None or detection.merge is not None:
             # a global BA still running from the last loop stops first (ORB-SLAM2 CorrectLoop: mbStopGBA); it may
             # be waiting to park local mapping itself, so not while local mapping is parked here
-            self.loop_closer.abort_global_ba()
+            global_ba_stopped = self.loop_closer.abort_global_ba()
             try:
                 # a merge parks local mapping as a loop correction does (ORB-SLAM3 MergeLocal: RequestStop);
                 # tracking goes on, waiting only while the merge writes the map
                 with self._parked(self._mapping, finish_queue=True):
                     self.mapping_parks_for_loops += 1
                     if detection.merge is not None:
-                        outcome = self.loop_closer.merge(detection)
+                        # ORB-SLAM3 bRelaunchBA: the global BA stopped here runs again on the merged map
+                        outcome = self.loop_closer.merge(detection, global_ba_stopped=global_ba_stopped)
                     else:
                         outcome = self.loop_closer.correct(detection)
             finally:

@@ -474,3 +474,24 @@ def test_a_merge_welds_the_active_map_into_the_matched_maps_frame_and_scale(worl
             j = tree.parent(j)  # type: ignore[assignment]
     assert (min(ids[-1], out.merge_kf_id), max(ids[-1], out.merge_kf_id)) in store.loop_edges()  # type: ignore[type-var]
     assert not closer.pins.snapshot()  # the merge released the keyframe detection pinned
+
+
+@pytest.mark.parametrize(("global_ba_stopped", "global_bas"), [(False, 0), (True, 1)])
+def test_a_merge_runs_a_global_ba_only_in_place_of_one_it_stopped(
+    world: World, global_ba_stopped: bool, global_bas: int
+) -> None:
+    """ORB-SLAM3 MergeLocal (bRelaunchBA): a visual merge launches no global BA of its own; a global BA of an earlier
+    loop that was running when the merge began (stopped for it) runs again, on the merged map. The two maps meet in
+    the welding area only: a global BA after it moved their relative scale (docs/BENCHMARKS.md, "The threaded
+    long-loop kidnap within its bar")."""
+    drift = np.eye(4)
+    drift[:3, :3] = so3_exp(np.array([0.0, 0.0, np.radians(40.0)]))
+    drift[:3, 3] = [1.0, -0.5, 0.2]
+    closer, atlas, ids = two_map_closer(world, drift)
+    assert closer.cfg.global_ba and not closer.cfg.merge_global_ba  # the defaults
+    detection = closer.detect(atlas.active.get_keyframe(ids[-1]))
+    assert detection.merge is not None
+    closer.merge(detection, global_ba_stopped=global_ba_stopped)
+    assert atlas.map_ids() == [1]
+    assert [g.loop_kf_id for g in closer.global_bas] == [ids[-1]] * global_bas
+    assert not any(g.aborted for g in closer.global_bas)
