@@ -91,6 +91,27 @@ def match_by_bow(
 
 
 @numba.njit(cache=True, nogil=True)
+def _shared_nodes(nodes1: I32, nodes2: I32) -> tuple[I64, I64]:  # pragma: no cover - compiled
+    """Positions (i, j) with ``nodes1[i] == nodes2[j]`` of two ascending node-id lists, in ascending node order: the
+    merge both per-node searches walk."""
+    shared1 = np.empty(min(nodes1.shape[0], nodes2.shape[0]), np.int64)
+    shared2 = np.empty_like(shared1)
+    n = i = j = 0
+    while i < nodes1.shape[0] and j < nodes2.shape[0]:
+        if nodes1[i] < nodes2[j]:
+            i += 1
+        elif nodes1[i] > nodes2[j]:
+            j += 1
+        else:
+            shared1[n] = i
+            shared2[n] = j
+            n += 1
+            i += 1
+            j += 1
+    return shared1[:n], shared2[:n]
+
+
+@numba.njit(cache=True, nogil=True)
 def _nearest_in_shared_nodes(
     nodes1: I32,
     ptr1: I64,
@@ -110,54 +131,40 @@ def _nearest_in_shared_nodes(
     smallest distance (equal to the nearest when two are as close; none for a lone candidate). Keeps (a, b, distance)
     when distance <= max_distance and distance < ratio * second (a lone candidate passes), in node order then a's
     direct-index order: the numpy version's argmin / partition per node, in one compiled pass (GIL released)."""
+    shared1, shared2 = _shared_nodes(nodes1, nodes2)
     n_out = 0
-    i = j = 0
-    while i < nodes1.shape[0] and j < nodes2.shape[0]:
-        if nodes1[i] < nodes2[j]:
-            i += 1
-        elif nodes1[i] > nodes2[j]:
-            j += 1
-        else:
-            n_out += ptr1[i + 1] - ptr1[i]
-            i += 1
-            j += 1
+    for k in range(shared1.shape[0]):
+        n_out += ptr1[shared1[k] + 1] - ptr1[shared1[k]]
     q = np.empty(n_out, np.int64)
     t = np.empty(n_out, np.int64)
     d = np.empty(n_out, np.int64)
     n = 0
-    i = j = 0
-    while i < nodes1.shape[0] and j < nodes2.shape[0]:
-        if nodes1[i] < nodes2[j]:
-            i += 1
-        elif nodes1[i] > nodes2[j]:
-            j += 1
-        else:
-            for s in range(ptr1[i], ptr1[i + 1]):
-                a = feats1[s]
-                if not mask1[a]:
+    for k in range(shared1.shape[0]):
+        i, j = shared1[k], shared2[k]
+        for s in range(ptr1[i], ptr1[i + 1]):
+            a = feats1[s]
+            if not mask1[a]:
+                continue
+            best = -1
+            best_b = -1
+            second = np.inf
+            for u in range(ptr2[j], ptr2[j + 1]):
+                b = feats2[u]
+                if not mask2[b]:
                     continue
-                best = -1
-                best_b = -1
-                second = np.inf
-                for u in range(ptr2[j], ptr2[j + 1]):
-                    b = feats2[u]
-                    if not mask2[b]:
-                        continue
-                    dist = row_distance(desc1, a, desc2, b)
-                    if best < 0 or dist < best:
-                        if best >= 0:
-                            second = float(best)
-                        best = dist
-                        best_b = b
-                    elif dist < second:
-                        second = float(dist)
-                if best >= 0 and best <= max_distance and best < ratio * second:
-                    q[n] = a
-                    t[n] = best_b
-                    d[n] = best
-                    n += 1
-            i += 1
-            j += 1
+                dist = row_distance(desc1, a, desc2, b)
+                if best < 0 or dist < best:
+                    if best >= 0:
+                        second = float(best)
+                    best = dist
+                    best_b = b
+                elif dist < second:
+                    second = float(dist)
+            if best >= 0 and best <= max_distance and best < ratio * second:
+                q[n] = a
+                t[n] = best_b
+                d[n] = best
+                n += 1
     return q[:n], t[:n], d[:n]
 
 
@@ -177,44 +184,31 @@ def _node_pair_matches(
 ) -> tuple[I64, I64, I64]:  # pragma: no cover - compiled
     """Merge the two sorted node lists (direct indexes as CSR arrays: ``DirectIndex``); for every shared node, every (allowed feature of 1, allowed feature of 2)
     pair within max_distance bits -> (a, b, distance), in node order, then a's, then b's (direct-index order)."""
+    shared1, shared2 = _shared_nodes(nodes1, nodes2)
     n_pairs = 0
-    i = j = 0
-    while i < nodes1.shape[0] and j < nodes2.shape[0]:
-        if nodes1[i] < nodes2[j]:
-            i += 1
-        elif nodes1[i] > nodes2[j]:
-            j += 1
-        else:
-            n_pairs += (ptr1[i + 1] - ptr1[i]) * (ptr2[j + 1] - ptr2[j])
-            i += 1
-            j += 1
+    for k in range(shared1.shape[0]):
+        i, j = shared1[k], shared2[k]
+        n_pairs += (ptr1[i + 1] - ptr1[i]) * (ptr2[j + 1] - ptr2[j])
     a = np.empty(n_pairs, np.int64)
     b = np.empty(n_pairs, np.int64)
     d = np.empty(n_pairs, np.int64)
     n = 0
-    i = j = 0
-    while i < nodes1.shape[0] and j < nodes2.shape[0]:
-        if nodes1[i] < nodes2[j]:
-            i += 1
-        elif nodes1[i] > nodes2[j]:
-            j += 1
-        else:
-            for s in range(ptr1[i], ptr1[i + 1]):
-                x = feats1[s]
-                if not mask1[x]:
+    for k in range(shared1.shape[0]):
+        i, j = shared1[k], shared2[k]
+        for s in range(ptr1[i], ptr1[i + 1]):
+            x = feats1[s]
+            if not mask1[x]:
+                continue
+            for t in range(ptr2[j], ptr2[j + 1]):
+                y = feats2[t]
+                if not mask2[y]:
                     continue
-                for t in range(ptr2[j], ptr2[j + 1]):
-                    y = feats2[t]
-                    if not mask2[y]:
-                        continue
-                    dist = row_distance(desc1, x, desc2, y)
-                    if dist <= max_distance:
-                        a[n] = x
-                        b[n] = y
-                        d[n] = dist
-                        n += 1
-            i += 1
-            j += 1
+                dist = row_distance(desc1, x, desc2, y)
+                if dist <= max_distance:
+                    a[n] = x
+                    b[n] = y
+                    d[n] = dist
+                    n += 1
     return a[:n], b[:n], d[:n]
 
 
