@@ -46,6 +46,12 @@ def test_bench_runs_both_runners_side_by_side_and_writes_the_json(
         assert n >= 40
         assert all(tracking[s]["n"] == n for s in ("extract_ms", "initial_pose_ms", "local_map_ms"))
         assert tracking["extract_ms"]["median"] < tracking["track_ms"]["median"]
+        # the frame's own work (the wait for local mapping taken out) is never more than its tracking time, and
+        # without waits (sequential: local mapping runs in line, nothing waits) it is the tracking time itself
+        assert tracking["work_ms"]["n"] == n
+        assert run["tracking_work_ms_median"] <= run["tracking_ms_median"]
+        if tracking["mapping_wait_ms"]["n"] == 0:
+            assert run["tracking_work_ms_median"] == run["tracking_ms_median"]
         assert run["stages"]["local_mapping"]["local_ba_ms"]["n"] >= 1
         assert run["peak_rss_mb"] > 50 and run["frames_dropped"] == 0
         assert run["ate_rmse_m"] < 0.05
