@@ -53,6 +53,7 @@ def _refresh_kernel(
     d_max = np.full(P, np.nan)
     best = np.full(P, -1, np.int64)
     row = np.zeros(64, np.int64)
+    dmat = np.zeros((64, 64), np.int64)
     for q in range(P):
         s, e = ptr[q], ptr[q + 1]
         n = e - s
@@ -92,12 +93,27 @@ def _refresh_kernel(
         elif n > 1:
             if row.shape[0] < n:
                 row = np.zeros(n, np.int64)
+                dmat = np.zeros((n, n), np.int64)
+            # the symmetric distance matrix, each pair once
+            for a in range(n):
+                dmat[a, a] = 0
+                for b in range(a + 1, n):
+                    d = row_distance(desc64, s + a, desc64, s + b)
+                    dmat[a, b] = d
+                    dmat[b, a] = d
             best_median = np.inf
             for a in range(n):
-                for b in range(n):
-                    row[b] = row_distance(desc64, s + a, desc64, s + b)
-                srt = np.sort(row[:n])
-                median = 0.5 * (srt[(n - 1) // 2] + srt[n // 2])  # np.median of the row
+                if n <= 24:  # row a sorted by insertion (short rows: a point's observations)
+                    for b in range(n):
+                        v = dmat[a, b]
+                        k = b
+                        while k > 0 and row[k - 1] > v:
+                            row[k] = row[k - 1]
+                            k -= 1
+                        row[k] = v
+                else:
+                    row[:n] = np.sort(dmat[a, :n])
+                median = 0.5 * (row[(n - 1) // 2] + row[n // 2])  # np.median of the row
                 if median < best_median:
                     best_median = median
                     best[q] = s + a
@@ -130,7 +146,12 @@ def sorted_observations(counts: I64, kf: I64, feat: I64, keep: NDArray[np.bool_]
     point = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
     if keep is not None:
         point, kf, feat = point[keep], kf[keep], feat[keep]
-    order = np.lexsort((kf, point))
+    if not kf.size:
+        return point, kf, feat
+    # one sort on a combined key: a point has one observation per keyframe (the observation mapping is keyed by
+    # keyframe id), so the keys are distinct and the order is np.lexsort((kf, point))'s, at a third of its cost
+    lo = int(kf.min())
+    order = np.argsort(point * (int(kf.max()) - lo + 1) + (kf - lo))
     return point[order], kf[order], feat[order]
 
 
