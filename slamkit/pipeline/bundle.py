@@ -125,7 +125,9 @@ def snapshot_bundle(
     level = np.zeros(E, np.int64)
     scale_factor = 1.2
     order = np.argsort(obs_kf_a, kind="stable")
-    kf_unique, starts = np.unique(obs_kf_a[order], return_index=True)
+    by_kf = obs_kf_a[order]
+    starts = np.flatnonzero(np.r_[True, by_kf[1:] != by_kf[:-1]]) if E else np.zeros(0, np.int64)
+    kf_unique = by_kf[starts]  # np.unique(by_kf, return_index=True) of the sorted ids, without sorting again
     bounds = np.append(starts, E)
     for i, kf_id in enumerate(kf_unique.tolist()):  # each keyframe's features gathered with one indexing
         rows = order[bounds[i] : bounds[i + 1]]

@@ -158,11 +158,18 @@ def sorted_observations(counts: I64, kf: I64, feat: I64, keep: NDArray[np.bool_]
 class _Gathered:
     """Observations of P points flattened in point order, each point's in keyframe-id order."""
 
-    def __init__(self, points: Sequence[MapPoint], keyframes: Mapping[int, KeyFrame], flat: tuple[I64, I64, I64]) -> None:
-        """flat: ``flat_observations(points)``; observers missing from ``keyframes`` are left out."""
+    def __init__(
+        self,
+        points: Sequence[MapPoint],
+        keyframes: Mapping[int, KeyFrame],
+        flat: tuple[I64, I64, I64],
+        all_present: bool = False,
+    ) -> None:
+        """flat: ``flat_observations(points)``; observers missing from ``keyframes`` are left out (all_present: the
+        caller knows every observer is in ``keyframes``)."""
         P = len(points)
         counts, kf_all, feat_all = flat
-        present = np.isin(kf_all, np.fromiter(keyframes, np.int64, count=len(keyframes)))
+        present = None if all_present else np.isin(kf_all, np.fromiter(keyframes, np.int64, count=len(keyframes)))
         point, kf_a, feat_a = sorted_observations(counts, kf_all, feat_all, present)
         E = kf_a.size
         self.n_observations = counts
@@ -179,7 +186,9 @@ class _Gathered:
         self.n_levels = np.ones(P, np.int64)
         if E:
             order = np.argsort(kf_a, kind="stable")
-            ids, starts = np.unique(kf_a[order], return_index=True)
+            by_kf = kf_a[order]
+            starts = np.flatnonzero(np.r_[True, by_kf[1:] != by_kf[:-1]])  # np.unique's return_index on sorted ids
+            ids = by_kf[starts]
             bounds = np.append(starts, E)
             for i, kf_id in enumerate(ids.tolist()):
                 rows = order[bounds[i] : bounds[i + 1]]
@@ -242,8 +251,9 @@ def refresh_points(store: MapStore, point_ids: Iterable[int], normals: bool = Tr
     if not points:
         return
     flat = flat_observations(points)
-    keyframes = {k: store.get_keyframe(k) for k in np.unique(flat[1]).tolist() if store.has_keyframe(k)}
-    _apply(store, points, _Gathered(points, keyframes, flat), normals, descriptors)
+    observers = np.unique(flat[1]).tolist()
+    keyframes = {k: store.get_keyframe(k) for k in observers if store.has_keyframe(k)}
+    _apply(store, points, _Gathered(points, keyframes, flat, len(keyframes) == len(observers)), normals, descriptors)
 
 
 def update_normal_and_depth(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
