@@ -207,7 +207,10 @@ def ba_reduced_system(
                 S[6 * q + i, 6 * q + jj] = U[q, i, jj]
             S[6 * q + i, 6 * q + i] += lam
     Vd = np.zeros((3, 3))
-    Y = np.zeros((64, 6, 3))
+    Y = np.zeros((64, 6, 3))  # Y_a = W_a (V + lam I)^-1 of the point's observations
+    Yt = np.zeros((64, 3, 6))  # Y_a transposed
+    Wt = np.zeros((64, 3, 6))  # W_a transposed
+    cs = np.zeros(64, np.int64)  # free pose index of each observation
     for q in range(npt):
         for i in range(3):
             for jj in range(3):
@@ -220,31 +223,51 @@ def ba_reduced_system(
             continue
         if Y.shape[0] < n:
             Y = np.zeros((n, 6, 3))
+            Yt = np.zeros((n, 3, 6))
+            Wt = np.zeros((n, 3, 6))
+            cs = np.zeros(n, np.int64)
         for a in range(n):
             e = point_obs[start + a]
+            cs[a] = c[e]
             for i in range(6):
                 for jj in range(3):
-                    Y[a, i, jj] = (
-                        W[e, i, 0] * Vinv[q, 0, jj] + W[e, i, 1] * Vinv[q, 1, jj] + W[e, i, 2] * Vinv[q, 2, jj]
-                    )
-            ca = c[e]
+                    y = W[e, i, 0] * Vinv[q, 0, jj] + W[e, i, 1] * Vinv[q, 1, jj] + W[e, i, 2] * Vinv[q, 2, jj]
+                    Y[a, i, jj] = y
+                    Yt[a, jj, i] = y
+                    Wt[a, jj, i] = W[e, i, jj]
+            ca = cs[a]
             for i in range(6):
                 rhs[6 * ca + i] += Y[a, i, 0] * gp[q, 0] + Y[a, i, 1] * gp[q, 1] + Y[a, i, 2] * gp[q, 2]
         # Y_b W_a^T = (Y_a W_b^T)^T (V^-1 is symmetric): each pair once, written to the upper triangle only
-        # (the Cholesky kernel reads no other); diagonal blocks are kept whole.
+        # (the Cholesky kernel reads no other); diagonal blocks are kept whole. Every entry of S receives the same
+        # products in the same order whichever loop writes it (the transposed copies only make the innermost loop
+        # run along a row of S), so S is the same to the bit.
         for a in range(n):
-            ca = c[point_obs[start + a]]
+            ca = cs[a]
             for b in range(a, n):
-                eb = point_obs[start + b]
-                cb = c[eb]
-                for i in range(6):
+                cb = cs[b]
+                if ca < cb:  # S[6 ca + i, 6 cb + jj] -= Y_a[i] . W_b[jj]
+                    o = 6 * cb
+                    for i in range(6):
+                        y0 = Y[a, i, 0]
+                        y1 = Y[a, i, 1]
+                        y2 = Y[a, i, 2]
+                        r = 6 * ca + i
+                        for jj in range(6):
+                            S[r, o + jj] -= y0 * Wt[b, 0, jj] + y1 * Wt[b, 1, jj] + y2 * Wt[b, 2, jj]
+                elif ca > cb:  # S[6 cb + jj, 6 ca + i] -= Y_a[i] . W_b[jj]
+                    o = 6 * ca
                     for jj in range(6):
-                        v = Y[a, i, 0] * W[eb, jj, 0] + Y[a, i, 1] * W[eb, jj, 1] + Y[a, i, 2] * W[eb, jj, 2]
-                        if ca < cb:
-                            S[6 * ca + i, 6 * cb + jj] -= v
-                        elif ca > cb:
-                            S[6 * cb + jj, 6 * ca + i] -= v
-                        else:
+                        w0 = Wt[b, 0, jj]
+                        w1 = Wt[b, 1, jj]
+                        w2 = Wt[b, 2, jj]
+                        r = 6 * cb + jj
+                        for i in range(6):
+                            S[r, o + i] -= Yt[a, 0, i] * w0 + Yt[a, 1, i] * w1 + Yt[a, 2, i] * w2
+                else:  # one keyframe observes the point twice (a rig's second camera) or a == b
+                    for i in range(6):
+                        for jj in range(6):
+                            v = Y[a, i, 0] * Wt[b, 0, jj] + Y[a, i, 1] * Wt[b, 1, jj] + Y[a, i, 2] * Wt[b, 2, jj]
                             S[6 * ca + i, 6 * ca + jj] -= v
                             if b != a:
                                 S[6 * ca + jj, 6 * ca + i] -= v

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from slamkit.errors import ConfigError
 from slamkit.features import Observations
 from slamkit.interfaces import AbortToken, Camera, MapStore, Optimizer
+from slamkit.map.entities import MapPoint
 from slamkit.pipeline.map_points import flat_observations, sorted_observations
 from slamkit.problems import CAMERA_KANNALA_BRANDT, CAMERA_PINHOLE, BundleProblem, BundleResult
 
@@ -76,9 +77,14 @@ def snapshot_bundle(
     iterations_second: int = 10,
     chi2_mono: float = 5.991,
     chi2_stereo: float = 7.815,
+    points: list[MapPoint] | None = None,
+    flat: tuple[I64, I64, I64] | None = None,
 ) -> BundleSnapshot:
     """Copy what a (local or global) BA needs out of the map: the poses of free and fixed keyframes, the
-    points, and every observation of those points by those keyframes (ORB-SLAM LocalBundleAdjustment)."""
+    points, and every observation of those points by those keyframes (ORB-SLAM LocalBundleAdjustment).
+
+    points / flat: ``store.get_points(point_ids)`` and its ``flat_observations`` when the caller has them already
+    (local BA gathers them to find its fixed keyframes); read from the store when None."""
     kf_ids = np.array(list(free_kf_ids) + list(fixed_kf_ids), np.int64)
     keyframes = [store.get_keyframe(int(k)) for k in kf_ids]
     T = np.array([kf.T_c_w for kf in keyframes], np.float64).reshape(-1, 4, 4)
@@ -87,12 +93,14 @@ def snapshot_bundle(
     camera = _bundle_camera(keyframes)
     # every observation of the points by these keyframes, in point order, then keyframe id order (C iterators
     # over the observation dictionaries and one sort: no Python loop per observation)
-    points = store.get_points(int(p) for p in point_ids)
+    if points is None:
+        points = store.get_points(int(p) for p in point_ids)
+        flat = None
     if len(points) != len(point_ids):
         missing = sorted(set(int(p) for p in point_ids) - {p.id for p in points})
         raise KeyError(f"snapshot_bundle: map points {missing[:5]} are not in the map")
     point_id_array = np.fromiter((p.id for p in points), np.int64, count=len(points))
-    counts, obs_kf_all, obs_feat_all = flat_observations(points)
+    counts, obs_kf_all, obs_feat_all = flat if flat is not None else flat_observations(points)
     obs_point_s, obs_kf_s, obs_feat_s = sorted_observations(counts, obs_kf_all, obs_feat_all, np.isin(obs_kf_all, kf_ids))
     by_id = np.argsort(kf_ids, kind="stable")
     obs_pose_all = by_id[np.searchsorted(kf_ids[by_id], obs_kf_s)]  # the row of each observer in kf_ids
@@ -117,7 +125,9 @@ def snapshot_bundle(
     level = np.zeros(E, np.int64)
     scale_factor = 1.2
     order = np.argsort(obs_kf_a, kind="stable")
-    kf_unique, starts = np.unique(obs_kf_a[order], return_index=True)
+    by_kf = obs_kf_a[order]
+    starts = np.flatnonzero(np.r_[True, by_kf[1:] != by_kf[:-1]]) if E else np.zeros(0, np.int64)
+    kf_unique = by_kf[starts]  # np.unique(by_kf, return_index=True) of the sorted ids, without sorting again
     bounds = np.append(starts, E)
     for i, kf_id in enumerate(kf_unique.tolist()):  # each keyframe's features gathered with one indexing
         rows = order[bounds[i] : bounds[i + 1]]

@@ -95,7 +95,7 @@ def _fuse_view(
     # leave out the points kf observes already: an observation is recorded in both directions (MapStore.add_observation:
     # point.observations[kf] = f and kf.point_ids[f] = point), so they are the candidates among kf's point_ids
     own = kf.point_ids
-    ids = ids[~np.isin(ids, own[own >= 0])]
+    ids = ids[~np.isin(ids, own[own >= 0], kind="table")]  # a lookup table over the id range: no sort
     if not ids.size or len(kf.features) == 0:
         return 0
     feats = kf.features

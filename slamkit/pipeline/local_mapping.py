@@ -413,7 +413,9 @@ class LocalMapper:
             free = [k for k in local if k != origin]
             seen = np.unique(np.concatenate([store.get_keyframe(k).point_ids for k in local]))
             pids = seen[seen >= 0].tolist()
-            observers = np.unique(flat_observations(store.get_points(pids))[1])
+            points = store.get_points(pids)
+            flat = flat_observations(points)
+            observers = np.unique(flat[1])
             fixed = np.setdiff1d(observers, np.array(free, np.int64)).tolist()
             if not fixed and free:
                 fixed = [free.pop(free.index(min(free)))]
@@ -429,6 +431,8 @@ class LocalMapper:
                 cfg.ba_iterations_second,
                 cfg.chi2.mono,
                 cfg.chi2.stereo,
+                points=points,
+                flat=flat,
             )
         result = run_bundle(store, self.optimizer, snap, abort, self.cfg.ba_point_bad_max_observations)
         if self.cfg.ba_update_normal_and_depth:

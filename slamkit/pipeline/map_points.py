@@ -53,6 +53,7 @@ def _refresh_kernel(
     d_max = np.full(P, np.nan)
     best = np.full(P, -1, np.int64)
     row = np.zeros(64, np.int64)
+    dmat = np.zeros((64, 64), np.int64)
     for q in range(P):
         s, e = ptr[q], ptr[q + 1]
         n = e - s
@@ -92,12 +93,27 @@ def _refresh_kernel(
         elif n > 1:
             if row.shape[0] < n:
                 row = np.zeros(n, np.int64)
+                dmat = np.zeros((n, n), np.int64)
+            # the symmetric distance matrix, each pair once
+            for a in range(n):
+                dmat[a, a] = 0
+                for b in range(a + 1, n):
+                    d = row_distance(desc64, s + a, desc64, s + b)
+                    dmat[a, b] = d
+                    dmat[b, a] = d
             best_median = np.inf
             for a in range(n):
-                for b in range(n):
-                    row[b] = row_distance(desc64, s + a, desc64, s + b)
-                srt = np.sort(row[:n])
-                median = 0.5 * (srt[(n - 1) // 2] + srt[n // 2])  # np.median of the row
+                if n <= 24:  # row a sorted by insertion (short rows: a point's observations)
+                    for b in range(n):
+                        v = dmat[a, b]
+                        k = b
+                        while k > 0 and row[k - 1] > v:
+                            row[k] = row[k - 1]
+                            k -= 1
+                        row[k] = v
+                else:
+                    row[:n] = np.sort(dmat[a, :n])
+                median = 0.5 * (row[(n - 1) // 2] + row[n // 2])  # np.median of the row
                 if median < best_median:
                     best_median = median
                     best[q] = s + a
@@ -130,18 +146,30 @@ def sorted_observations(counts: I64, kf: I64, feat: I64, keep: NDArray[np.bool_]
     point = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
     if keep is not None:
         point, kf, feat = point[keep], kf[keep], feat[keep]
-    order = np.lexsort((kf, point))
+    if not kf.size:
+        return point, kf, feat
+    # one sort on a combined key: a point has one observation per keyframe (the observation mapping is keyed by
+    # keyframe id), so the keys are distinct and the order is np.lexsort((kf, point))'s, at a third of its cost
+    lo = int(kf.min())
+    order = np.argsort(point * (int(kf.max()) - lo + 1) + (kf - lo))
     return point[order], kf[order], feat[order]
 
 
 class _Gathered:
     """Observations of P points flattened in point order, each point's in keyframe-id order."""
 
-    def __init__(self, points: Sequence[MapPoint], keyframes: Mapping[int, KeyFrame], flat: tuple[I64, I64, I64]) -> None:
-        """flat: ``flat_observations(points)``; observers missing from ``keyframes`` are left out."""
+    def __init__(
+        self,
+        points: Sequence[MapPoint],
+        keyframes: Mapping[int, KeyFrame],
+        flat: tuple[I64, I64, I64],
+        all_present: bool = False,
+    ) -> None:
+        """flat: ``flat_observations(points)``; observers missing from ``keyframes`` are left out (all_present: the
+        caller knows every observer is in ``keyframes``)."""
         P = len(points)
         counts, kf_all, feat_all = flat
-        present = np.isin(kf_all, np.fromiter(keyframes, np.int64, count=len(keyframes)))
+        present = None if all_present else np.isin(kf_all, np.fromiter(keyframes, np.int64, count=len(keyframes)))
         point, kf_a, feat_a = sorted_observations(counts, kf_all, feat_all, present)
         E = kf_a.size
         self.n_observations = counts
@@ -158,7 +186,9 @@ class _Gathered:
         self.n_levels = np.ones(P, np.int64)
         if E:
             order = np.argsort(kf_a, kind="stable")
-            ids, starts = np.unique(kf_a[order], return_index=True)
+            by_kf = kf_a[order]
+            starts = np.flatnonzero(np.r_[True, by_kf[1:] != by_kf[:-1]])  # np.unique's return_index on sorted ids
+            ids = by_kf[starts]
             bounds = np.append(starts, E)
             for i, kf_id in enumerate(ids.tolist()):
                 rows = order[bounds[i] : bounds[i + 1]]
@@ -221,8 +251,9 @@ def refresh_points(store: MapStore, point_ids: Iterable[int], normals: bool = Tr
     if not points:
         return
     flat = flat_observations(points)
-    keyframes = {k: store.get_keyframe(k) for k in np.unique(flat[1]).tolist() if store.has_keyframe(k)}
-    _apply(store, points, _Gathered(points, keyframes, flat), normals, descriptors)
+    observers = np.unique(flat[1]).tolist()
+    keyframes = {k: store.get_keyframe(k) for k in observers if store.has_keyframe(k)}
+    _apply(store, points, _Gathered(points, keyframes, flat, len(keyframes) == len(observers)), normals, descriptors)
 
 
 def update_normal_and_depth(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:

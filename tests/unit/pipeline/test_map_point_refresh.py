@@ -92,9 +92,10 @@ def reference_refresh(point: MapPoint, store: InMemoryMapStore) -> tuple[np.ndar
     return normal, d_min, d_max, descs[int(np.argmin(median))]
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_batched_refresh_matches_the_per_point_rules(seed: int) -> None:
-    store = random_map(seed)
+@pytest.mark.parametrize(("seed", "n_kf"), [(0, 8), (1, 8), (2, 8), (3, 40)])
+def test_batched_refresh_matches_the_per_point_rules(seed: int, n_kf: int) -> None:
+    """n_kf 40: points with up to 40 observations (the kernel sorts rows longer than 24 another way)."""
+    store = random_map(seed, n_kf=n_kf)
     pids = store.point_ids()
     refresh_points(store, [*pids, *pids[:5], 10_000])  # duplicates and unknown ids are ignored
     for pid in pids:
