@@ -38,6 +38,11 @@ class ModelledMapping:
     new_map_busy_s: float | None = None
     busy_until_s: float | None = None  # sequence time local mapping finishes the keyframes made so far, s
 
+    @property
+    def enabled(self) -> bool:
+        """Whether any keyframe is modelled to keep local mapping busy (a time > 0)."""
+        return self.busy_s > 0.0 or (self.new_map_busy_s or 0.0) > 0.0
+
     def state(self, timestamp_s: float) -> MappingState:
         """Local mapping's state for a frame captured at ``timestamp_s`` (s): busy while the modelled work of the
         keyframes made so far is not done (``timestamp_s < busy_until_s``)."""

@@ -128,6 +128,7 @@ class ThreadedRunner:
         self.bad_frames = check_bad_frames_policy(bad_frames)
         self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
         self._modelled_busy = False  # the frame being tracked saw local mapping busy by the model, not by the thread
+        self._modelled_wait_ms = 0.0  # how long the frame being tracked waited for the model's end of mapping, ms
         self._depth_frames = False  # the frames tracked so far carry depth (stereo/RGB-D: the model does not apply)
         self.log = RunLog(runner="threaded")
         self.events = events
@@ -269,15 +270,26 @@ class ThreadedRunner:
         captured at ``timestamp_s`` (s); as fast as possible the runner waits for a busy local mapping
         (``waits_for_idle``), as a camera's frame period would give it time to finish — unless the modelled mapping
         time (``modelled_mapping_ms``) says a camera's frame would still find it busy: then it is busy, and a
-        monocular frame makes no keyframe, as in ORB-SLAM. Without local mapping (localization only) it accepts
-        nothing, as ORB-SLAM's stopped local mapping."""
+        monocular frame makes no keyframe, as in ORB-SLAM; a frame past the modelled time first waits for the thread
+        to finish the keyframes made so far (``_modelled_wait_ms``), as a camera's frame would find them mapped.
+        Without local mapping (localization only) it accepts nothing, as ORB-SLAM's stopped local mapping."""
         self._modelled_busy = False
+        self._modelled_wait_ms = 0.0
         if self._mapping is None:
             return MappingState(idle=False, accepting_keyframes=False)
         stopping = self._mapping.stopping()
-        if not self.realtime and not self._depth_frames and not self.modelled_mapping.state(timestamp_s).idle:
-            self._modelled_busy = True
-            return MappingState(idle=False, accepting_keyframes=not stopping)
+        if not self.realtime and not self._depth_frames and self.modelled_mapping.enabled:
+            if not self.modelled_mapping.state(timestamp_s).idle:
+                self._modelled_busy = True
+                return MappingState(idle=False, accepting_keyframes=not stopping)
+            if not stopping and not self._mapping.idle():
+                # past the modelled end of the work on the keyframes made so far, a camera's frame would find local
+                # mapping done with them (the sequential runner's model): the frame waits for the thread, so tracking
+                # sees the map local mapping finished whatever the machine's speed or load
+                t0 = time.perf_counter()
+                self._mapping.wait_idle()
+                self._modelled_wait_ms = (time.perf_counter() - t0) * 1e3
+                stopping = self._mapping.stopping()
         return MappingState(
             idle=self._mapping.idle() and not stopping,
             accepting_keyframes=not stopping,
@@ -312,6 +324,11 @@ class ThreadedRunner:
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
         map_before = self.atlas.active_id
         out = self.tracker.step(data, camera, self._mapping_state(data.timestamp_s))
+        if self._modelled_wait_ms > 0.0:
+            # the frame waited for local mapping before it was tracked: part of its tracking time, as a keyframe's wait
+            out.timings_ms["mapping_wait_ms"] = self._modelled_wait_ms
+            if "track_ms" in out.timings_ms:
+                out.timings_ms["track_ms"] += self._modelled_wait_ms
         frame = self.tracker.current_frame
         if frame is not None and frame.index == out.frame_index:
             self._depth_frames = frame.features.bf > 0.0

@@ -67,9 +67,25 @@ def test_threaded_run_tracks_the_room_as_accurately_as_the_sequential_one(
 def test_as_fast_as_possible_the_modelled_mapping_time_keeps_keyframes_apart_in_sequence_time() -> None:
     """``runner.modelled_mapping_ms`` as fast as possible: a monocular frame within the modelled time of the last
     keyframe makes none (ORB-SLAM's monocular NeedNewKeyFrame while local mapping is busy), whatever the local
-    mapping thread is doing; past it keyframes are still made and the room is tracked."""
+    mapping thread is doing; past it a frame waits for the thread to finish the keyframes before it (a camera's frame
+    would find them mapped), keyframes are made and the room is tracked."""
     busy_s = 0.25
     runner, dataset = _runner(f"runner.modelled_mapping_ms={busy_s * 1e3:g}", "runner.modelled_mapping_new_map_ms=0")
+    # wall clock when tracking starts each frame and when local mapping is done with each keyframe
+    track_start: dict[float, float] = {}
+    mapped_at: dict[int, float] = {}
+    tracker_step, mapper_step = runner.tracker.step, runner.mapper.step
+
+    def timed_track(data: Any, *args: Any, **kwargs: Any) -> Any:
+        track_start[data.timestamp_s] = time.perf_counter()
+        return tracker_step(data, *args, **kwargs)
+
+    def timed_map(kf: Any, *args: Any, **kwargs: Any) -> Any:
+        out = mapper_step(kf, *args, **kwargs)
+        mapped_at[kf.id] = time.perf_counter()
+        return out
+
+    runner.tracker.step, runner.mapper.step = timed_track, timed_map  # type: ignore[method-assign]
     log = runner.run(dataset, dataset.camera)
     made = [out.timestamp_s for out in log.tracking if out.keyframe_ids and not out.initialized_map]
     assert len(made) >= 5
@@ -78,6 +94,12 @@ def test_as_fast_as_possible_the_modelled_mapping_time_keeps_keyframes_apart_in_
     # frames inside a keyframe's modelled time never wait for the local mapping thread
     inside = [out for out in log.tracking if any(0 < out.timestamp_s - t < busy_s for t in made)]
     assert inside and all("mapping_wait_ms" not in out.timings_ms for out in inside)
+    # a frame past a keyframe's modelled time is tracked on the map local mapping finished with that keyframe (and
+    # the keyframes before it), as a camera's frame would be if local mapping took the modelled time
+    for out in log.tracking:
+        if out.keyframe_ids and not out.initialized_map:
+            later = [t for t in track_start if t >= out.timestamp_s + busy_s]
+            assert all(track_start[t] >= mapped_at[k] for t in later for k in out.keyframe_ids)
     metrics = runner_metrics(runner, dataset)
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
