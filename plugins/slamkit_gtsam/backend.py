@@ -487,6 +487,7 @@ class GtsamOptimizer:
 
         gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
         points_in = np.ones(M, dtype=bool)
+        excluded = np.zeros(E, dtype=bool)
         run = self._run(
             graph_of(np.ones(E, dtype=bool), problem.robust),
             values,
@@ -497,7 +498,9 @@ class GtsamOptimizer:
         iterations = run.iterations
         T_c_w, xyz_w = self._extract(run.values)
         if not run.aborted and problem.iterations_second > 0:
-            active = bundle_chi2(problem, T_c_w, xyz_w) <= gates
+            # chi2 is inf behind the camera: the gate also drops ORB-SLAM's !isDepthPositive() edges
+            excluded = ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)
+            active = ~excluded
             # Points left without an active observation keep their estimate and leave the problem.
             observed = np.bincount(problem.obs_point[active], minlength=M) > 0
             points_in = observed | problem.point_fixed
@@ -519,7 +522,10 @@ class GtsamOptimizer:
         # Fixed variables are returned exactly as given (the priors move them by ~fixed_sigma).
         T_c_w[problem.pose_fixed] = problem.T_c_w[problem.pose_fixed]
         xyz_w[problem.point_fixed] = problem.xyz_w[problem.point_fixed]
-        outlier = ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)
+        # ORB-SLAM2 LocalBundleAdjustment erases an edge whose chi2 fails after the second stage; an edge the outlier
+        # pass set to level 1 keeps its stage-1 chi2 (g2o computes errors of active edges only), so it is erased too:
+        # the excluded observations stay outliers (the default backend does the same).
+        outlier = excluded | ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)
         return BundleResult(
             T_c_w=T_c_w,
             xyz_w=xyz_w,
