@@ -697,9 +697,9 @@ def reference_bundle_adjust(problem: BundleProblem) -> BundleResult:
     """The bare GTSAM script (slamkit_gtsam.bare) on ``problem``, as a BundleResult (for benchmarks)."""
     from slamkit_gtsam.bare import bare_bundle_adjust
 
-    T_c_w, xyz_w, iterations = bare_bundle_adjust(problem)
+    T_c_w, xyz_w, iterations, dropped = bare_bundle_adjust(problem)
     gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
-    outlier = ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)
+    outlier = dropped | ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)  # ORB-SLAM2's rule, as the backend's
     return BundleResult(
         T_c_w=T_c_w,
         xyz_w=xyz_w,
