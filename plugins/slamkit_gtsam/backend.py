@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
 from slamkit.interfaces import AbortToken
-from slamkit.optim.costs import bundle_chi2, bundle_cost, pose_chi2, pose_cost, sim3_chi2, sim3_cost
+from slamkit.optim.costs import bundle_chi2, bundle_cost, huber_cost, pose_chi2, pose_cost, sim3_chi2, sim3_cost
 from slamkit.optim.validation import (
     validate_bundle_problem,
     validate_essential_graph_problem,
@@ -71,9 +71,13 @@ _MIN_POSE_EDGES = 10  # ORB-SLAM PoseOptimization stops its rounds when fewer ed
 
 @dataclass
 class _LmRun:
+    """values: the final estimate; iterations done; aborted by the token; converged: stopped by the
+    convergence test (decrease below tolerance, or no decrease), not by the iteration count or the token."""
+
     values: gtsam.Values
     iterations: int
     aborted: bool
+    converged: bool = False
 
 
 class GtsamOptimizer:
@@ -104,6 +108,7 @@ class GtsamOptimizer:
         ba_robust_second_stage: bool = False,
         use_fixed_lambda_factor: bool = True,
         ba_lambda_lower_bound: float = 1e-5,
+        ba_skip_converged_second_stage: bool = True,
     ) -> None:
         for key, value in (
             ("lambda_initial", lambda_initial),
@@ -131,6 +136,7 @@ class GtsamOptimizer:
         for key, flag in (
             ("ba_robust_second_stage", ba_robust_second_stage),
             ("use_fixed_lambda_factor", use_fixed_lambda_factor),
+            ("ba_skip_converged_second_stage", ba_skip_converged_second_stage),
         ):
             if not isinstance(flag, bool):
                 raise ConfigError(f"optimizer.{key} = {flag!r}: expected true or false")
@@ -147,6 +153,7 @@ class GtsamOptimizer:
         self.ba_linear_solver = ba_linear_solver
         self.ba_robust_second_stage = ba_robust_second_stage
         self.use_fixed_lambda_factor = use_fixed_lambda_factor
+        self.ba_skip_converged_second_stage = ba_skip_converged_second_stage
 
     # ---- LM driver ----------------------------------------------------------------------------------
 
@@ -175,13 +182,14 @@ class GtsamOptimizer:
         (GTSAM's own test: relative or absolute decrease below tolerance, or no decrease). ``params``: LM
         parameters (default: ``_params()``)."""
         if iterations <= 0 or graph.size() == 0:
-            return _LmRun(values, 0, bool(abort is not None and abort.is_set()))
+            return _LmRun(values, 0, bool(abort is not None and abort.is_set()), iterations <= 0)
         if params is None:
             params = self._params()
         params.setMaxIterations(iterations)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         previous = opt.error()
         done = 0
+        converged = False
         while done < iterations:
             if abort is not None and abort.is_set():
                 return _LmRun(opt.values(), done, True)
@@ -190,9 +198,10 @@ class GtsamOptimizer:
             current = opt.error()
             decrease = previous - current
             if decrease <= 0.0 or decrease < self.absolute_error_tol or decrease < self.relative_error_tol * previous:
+                converged = True
                 break
             previous = current
-        return _LmRun(opt.values(), done, False)
+        return _LmRun(opt.values(), done, False, converged)
 
     # ---- noise models -------------------------------------------------------------------------------
 
@@ -487,6 +496,7 @@ class GtsamOptimizer:
 
         gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
         points_in = np.ones(M, dtype=bool)
+        excluded = np.zeros(E, dtype=bool)
         run = self._run(
             graph_of(np.ones(E, dtype=bool), problem.robust),
             values,
@@ -495,37 +505,57 @@ class GtsamOptimizer:
             self._ba_params(points_in, pose_key0, K),
         )
         iterations = run.iterations
-        T_c_w, xyz_w = self._extract(run.values)
+
+        def estimate(values: gtsam.Values, xyz_w: F64) -> tuple[F64, F64]:
+            """Poses and points of ``values`` (into ``xyz_w`` where present); fixed variables exactly as given
+            (the priors move them by ~fixed_sigma)."""
+            T_c_w, xyz = self._extract(values)
+            xyz_w[points_in] = xyz
+            T_c_w[problem.pose_fixed] = problem.T_c_w[problem.pose_fixed]
+            xyz_w[problem.point_fixed] = problem.xyz_w[problem.point_fixed]
+            return T_c_w, xyz_w
+
+        T_c_w, xyz_w = estimate(run.values, np.empty((M, 3)))
+        chi2 = bundle_chi2(problem, T_c_w, xyz_w)
         if not run.aborted and problem.iterations_second > 0:
-            active = bundle_chi2(problem, T_c_w, xyz_w) <= gates
-            # Points left without an active observation keep their estimate and leave the problem.
-            observed = np.bincount(problem.obs_point[active], minlength=M) > 0
-            points_in = observed | problem.point_fixed
-            stage2 = run.values
-            for pt in np.flatnonzero(~points_in):
-                stage2.erase(int(pt))
-            active &= observed[problem.obs_point]
-            run = self._run(
-                graph_of(active, problem.robust and self.ba_robust_second_stage),
-                stage2,
-                problem.iterations_second,
-                abort,
-                self._ba_params(points_in, pose_key0, K),
-            )
-            iterations += run.iterations
-            T2, xyz2 = self._extract(run.values)
-            T_c_w = T2
-            xyz_w[points_in] = xyz2
-        # Fixed variables are returned exactly as given (the priors move them by ~fixed_sigma).
-        T_c_w[problem.pose_fixed] = problem.T_c_w[problem.pose_fixed]
-        xyz_w[problem.point_fixed] = problem.xyz_w[problem.point_fixed]
-        outlier = ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)
+            # chi2 is inf behind the camera: the gate also drops ORB-SLAM's !isDepthPositive() edges
+            excluded = ~(chi2 <= gates)
+            # Nothing set aside after a converged first stage: every observation passes its gate, so it lies in the
+            # quadratic zone of its Huber kernel (delta^2 = the gate), where the kernel-free second stage's cost
+            # equals the first stage's. The second stage would optimize the function LM just declared converged
+            # (one more LM iteration whose decrease is below relative_error_tol): skipped
+            # (``ba_skip_converged_second_stage``).
+            same_problem = not excluded.any() and run.converged
+            if not (same_problem and self.ba_skip_converged_second_stage):
+                active = ~excluded
+                # Points left without an active observation keep their estimate and leave the problem.
+                observed = np.bincount(problem.obs_point[active], minlength=M) > 0
+                points_in = observed | problem.point_fixed
+                stage2 = run.values
+                for pt in np.flatnonzero(~points_in):
+                    stage2.erase(int(pt))
+                active &= observed[problem.obs_point]
+                run = self._run(
+                    graph_of(active, problem.robust and self.ba_robust_second_stage),
+                    stage2,
+                    problem.iterations_second,
+                    abort,
+                    self._ba_params(points_in, pose_key0, K),
+                )
+                iterations += run.iterations
+                T_c_w, xyz_w = estimate(run.values, xyz_w)
+                chi2 = bundle_chi2(problem, T_c_w, xyz_w)
+        # ORB-SLAM2 LocalBundleAdjustment erases an edge whose chi2 fails after the second stage; an edge the outlier
+        # pass set to level 1 keeps its stage-1 chi2 (g2o computes errors of active edges only), so it is erased too:
+        # the excluded observations stay outliers (the default backend does the same).
+        outlier = excluded | ~(chi2 <= gates)
+        rho = huber_cost(chi2, gates) if problem.robust else chi2
         return BundleResult(
             T_c_w=T_c_w,
             xyz_w=xyz_w,
             outlier=outlier,
             cost_initial=bundle_cost(problem, problem.T_c_w, problem.xyz_w),
-            cost_final=bundle_cost(problem, T_c_w, xyz_w, ~outlier),
+            cost_final=float(rho[~outlier].sum()),
             iterations=iterations,
             aborted=run.aborted,
         )
@@ -667,9 +697,9 @@ def reference_bundle_adjust(problem: BundleProblem) -> BundleResult:
     """The bare GTSAM script (slamkit_gtsam.bare) on ``problem``, as a BundleResult (for benchmarks)."""
     from slamkit_gtsam.bare import bare_bundle_adjust
 
-    T_c_w, xyz_w, iterations = bare_bundle_adjust(problem)
+    T_c_w, xyz_w, iterations, dropped = bare_bundle_adjust(problem)
     gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
-    outlier = ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)
+    outlier = dropped | ~(bundle_chi2(problem, T_c_w, xyz_w) <= gates)  # ORB-SLAM2's rule, as the backend's
     return BundleResult(
         T_c_w=T_c_w,
         xyz_w=xyz_w,

@@ -22,8 +22,9 @@ from slamkit.problems import CAMERA_PINHOLE, BundleProblem
 F64 = NDArray[np.float64]
 
 
-def bare_bundle_adjust(problem: BundleProblem) -> tuple[F64, F64, int]:
-    """Run the bare script on ``problem`` -> (T_c_w (K, 4, 4), xyz_w (M, 3), LM iterations done)."""
+def bare_bundle_adjust(problem: BundleProblem) -> tuple[F64, F64, int, NDArray[np.bool_]]:
+    """Run the bare script on ``problem`` -> (T_c_w (K, 4, 4), xyz_w (M, 3), LM iterations done, (E,) observations
+    the outlier pass dropped)."""
     if problem.camera_model != CAMERA_PINHOLE:
         raise ProblemError(
             f"BundleProblem.camera_model = {problem.camera_model!r}: the bare GTSAM script models pinhole cameras only"
@@ -111,4 +112,4 @@ def bare_bundle_adjust(problem: BundleProblem) -> tuple[F64, F64, int]:
     stage2, it2 = lm(build(active, False), stage2, problem.iterations_second)
     T2 = np.stack([np.linalg.inv(stage2.atPose3(M + k).matrix()) for k in range(K)])
     xyz[observed] = np.asarray(gtsam.utilities.extractPoint3(stage2), dtype=np.float64).reshape(-1, 3)
-    return T2, xyz, it1 + it2
+    return T2, xyz, it1 + it2, ~active

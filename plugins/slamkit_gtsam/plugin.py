@@ -36,6 +36,10 @@ def slamkit_components() -> list[ComponentSpec]:
                 # BA's LM never damps below this (GTSAM's default 0): a monocular local BA with one fixed keyframe
                 # leaves the scale gauge free; at lambda ~1e-7 its Cholesky fails and the try is wasted
                 "ba_lambda_lower_bound": 1e-5,
+                # BA: no second LM run when the first converged and the outlier pass set nothing aside (every
+                # observation inside its gate, so inside its Huber kernel's quadratic zone: the kernel-free second
+                # stage has the first stage's cost; ORB-SLAM2's 10 more g2o iterations would not move it either)
+                "ba_skip_converged_second_stage": True,
             },
             description="GTSAM 4 (projection/stereo factors, Similarity3 pose graph, Levenberg-Marquardt)",
         )
