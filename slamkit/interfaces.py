@@ -164,6 +164,15 @@ def _frozen(array: NDArray[Any]) -> NDArray[Any]:
     return array
 
 
+def _position_of(keys: NDArray[np.int32], key: object) -> int:
+    """Index of ``key`` in the strictly ascending ``keys`` (K,), or -1 when absent or not an integer (a bool is not
+    a word or node id): the lookup behind WordWeights' and DirectIndex's Mapping interface."""
+    if isinstance(key, bool) or not isinstance(key, int | np.integer):
+        return -1
+    at = int(np.searchsorted(keys, key))
+    return at if at < keys.shape[0] and int(keys[at]) == int(key) else -1
+
+
 class WordWeights(Mapping[int, float]):
     """A bag of words' weights as two arrays: a read-only ``Mapping`` word id -> weight, iterated in ascending id.
 
@@ -210,10 +219,7 @@ class WordWeights(Mapping[int, float]):
         return float(self.weights[at])
 
     def _find(self, word: object) -> int:
-        if isinstance(word, bool) or not isinstance(word, int | np.integer):
-            return -1
-        at = int(np.searchsorted(self.ids, word))
-        return at if at < self.ids.shape[0] and int(self.ids[at]) == int(word) else -1
+        return _position_of(self.ids, word)
 
     def items(self) -> Iterator[tuple[int, float]]:  # type: ignore[override]
         """(word, weight) pairs in ascending word id."""
@@ -280,10 +286,7 @@ class DirectIndex(Mapping[int, NDArray[np.int32]]):
         return self.features[self.offsets[at] : self.offsets[at + 1]]
 
     def _find(self, node: object) -> int:
-        if isinstance(node, bool) or not isinstance(node, int | np.integer):
-            return -1
-        at = int(np.searchsorted(self.nodes, node))
-        return at if at < self.nodes.shape[0] and int(self.nodes[at]) == int(node) else -1
+        return _position_of(self.nodes, node)
 
     def items(self) -> Iterator[tuple[int, NDArray[np.int32]]]:  # type: ignore[override]
         """(node, its features) in ascending node id."""
