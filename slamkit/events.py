@@ -136,7 +136,8 @@ class KeyFrameInserted:
 
     points_created: new points triangulated with its neighbours; points_fused: duplicates merged;
     ba_outliers: observations the local BA rejected; ba_aborted: the local BA was stopped early by a newer
-    keyframe. timings_ms: per stage of local mapping (``local_ba_ms``, ...). T_c_w: (4, 4) its pose after local
+    keyframe; ba_due: the keyframe was due a local BA; ba_skipped: it was due, but a newer keyframe's abort came
+    before it started. timings_ms: per stage of local mapping (``local_ba_ms``, ...). T_c_w: (4, 4) its pose after local
     mapping; point_ids (M,) / points_w (M, 3) m: the map points it observes then, in the world frame (None when the
     keyframe was gone by then).
     """
@@ -152,6 +153,8 @@ class KeyFrameInserted:
     T_c_w: F64 | None = None
     point_ids: I64 | None = None
     points_w: F64 | None = None
+    ba_due: bool = False
+    ba_skipped: bool = False
 
 
 @dataclass(frozen=True)

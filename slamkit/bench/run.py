@@ -123,6 +123,7 @@ def summarize_run(
         "tracking_work_ms_median": tracking[_TRACKING_WORK_STAGE]["median"],
         "local_mapping_ms_median": mapping["per_keyframe_ms"]["median"],
         "local_ba_ms_median": mapping.get("local_ba_ms", {}).get("median"),
+        "local_ba_completed": metrics["local_ba_completed"],
         "peak_rss_mb": peak_rss_mb,
         # frames preloaded before playback (runner.preload) are the dataset's memory, not the map's
         "preloaded_mb": log.preloaded_mb,
@@ -278,6 +279,12 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
             "tracking during / apart from local BA (ms)",
             "tracking_beside_local_ba",
             lambda x: f"{_fmt(x['tracking_ms_median_during_ba'])} / {_fmt(x['tracking_ms_median_otherwise'])}",
+        ),
+        (
+            "local BA completed / due (skipped, aborted)",
+            "local_ba_completed",
+            lambda x: f"{x['completed']} / {x['due']} ({x['skipped']}, {x['aborted']})"
+            + ("" if x["fraction"] is None else f" = {100 * x['fraction']:.0f}%"),
         ),
         (
             "tracking first/last 500 (ms)",

@@ -89,7 +89,9 @@ class LocalMapper:
         lap("triangulation_ms")
         out.points_fused = self._search_in_neighbors(kf)
         lap("fusion_ms")
-        if self.cfg.local_ba and self.store.n_keyframes() > 2 and not (abort is not None and abort.is_set()):
+        out.ba_due = self.cfg.local_ba and self.store.n_keyframes() > 2
+        out.ba_skipped = out.ba_due and abort is not None and abort.is_set()
+        if out.ba_due and not out.ba_skipped:
             out.ba_outliers, out.ba_aborted = self._local_bundle_adjustment(kf, abort)
         lap("local_ba_ms")
         if self.cfg.keyframe_culling:

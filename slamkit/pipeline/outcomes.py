@@ -127,13 +127,17 @@ class CulledKeyFrame:
 
 @dataclass
 class MappingOutcome:
-    """What local mapping did with one keyframe (counts and per-stage times in ms)."""
+    """What local mapping did with one keyframe (counts and per-stage times in ms). ba_due: the keyframe was due a
+    local BA (it is on, the map has more than two keyframes); ba_skipped: it was due but a newer keyframe's abort
+    came before it started; ba_aborted: it started and was stopped early (ORB-SLAM's mbAbortBA)."""
 
     kf_id: int
     points_culled: int = 0
     points_created: int = 0
     points_fused: int = 0
     ba_outliers: int = 0
+    ba_due: bool = False
+    ba_skipped: bool = False
     ba_aborted: bool = False
     culled_keyframes: list[CulledKeyFrame] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)

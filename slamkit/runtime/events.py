@@ -316,6 +316,8 @@ class RunEvents:
                 T_c_w=T_c_w,
                 point_ids=point_ids,
                 points_w=points_w,
+                ba_due=outcome.ba_due,
+                ba_skipped=outcome.ba_skipped,
             ),
         )
         if outcome.points_culled:

@@ -53,6 +53,10 @@ def test_bench_runs_both_runners_side_by_side_and_writes_the_json(
         if tracking["mapping_wait_ms"]["n"] == 0:
             assert run["tracking_work_ms_median"] == run["tracking_ms_median"]
         assert run["stages"]["local_mapping"]["local_ba_ms"]["n"] >= 1
+        # played as fast as possible no local BA is skipped or stopped (the threaded runner waits for local mapping
+        # rather than abort it); every keyframe but a map's first two is due one
+        ba = run["local_ba_completed"]
+        assert ba["due"] >= run["keyframes_inserted"] - 2 and ba["completed"] == ba["due"] and ba["fraction"] == 1.0
         assert run["peak_rss_mb"] > 50 and run["frames_dropped"] == 0
         assert run["ate_rmse_m"] < 0.05
     assert result["ate_ratio_threaded_over_sequential"] == pytest.approx(
@@ -60,6 +64,7 @@ def test_bench_runs_both_runners_side_by_side_and_writes_the_json(
     )
     table = capsys.readouterr().out
     assert "tracking.extract_ms" in table and "local_mapping.local_ba_ms" in table and "threaded median / p95" in table
+    assert "local BA completed / due (skipped, aborted)" in table
 
 
 @pytest.mark.slow

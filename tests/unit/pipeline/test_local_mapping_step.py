@@ -179,6 +179,41 @@ def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock(place_
     # exact data: BA keeps the poses where they are and flags nothing
     assert out.ba_outliers == 0
     np.testing.assert_allclose(store.get_keyframe(kf2.id).T_c_w[0, 3], -0.6, atol=1e-5)
+    assert out.ba_due and not out.ba_skipped and not out.ba_aborted  # the third keyframe is due a local BA: it ran
+
+
+def test_a_local_ba_a_newer_keyframe_aborted_before_it_started_is_skipped_and_reported() -> None:
+    """ORB-SLAM's mbAbortBA set before the local BA: no BA runs (the optimizer is never called), the outcome says the
+    keyframe was due one and skipped it, and the run's metrics count it out of the completed ones."""
+    from slamkit.eval.run_metrics import local_ba_completed
+
+    xyz, desc = scene()
+    store = InMemoryMapStore()
+    kf0, kf1 = keyframe(store, 0.0, xyz, desc), keyframe(store, 0.3, xyz, desc)
+    for kf in (kf0, kf1):
+        store.add_keyframe(kf)
+    for j in range(N_MAPPED):
+        pid = store.new_point_id()
+        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
+        store.add_observation(pid, 0, j)
+        store.add_observation(pid, 1, j)
+    refresh_points(store, store.point_ids())
+    store.update_connections(0)
+    store.update_connections(1)
+    tracked = np.full(N_POINTS, -1, np.int64)
+    tracked[:N_MAPPED] = np.arange(N_MAPPED)
+    optimizer = WatchingOptimizer(store)
+    mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), optimizer, None)  # type: ignore[arg-type]
+    abort = threading.Event()
+    abort.set()
+    skipped = mapper.step(keyframe(store, 0.6, xyz, desc, tracked), abort)
+    assert optimizer.reader_got_in == []  # bundle_adjust was never called
+    assert skipped.ba_due and skipped.ba_skipped and not skipped.ba_aborted
+    ran = mapper.step(keyframe(store, 0.9, xyz, desc, tracked))
+    assert optimizer.reader_got_in == [True]
+    assert ran.ba_due and not ran.ba_skipped and not ran.ba_aborted
+    counts = local_ba_completed([skipped, ran])
+    assert counts == {"due": 2, "completed": 1, "skipped": 1, "aborted": 0, "fraction": 0.5}
 
 
 @pytest.mark.parametrize("n", [1, 6, 150, 200])
