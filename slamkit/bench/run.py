@@ -283,8 +283,10 @@ def format_table(records: Sequence[dict[str, Any]]) -> str:
         (
             "local BA completed / due (skipped, aborted)",
             "local_ba_completed",
-            lambda x: f"{x['completed']} / {x['due']} ({x['skipped']}, {x['aborted']})"
-            + ("" if x["fraction"] is None else f" = {100 * x['fraction']:.0f}%"),
+            lambda x: (
+                f"{x['completed']} / {x['due']} ({x['skipped']}, {x['aborted']})"
+                + ("" if x["fraction"] is None else f" = {100 * x['fraction']:.0f}%")
+            ),
         ),
         (
             "tracking first/last 500 (ms)",
