@@ -241,6 +241,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             bad_frames=bad_frames,
             modelled_mapping_ms=modelled_ms,
             modelled_mapping_new_map_ms=None if new_map_ms is None else float(new_map_ms),
+            wait_for_local_mapping=bool(cfg.runner.get("wait_for_local_mapping", True)),
         )
     else:
         runner = SequentialRunner(

@@ -104,6 +104,7 @@ class ThreadedRunner:
         bad_frames: str = "skip",
         modelled_mapping_ms: float = 0.0,
         modelled_mapping_new_map_ms: float | None = None,
+        wait_for_local_mapping: bool = True,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -111,7 +112,15 @@ class ThreadedRunner:
         modelled_mapping_new_map_ms: as fast as possible only (not ``realtime``), local mapping's modelled time per
         keyframe in sequence time, ms (:class:`~slamkit.runtime.modelled_mapping.ModelledMapping`): a monocular frame
         within it of the last keyframe makes no keyframe, as in ORB-SLAM at a camera's rate; 0: the runner waits for
-        local mapping whenever tracking wants a keyframe."""
+        local mapping whenever tracking wants a keyframe. wait_for_local_mapping: as fast as possible only; False:
+        never wait — a monocular frame that wants a keyframe while local mapping is busy interrupts its local BA and
+        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (needs ``modelled_mapping_ms`` 0)."""
+        if not wait_for_local_mapping and modelled_mapping_ms > 0.0:
+            raise ConfigError(
+                "runner.wait_for_local_mapping=false with runner.modelled_mapping_ms="
+                f"{modelled_mapping_ms:g}: the model's frames past its time wait for local mapping; set one of them"
+            )
+        self.wait_for_local_mapping = wait_for_local_mapping
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -293,22 +302,22 @@ class ThreadedRunner:
         return MappingState(
             idle=self._mapping.idle() and not stopping,
             accepting_keyframes=not stopping,
-            waits_for_idle=not self.realtime,
+            waits_for_idle=not self.realtime and self.wait_for_local_mapping,
         )
 
     def _keyframe_wanted_while_mapping_busy(self, out: TrackingOutcome) -> TrackingOutcome:
         """Tracking wants a keyframe but local mapping is busy (V-E condition 2 fails: ``out.keyframe`` is
         MAPPING_BUSY).
 
-        Real time: stop the running local BA so mapping becomes free soon, and do not insert (ORB-SLAM: the
-        next frames will ask again). As fast as possible: wait for local mapping to finish, then have the tracker
+        Real time, or as fast as possible without ``wait_for_local_mapping``: stop the running local BA so mapping
+        becomes free soon, and do not insert (ORB-SLAM: the next frames will ask again). As fast as possible: wait for local mapping to finish, then have the tracker
         make the keyframe, so tracking does not outrun mapping on a recorded sequence — a live camera gives mapping
         the time the frame period leaves it, and aborting every local BA because frames come faster than any camera
         would starve the map of its optimization. The wait is reported as ``mapping_wait_ms``."""
         assert self._mapping is not None
         if self._modelled_busy:  # busy in sequence time: no keyframe, as the sequential runner's model
             return out
-        if self.realtime:
+        if self.realtime or not self.wait_for_local_mapping:
             self._mapping.abort.set()
             return out
         t0 = time.perf_counter()

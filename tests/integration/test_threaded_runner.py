@@ -104,6 +104,54 @@ def test_as_fast_as_possible_the_modelled_mapping_time_keeps_keyframes_apart_in_
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
 
+def test_as_fast_as_possible_without_waiting_a_busy_local_mapping_gets_no_keyframe_and_tracking_never_waits() -> None:
+    """``runner.wait_for_local_mapping=false``: ORB-SLAM2/3 fed as fast as they track. Tracking never waits for local
+    mapping; a monocular frame that wants a keyframe while it is busy interrupts its local BA and makes none, so each
+    keyframe is handed to an idle local mapping (the thread slowed here to 0.3 s a keyframe, ten frame periods)."""
+    runner, dataset = _runner("runner.wait_for_local_mapping=false")
+    busy: list[tuple[float, float]] = []  # wall clock spans local mapping worked on a keyframe
+    tracked: dict[int, tuple[float, float]] = {}  # wall clock span each keyframe's frame was tracked in
+    mapper_step = runner.mapper.step
+    track = runner._track
+
+    def slow_map(kf: Any, *args: Any, **kwargs: Any) -> Any:
+        t0 = time.perf_counter()
+        time.sleep(0.3)
+        out = mapper_step(kf, *args, **kwargs)
+        busy.append((t0, time.perf_counter()))
+        return out
+
+    def timed_track(data: Any, camera: Any) -> Any:
+        t0 = time.perf_counter()
+        out = track(data, camera)
+        for kf_id in out.keyframe_ids:
+            tracked[kf_id] = (t0, time.perf_counter())
+        return out
+
+    runner.mapper.step = slow_map  # type: ignore[method-assign]
+    runner._track = timed_track  # type: ignore[method-assign]
+    log = runner.run(dataset, dataset.camera)
+    assert all("mapping_wait_ms" not in out.timings_ms for out in log.tracking)
+    made = [out for out in log.tracking if out.keyframe_ids and not out.initialized_map]
+    assert len(made) >= 3
+    # a keyframe is made only when local mapping is idle: never by a frame tracked while the thread worked on an
+    # earlier keyframe from the frame's start to its end
+    for out in made:
+        start, end = tracked[out.keyframe_ids[0]]
+        assert not any(t0 < start and end < t1 for t0, t1 in busy), out.frame_index
+    # 150 frames at 30 Hz is 5 s; 0.3 s a keyframe allows at most ~17 of them besides the map's first two
+    assert len(log.mapping) <= 2 + 150 / 30 / 0.3 + 1
+    metrics = runner_metrics(runner, dataset)
+    assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
+
+
+def test_not_waiting_for_local_mapping_and_its_modelled_time_conflict_with_a_clear_error() -> None:
+    from slamkit.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="wait_for_local_mapping=false with runner.modelled_mapping_ms=100"):
+        _runner("runner.wait_for_local_mapping=false", "runner.modelled_mapping_ms=100")
+
+
 @pytest.mark.parametrize(
     ("thread", "target"),
     [("tracking", "tracker"), ("local-mapping", "mapper"), ("loop-closing", "loop_closer"), ("frame-source", None)],
