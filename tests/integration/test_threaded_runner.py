@@ -148,7 +148,7 @@ def test_as_fast_as_possible_without_waiting_a_busy_local_mapping_gets_no_keyfra
 def test_not_waiting_for_local_mapping_and_its_modelled_time_conflict_with_a_clear_error() -> None:
     from slamkit.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="wait_for_local_mapping=false with runner.modelled_mapping_ms=100"):
+    with pytest.raises(ConfigError, match=r"wait_for_local_mapping=false with runner\.modelled_mapping_ms=100"):
         _runner("runner.wait_for_local_mapping=false", "runner.modelled_mapping_ms=100")
 
 
