@@ -7,17 +7,18 @@ intensity centroid (orientation.py); 256-bit steered BRIEF descriptors on the Ga
 
 Descriptors come from ``cv2.ORB.compute`` on our keypoints. With provided keypoints OpenCV (orb.cpp,
 ``detectAndCompute`` with ``useProvidedKeypoints``) builds the same pyramid as pyramid.py (INTER_LINEAR_EXACT
-from level to level, float32 sizes), blurs each level with a 7x7 Gaussian of sigma 2 (BORDER_REFLECT_101),
-and samples its learned 256-pair pattern (``bit_pattern_31_``, the one ORB-SLAM uses) rotated by the
-keypoint's ``angle`` around round(pt / scale_factor ** octave) on level ``octave``: exactly ORB-SLAM's
-``computeDescriptors``. All levels' keypoints go to one ``compute`` call on the full image, each at octave =
-its level; tests/unit/orb/test_descriptors.py checks that the bits are OpenCV's multi-level computation and
-that they are invariant to a 90 deg rotation.
+from level to level, float32 sizes, each level with a BORDER_REFLECT_101 border of its own), blurs each level
+with a 7x7 Gaussian of sigma 2 (BORDER_REFLECT_101), and samples its learned 256-pair pattern
+(``bit_pattern_31_``, the one ORB-SLAM uses) rotated by the keypoint's ``angle`` around round(pt / scale_factor **
+octave) on level ``octave``: exactly ORB-SLAM's ``computeDescriptors``. So each level's keypoints go to one
+``compute`` call on our level image (``nlevels=1``, octave 0), which gives the same bits without OpenCV building
+its own pyramid; tests/unit/orb/test_descriptors.py checks that the bits are OpenCV's multi-level computation
+on the full image and that they are invariant to a 90 deg rotation.
 
 The levels are independent: with the compiled FAST backend they are dealt out to ``n_threads`` groups of about
-equal area, one compiled call per group (the calling thread takes one, pool threads the others); with the opencv
-backend each level is a task of its own. The output is assembled in level order and does not depend on the
-thread count.
+equal area, one compiled call and one descriptor call per level per group (the calling thread takes one group,
+pool threads the others); with the opencv backend each level is a task of its own. The output is assembled in
+level order and does not depend on the thread count.
 
 The GIL: each call into OpenCV or a compiled kernel releases it and takes it back, and taking it back waits up
 to a switch interval whenever another thread is running Python (local mapping, in the threaded runner). With
@@ -67,12 +68,13 @@ class LevelKeypoints:
 
 @dataclass(frozen=True)
 class _LevelResult:
-    """One level's oriented keypoints (descriptors come after, for all levels at once)."""
+    """One level's oriented keypoints with their descriptors (the keypoints OpenCV gave none are left out)."""
 
     level: int
     xy: NDArray[np.int32]
     response: NDArray[np.float32]
     angle_deg: NDArray[np.float32]
+    descriptors: NDArray[np.uint8]
 
 
 def _int_param(value: object, key: str, low: int, high: int | None = None) -> int:
@@ -155,14 +157,13 @@ class OrbSlamExtractor:
             pool.shutdown(wait=False)
 
     def _descriptor(self) -> cv2.ORB:
-        """This thread's cv2.ORB, used only for ORB.compute on our keypoints (nfeatures, the score type and
-        the FAST threshold play no part there)."""
+        """This thread's cv2.ORB for one level image (``nlevels=1``), used only for ORB.compute on our keypoints
+        (nfeatures, the scale factor, the score type and the FAST threshold play no part there)."""
         orb: cv2.ORB | None = getattr(self._local, "orb", None)
         if orb is None:
             orb = cv2.ORB.create(
                 nfeatures=self.n_features,
-                scaleFactor=self.scale_factor,
-                nlevels=self.n_levels,
+                nlevels=1,
                 edgeThreshold=self.edge_threshold,
                 firstLevel=0,
                 WTA_K=2,
@@ -208,34 +209,42 @@ class OrbSlamExtractor:
             int(self.level_budget[level]),
         )
         xy = np.ascontiguousarray(corners.xy[keep])
-        return _LevelResult(level, xy, corners.response[keep], intensity_centroid_angles(level_image, xy, self._u_max))
+        return self._described(
+            level, level_image, xy, corners.response[keep], intensity_centroid_angles(level_image, xy, self._u_max)
+        )
 
-    def _describe(
-        self, image: NDArray[np.uint8], xy: NDArray[np.int32], level: NDArray[np.int32], angle: NDArray[np.float32]
-    ) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
-        """(n, 32) uint8 rBRIEF descriptors of all keypoints and the indices that got one.
+    def _described(
+        self,
+        level: int,
+        level_image: NDArray[np.uint8],
+        xy: NDArray[np.int32],
+        response: NDArray[np.float32],
+        angle: NDArray[np.float32],
+    ) -> _LevelResult:
+        """One level's keypoints with their (n, 32) uint8 rBRIEF descriptors, those OpenCV gave none left out.
 
-        One ``ORB.compute`` on the full image with each keypoint at octave = its level and at its level
-        position times the level's scale: OpenCV builds the same pyramid as pyramid.py, blurs each level (7x7,
-        sigma 2) and samples the rotated pattern around round(pt / scale ** octave) = the level position
-        (tests/unit/orb/test_descriptors.py). All the KeyPoints come from one binding call and get their angle,
-        octave and index as attributes: every cv2 call (a KeyPoint constructor too) releases and re-takes the
-        GIL, which costs up to a switch interval each while another thread runs Python, and one call per
-        keypoint or per level made extraction several times slower beside local mapping. Keypoints lie >=
-        edge_threshold px inside their level, so OpenCV's border filter keeps them all; class_id maps back.
+        One ``ORB.compute`` on the level image (``nlevels=1``, the keypoints at their level position, octave 0):
+        OpenCV adds the same BORDER_REFLECT_101 border to it as to the level of its own pyramid, blurs it (7x7,
+        sigma 2) and samples the rotated pattern around the keypoint, so the bits are those of one ``compute`` on
+        the full image with each keypoint at octave = its level (tests/unit/orb/test_descriptors.py), without
+        OpenCV building a second pyramid, and each level group's thread describes its own levels. The KeyPoints
+        of a level come from one binding call and get their angle and index as attributes: every cv2 call (a
+        KeyPoint constructor too) releases and re-takes the GIL, which costs up to a switch interval each while
+        another thread runs Python. Keypoints lie >= edge_threshold px inside their level, so OpenCV's border
+        filter keeps them all; class_id maps back.
         """
-        uv = xy.astype(np.float32) * self.level_scale[level][:, None]
-        keypoints = cv2.KeyPoint.convert(uv, float(self.patch_size), 0.0, 0, 0)  # type: ignore[call-overload]  # stubs: no ndarray
-        for i, (keypoint, a, o) in enumerate(zip(keypoints, angle.tolist(), level.tolist(), strict=True)):
+        keypoints = cv2.KeyPoint.convert(xy.astype(np.float32), float(self.patch_size), 0.0, 0, 0)  # type: ignore[call-overload]  # stubs: no ndarray
+        for i, (keypoint, a) in enumerate(zip(keypoints, angle.tolist(), strict=True)):
             keypoint.angle = a
-            keypoint.octave = o
             keypoint.class_id = i
-        out_keypoints, descriptors = self._descriptor().compute(image, keypoints)
+        out_keypoints, descriptors = self._descriptor().compute(level_image, keypoints)
         if descriptors is None or len(out_keypoints) == 0:
-            return np.zeros((0, _DESCRIPTOR_BYTES), np.uint8), np.zeros(0, np.int64)
+            has = np.zeros(0, np.int64)
+            return _LevelResult(level, xy[has], response[has], angle[has], np.zeros((0, _DESCRIPTOR_BYTES), np.uint8))
         index = np.fromiter((kp.class_id for kp in out_keypoints), dtype=np.int64, count=len(out_keypoints))
         order = np.argsort(index, kind="stable")
-        return np.asarray(descriptors, np.uint8)[order], index[order]
+        has = index[order]
+        return _LevelResult(level, xy[has], response[has], angle[has], np.asarray(descriptors, np.uint8)[order])
 
     def _level_group(self, levels: list[int], pyramid: list[NDArray[np.uint8]]) -> list[_LevelResult | None]:
         """The keypoints of some levels in one compiled call (level_kernel.levels_keypoints)."""
@@ -247,7 +256,7 @@ class OrbSlamExtractor:
         for level, count, weak_share in zip(levels, counts.tolist(), weak.tolist(), strict=True):
             self._weak_hint[level] = weak_share
             part = slice(start, start + count)
-            out.append(_LevelResult(level, xy[part], response[part], angle[part]) if count else None)
+            out.append(self._described(level, pyramid[level], xy[part], response[part], angle[part]) if count else None)
             start += count
         return out
 
@@ -301,12 +310,13 @@ class OrbSlamExtractor:
                 np.zeros(0, np.float32),
                 np.zeros((0, _DESCRIPTOR_BYTES), np.uint8),
             )
-        xy = np.concatenate([r.xy for r in found])
-        level = np.concatenate([np.full(r.xy.shape[0], r.level, dtype=np.int32) for r in found])
-        angle = np.concatenate([r.angle_deg for r in found])
-        descriptors, has = self._describe(image, xy, level, angle)
-        response = np.concatenate([r.response for r in found])
-        return LevelKeypoints(xy[has], level[has], response[has], angle[has], descriptors)
+        return LevelKeypoints(
+            np.concatenate([r.xy for r in found]),
+            np.concatenate([np.full(r.xy.shape[0], r.level, dtype=np.int32) for r in found]),
+            np.concatenate([r.response for r in found]),
+            np.concatenate([r.angle_deg for r in found]),
+            np.concatenate([r.descriptors for r in found]),
+        )
 
     def extract(self, image: NDArray[np.uint8], camera: Camera | None = None) -> Features:
         """image: (H, W) uint8 grey -> Features.
