@@ -15,7 +15,7 @@ import numpy as np
 from slamkit.geometry._checks import F64, as_batch_matrix, as_matrix, as_points
 from slamkit.geometry.so3 import hat, so3_exp, so3_left_jacobian, so3_left_jacobian_inv, so3_log
 
-__all__ = ["SE3", "invert_T", "transform_points"]
+__all__ = ["SE3", "invert_T", "orthonormalized_T", "transform_points"]
 
 # A rotation whose R R^T differs from I by more than this is rejected (not a rotation, not roundoff).
 # Loose enough for poses printed with ~7 significant digits (KITTI ground truth).
@@ -123,6 +123,17 @@ class SE3:
 
     def __repr__(self) -> str:
         return f"SE3(R={self.R.tolist()}, t={self.t.tolist()})"
+
+
+def orthonormalized_T(T: F64) -> F64:
+    """T: (4, 4) rigid transform -> the same with its rotation block projected onto SO(3) (``nearest_rotation``) and
+    last row [0, 0, 0, 1]: ``SE3.from_matrix(T, orthonormalize=True).matrix()`` without building and checking an SE3
+    (per frame in tracking, where products of poses drift off SO(3) by roundoff only)."""
+    M = as_matrix(T, (4, 4), "T")
+    out = np.eye(4)
+    out[:3, :3] = nearest_rotation(M[:3, :3])
+    out[:3, 3] = M[:3, 3]
+    return out
 
 
 def invert_T(T: F64) -> F64:

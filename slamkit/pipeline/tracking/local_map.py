@@ -63,6 +63,20 @@ def local_keyframes(frame: Frame, store: MapStore, cfg: TrackingConfig) -> tuple
     return local, k1[0]
 
 
+def points_seen_except(ids: I64, excluded: I64) -> I64:
+    """The distinct point ids >= 0 of ``ids`` (the local keyframes' slots, -1 = none) that are not in ``excluded``,
+    ascending: ``np.setdiff1d(np.unique(ids[ids >= 0]), excluded)``, by marking a table over the id range instead
+    of sorting (tens of thousands of slots per frame: a sort was ~10x slower)."""
+    seen = ids[ids >= 0]
+    if seen.size == 0:
+        return np.zeros(0, np.int64)
+    marked = np.zeros(int(seen.max()) + 1, np.bool_)
+    marked[seen] = True
+    excluded = excluded[(excluded >= 0) & (excluded < marked.size)]
+    marked[excluded] = False
+    return np.flatnonzero(marked).astype(np.int64, copy=False)
+
+
 def track_local_map(
     frame: Frame, store: MapStore, cfg: TrackingConfig, refiner: PoseRefiner, wide_search: bool
 ) -> tuple[int, int | None]:
@@ -76,7 +90,7 @@ def track_local_map(
     store.increase_visible(matched)
     if local_kfs:
         ids = np.concatenate([store.get_keyframe(k).point_ids for k in local_kfs])
-        candidates = np.setdiff1d(np.unique(ids[ids >= 0]), matched, assume_unique=True)
+        candidates = points_seen_except(ids, matched)
         if candidates.size:
             search_local_points(frame, candidates.astype(np.int64), store, cfg, wide_search)
     assert frame.T_c_w is not None

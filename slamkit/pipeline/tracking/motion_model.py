@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.geometry.se3 import SE3, invert_T
+from slamkit.geometry.se3 import invert_T, orthonormalized_T
 from slamkit.interfaces import MapStore
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.frame import Frame, camera_views, with_stereo_partners
@@ -50,7 +50,7 @@ def velocity(frame: Frame, last: Frame | None) -> F64 | None:
     re-orthonormalised: products of poses drift off SO(3) and optimizers reject them."""
     if frame.T_c_w is None or last is None or last.T_c_w is None:
         return None
-    return SE3.from_matrix(frame.T_c_w @ invert_T(last.T_c_w), orthonormalize=True).matrix()
+    return orthonormalized_T(frame.T_c_w @ invert_T(last.T_c_w))
 
 
 def track_with_motion_model(
@@ -60,7 +60,7 @@ def track_with_motion_model(
     (radius th * scale of their level, twice as wide when fewer than ``min_motion_model_matches``), optimize the
     pose; success with at least ``min_inliers_after_pose_opt`` inliers (sets frame.point_ids, frame.T_c_w)."""
     assert last.T_c_w is not None
-    T_pred = SE3.from_matrix(T_cur_last @ last.T_c_w, orthonormalize=True).matrix()
+    T_pred = orthonormalized_T(T_cur_last @ last.T_c_w)
     valid = np.flatnonzero(store.has_points(last.point_ids) & ~last.outlier)
     if valid.size == 0:
         return False

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 from scipy.linalg import expm
 
 from slamkit.geometry import SE3, hat, invert_T, so3_exp, transform_points
+from slamkit.geometry.se3 import orthonormalized_T
 
 F64 = NDArray[np.float64]
 finite = st.floats(-5.0, 5.0)
@@ -119,3 +120,6 @@ def test_from_matrix_orthonormalizes_rounded_rotations() -> None:
     np.testing.assert_allclose(fixed.R, T[:3, :3], atol=2e-3)
     np.testing.assert_array_equal(fixed.t, rounded[:3, 3])
     assert SE3.from_matrix(T).allclose(SE3(so3_exp(np.array([0.3, -0.2, 0.1])), T[:3, 3]), atol=0)
+    # tracking's shortcut gives the same bits as the checked SE3 round trip
+    np.testing.assert_array_equal(orthonormalized_T(rounded), fixed.matrix())
+    np.testing.assert_array_equal(orthonormalized_T(T @ T), SE3.from_matrix(T @ T, orthonormalize=True).matrix())

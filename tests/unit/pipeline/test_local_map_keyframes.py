@@ -7,10 +7,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import pytest
 
 from slamkit.pipeline.config import TrackingConfig
 from slamkit.pipeline.matching import WindowMatches
-from slamkit.pipeline.tracking.local_map import local_keyframes
+from slamkit.pipeline.tracking.local_map import local_keyframes, points_seen_except
 
 
 @dataclass
@@ -93,3 +94,20 @@ def test_local_map_ratio_test_applies_only_between_features_of_one_level() -> No
     # 40 >= 0.8 * 45: ambiguous on one level -> rejected; across levels ORB-SLAM keeps it
     assert m.accepted(100, 0.8, ratio_same_level_only=True).tolist() == [False, True, True]
     assert m.accepted(100, 0.8).tolist() == [False, False, True]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_local_points_not_matched_yet_are_the_sorted_set_difference(seed: int) -> None:
+    """points_seen_except: the local keyframes' distinct point ids (slots of -1 left out) not matched yet, ascending,
+    exactly np.setdiff1d(np.unique(...)) — including matched ids beyond every local id and an empty result."""
+    rng = np.random.default_rng(seed)
+    ids = rng.integers(-1, 5000, size=int(rng.integers(0, 20000)))
+    ids[rng.random(ids.size) < 0.3] = -1
+    excluded = np.unique(rng.integers(0, 6000, size=int(rng.integers(0, 800))))
+    got = points_seen_except(ids, excluded)
+    want = np.setdiff1d(np.unique(ids[ids >= 0]), excluded, assume_unique=True)
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, want)
+    everything = np.unique(ids[ids >= 0])
+    assert points_seen_except(ids, everything).size == 0
+    assert points_seen_except(np.full(4, -1, np.int64), excluded).size == 0
