@@ -134,14 +134,12 @@ def place_recognizer(name: str | None) -> PlaceRecognizer | None:
     return dbow if name == "dbow" else WordsOnlyRecognizer(dbow)  # type: ignore[return-value]
 
 
-@pytest.mark.parametrize("place_name", [None, "dbow", "words-only"])
-def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock(place_name: str | None) -> None:
-    """Without a place recognizer every pair of free features is a triangulation candidate; with one, the candidates
-    come from its ``candidate_pairs`` (DBoW: same vocabulary node; a recognizer without a direct index: every
-    pair), and local mapping reads nothing else of the bags of words."""
+def two_keyframe_map(place: PlaceRecognizer | None) -> tuple[InMemoryMapStore, np.ndarray, np.ndarray, np.ndarray]:
+    """A map of keyframes 0 and 1 (0.3 m apart) sharing the scene's first N_MAPPED points, their bags of words from
+    ``place`` (None: none); returns (store, the scene's points (N, 3) m, descriptors (N, 32), the (N,) point ids a
+    third keyframe tracked: the mapped ones, -1 elsewhere)."""
     xyz, desc = scene()
     store = InMemoryMapStore()
-    place = place_recognizer(place_name)
     kf0, kf1 = keyframe(store, 0.0, xyz, desc), keyframe(store, 0.3, xyz, desc)
     for kf in (kf0, kf1):
         store.add_keyframe(kf)
@@ -157,6 +155,16 @@ def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock(place_
     store.update_connections(1)
     tracked = np.full(N_POINTS, -1, np.int64)
     tracked[:N_MAPPED] = np.arange(N_MAPPED)  # matched by tracking
+    return store, xyz, desc, tracked
+
+
+@pytest.mark.parametrize("place_name", [None, "dbow", "words-only"])
+def test_step_triangulates_true_points_and_runs_ba_without_the_write_lock(place_name: str | None) -> None:
+    """Without a place recognizer every pair of free features is a triangulation candidate; with one, the candidates
+    come from its ``candidate_pairs`` (DBoW: same vocabulary node; a recognizer without a direct index: every
+    pair), and local mapping reads nothing else of the bags of words."""
+    place = place_recognizer(place_name)
+    store, xyz, desc, tracked = two_keyframe_map(place)
     kf2 = keyframe(store, 0.6, xyz, desc, tracked)
     optimizer = WatchingOptimizer(store)
     mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), optimizer, place)  # type: ignore[arg-type]
@@ -187,21 +195,7 @@ def test_a_local_ba_a_newer_keyframe_aborted_before_it_started_is_skipped_and_re
     keyframe was due one and skipped it, and the run's metrics count it out of the completed ones."""
     from slamkit.eval.run_metrics import local_ba_completed
 
-    xyz, desc = scene()
-    store = InMemoryMapStore()
-    kf0, kf1 = keyframe(store, 0.0, xyz, desc), keyframe(store, 0.3, xyz, desc)
-    for kf in (kf0, kf1):
-        store.add_keyframe(kf)
-    for j in range(N_MAPPED):
-        pid = store.new_point_id()
-        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
-        store.add_observation(pid, 0, j)
-        store.add_observation(pid, 1, j)
-    refresh_points(store, store.point_ids())
-    store.update_connections(0)
-    store.update_connections(1)
-    tracked = np.full(N_POINTS, -1, np.int64)
-    tracked[:N_MAPPED] = np.arange(N_MAPPED)
+    store, xyz, desc, tracked = two_keyframe_map(None)
     optimizer = WatchingOptimizer(store)
     mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), optimizer, None)  # type: ignore[arg-type]
     abort = threading.Event()
