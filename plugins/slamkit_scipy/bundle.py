@@ -332,8 +332,13 @@ def bundle_adjust(
     abort: AbortToken | None = None,
     robust_second_stage: bool = False,
     dense_max: int = 3000,
+    report_costs: bool = True,
 ) -> BundleResult:
-    """Solve a validated BundleProblem with ORB-SLAM's two-stage schedule (module docstring)."""
+    """Solve a validated BundleProblem with ORB-SLAM's two-stage schedule (module docstring).
+
+    report_costs: fill the result's cost_initial / cost_final (the robust cost of every observation at the start,
+    of the inliers at the end); False leaves them NaN for a caller that computes its own (ScipyOptimizer reports
+    slamkit.optim.costs' backend-independent figures), sparing two passes over the observations."""
     obs_pose = np.asarray(problem.obs_pose, dtype=np.int64)
     obs_point = np.asarray(problem.obs_point, dtype=np.int64)
     intr = np.asarray(problem.intrinsics, dtype=np.float64)[obs_pose]
@@ -360,7 +365,7 @@ def bundle_adjust(
         return float(np.sum(huber_cost(chi2, obs.delta[keep]) if problem.robust else chi2))
 
     all_obs = np.ones(n_obs, dtype=bool)
-    cost_initial = report_cost(state, all_obs)
+    cost_initial = report_cost(state, all_obs) if report_costs else float("nan")
     solver = BundleSolver(_Stage(problem, obs, all_obs, problem.robust, rig), dense_max)
     out = levenberg_marquardt(
         state, solver.linearize, solver.solve, solver.retract, solver.cost, problem.iterations_first, settings, abort
@@ -392,7 +397,7 @@ def bundle_adjust(
         xyz_w=state.xyz_w,
         outlier=outlier,
         cost_initial=cost_initial,
-        cost_final=report_cost(state, ~outlier),
+        cost_final=report_cost(state, ~outlier) if report_costs else float("nan"),
         iterations=iterations,
         aborted=aborted,
     )

@@ -177,6 +177,36 @@ def _inv3(M: F64, out: F64) -> None:  # pragma: no cover - compiled
     out[2, 2] = (a * e - b * d) * inv
 
 
+#: Unsigned offsets for the compiled kernels' indices: numba tests a signed index for wraparound (a negative index counts
+#: from the end) at every access, an unsigned one it does not, so index arithmetic in uint64 (uint64 + int64 would be
+#: float64 in numba) spares that test in the innermost loops and lets LLVM vectorize a row update.
+_U1, _U2, _U3, _U4, _U5, _U6 = (np.uint64(k) for k in range(1, 7))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _block_row(b: F64, e: int) -> tuple[float, ...]:  # pragma: no cover - compiled
+    """The 18 entries of the (6, 3) block b[e] in row-major order, read into registers (a UniTuple)."""
+    return (
+        b[e, 0, 0], b[e, 0, 1], b[e, 0, 2], b[e, 1, 0], b[e, 1, 1], b[e, 1, 2],
+        b[e, 2, 0], b[e, 2, 1], b[e, 2, 2], b[e, 3, 0], b[e, 3, 1], b[e, 3, 2],
+        b[e, 4, 0], b[e, 4, 1], b[e, 4, 2], b[e, 5, 0], b[e, 5, 1], b[e, 5, 2],
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _subtract_row6(
+    S: F64, r: int, o: int, a0: float, a1: float, a2: float, b: tuple[float, ...]
+) -> None:  # pragma: no cover - compiled
+    """S[r, o + j] -= a0 b[3 j] + a1 b[3 j + 1] + a2 b[3 j + 2] for j = 0..5 (b: a :func:`_block_row`), each sum
+    in that order: one row of a pair's 6x6 block of the reduced camera system."""
+    S[r, o] -= a0 * b[0] + a1 * b[1] + a2 * b[2]
+    S[r, o + _U1] -= a0 * b[3] + a1 * b[4] + a2 * b[5]
+    S[r, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
+    S[r, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
+    S[r, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
+    S[r, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
+
+
 @numba.njit(cache=True, nogil=True)
 def ba_reduced_system(
     U: F64,
@@ -208,9 +238,8 @@ def ba_reduced_system(
             S[6 * q + i, 6 * q + i] += lam
     Vd = np.zeros((3, 3))
     Y = np.zeros((64, 6, 3))  # Y_a = W_a (V + lam I)^-1 of the point's observations
-    Yt = np.zeros((64, 3, 6))  # Y_a transposed
-    Wt = np.zeros((64, 3, 6))  # W_a transposed
-    cs = np.zeros(64, np.int64)  # free pose index of each observation
+    cs = np.zeros(64, np.uint64)  # free pose index of each observation (unsigned: see _U1)
+    es = np.zeros(64, np.int64)  # the observation (row of W)
     for q in range(npt):
         for i in range(3):
             for jj in range(3):
@@ -223,54 +252,50 @@ def ba_reduced_system(
             continue
         if Y.shape[0] < n:
             Y = np.zeros((n, 6, 3))
-            Yt = np.zeros((n, 3, 6))
-            Wt = np.zeros((n, 3, 6))
-            cs = np.zeros(n, np.int64)
+            cs = np.zeros(n, np.uint64)
+            es = np.zeros(n, np.int64)
         for a in range(n):
             e = point_obs[start + a]
-            cs[a] = c[e]
+            es[a] = e
+            cs[a] = np.uint64(c[e])
             for i in range(6):
                 for jj in range(3):
-                    y = W[e, i, 0] * Vinv[q, 0, jj] + W[e, i, 1] * Vinv[q, 1, jj] + W[e, i, 2] * Vinv[q, 2, jj]
-                    Y[a, i, jj] = y
-                    Yt[a, jj, i] = y
-                    Wt[a, jj, i] = W[e, i, jj]
-            ca = cs[a]
+                    Y[a, i, jj] = (
+                        W[e, i, 0] * Vinv[q, 0, jj] + W[e, i, 1] * Vinv[q, 1, jj] + W[e, i, 2] * Vinv[q, 2, jj]
+                    )
+            ca = c[e]
             for i in range(6):
                 rhs[6 * ca + i] += Y[a, i, 0] * gp[q, 0] + Y[a, i, 1] * gp[q, 1] + Y[a, i, 2] * gp[q, 2]
-        # Y_b W_a^T = (Y_a W_b^T)^T (V^-1 is symmetric): each pair once, written to the upper triangle only
-        # (the Cholesky kernel reads no other); diagonal blocks are kept whole. Every entry of S receives the same
-        # products in the same order whichever loop writes it (the transposed copies only make the innermost loop
-        # run along a row of S), so S is the same to the bit.
+        # Each pair (a <= b) once: the block Y_a W_b^T goes to the upper triangle (its transpose when ca > cb; the
+        # Cholesky kernel reads no other), diagonal blocks are kept whole. Every entry of S receives the products
+        # Y_a[i, k] W_b[jj, k] summed over k = 0, 1, 2 in that order, one point after the other, whichever branch
+        # writes it: the operand of the other observation is read once per pair into registers (_block_row).
         for a in range(n):
             ca = cs[a]
+            ya = _block_row(Y, a)
             for b in range(a, n):
                 cb = cs[b]
                 if ca < cb:  # S[6 ca + i, 6 cb + jj] -= Y_a[i] . W_b[jj]
-                    o = 6 * cb
+                    wb = _block_row(W, es[b])
                     for i in range(6):
-                        y0 = Y[a, i, 0]
-                        y1 = Y[a, i, 1]
-                        y2 = Y[a, i, 2]
-                        r = 6 * ca + i
-                        for jj in range(6):
-                            S[r, o + jj] -= y0 * Wt[b, 0, jj] + y1 * Wt[b, 1, jj] + y2 * Wt[b, 2, jj]
-                elif ca > cb:  # S[6 cb + jj, 6 ca + i] -= Y_a[i] . W_b[jj]
-                    o = 6 * ca
+                        _subtract_row6(S, _U6 * ca + np.uint64(i), _U6 * cb, Y[a, i, 0], Y[a, i, 1], Y[a, i, 2], wb)
+                elif ca > cb:  # S[6 cb + jj, 6 ca + i] -= W_b[jj] . Y_a[i]
+                    eb = es[b]
                     for jj in range(6):
-                        w0 = Wt[b, 0, jj]
-                        w1 = Wt[b, 1, jj]
-                        w2 = Wt[b, 2, jj]
-                        r = 6 * cb + jj
-                        for i in range(6):
-                            S[r, o + i] -= Yt[a, 0, i] * w0 + Yt[a, 1, i] * w1 + Yt[a, 2, i] * w2
-                else:  # one keyframe observes the point twice (a rig's second camera) or a == b
+                        _subtract_row6(
+                            S, _U6 * cb + np.uint64(jj), _U6 * ca, W[eb, jj, 0], W[eb, jj, 1], W[eb, jj, 2], ya
+                        )
+                elif a == b:  # the point's own diagonal block, whole
+                    wb = _block_row(W, es[b])
+                    for i in range(6):
+                        _subtract_row6(S, _U6 * ca + np.uint64(i), _U6 * ca, Y[a, i, 0], Y[a, i, 1], Y[a, i, 2], wb)
+                else:  # one keyframe observes the point twice (a rig's second camera): both halves of the block
+                    eb = es[b]
                     for i in range(6):
                         for jj in range(6):
-                            v = Y[a, i, 0] * Wt[b, 0, jj] + Y[a, i, 1] * Wt[b, 1, jj] + Y[a, i, 2] * Wt[b, 2, jj]
-                            S[6 * ca + i, 6 * ca + jj] -= v
-                            if b != a:
-                                S[6 * ca + jj, 6 * ca + i] -= v
+                            v = Y[a, i, 0] * W[eb, jj, 0] + Y[a, i, 1] * W[eb, jj, 1] + Y[a, i, 2] * W[eb, jj, 2]
+                            S[_U6 * ca + np.uint64(i), _U6 * ca + np.uint64(jj)] -= v
+                            S[_U6 * ca + np.uint64(jj), _U6 * ca + np.uint64(i)] -= v
     return S, rhs, Vinv
 
 
@@ -285,6 +310,7 @@ def cholesky_solve_upper(S: F64, rhs: F64) -> F64:  # pragma: no cover - compile
     the cores that tracking needs (and was 100x slower than this on a loaded 2-core machine).
     """
     n = S.shape[0]
+    un = np.uint64(n)
     R = S.copy()
     x = rhs.copy()
     for j in range(n):
@@ -294,12 +320,12 @@ def cholesky_solve_upper(S: F64, rhs: F64) -> F64:  # pragma: no cover - compile
         d = np.sqrt(d)
         R[j, j] = d
         inv = 1.0 / d
-        for k in range(j + 1, n):
+        for k in range(np.uint64(j + 1), un):
             R[j, k] *= inv
         for i in range(j + 1, n):
             f = R[j, i]
             if f != 0.0:
-                for k in range(i, n):
+                for k in range(np.uint64(i), un):  # unsigned: no wraparound test, so LLVM vectorizes the row update
                     R[i, k] -= f * R[j, k]
     for j in range(n):  # R^T y = rhs
         x[j] /= R[j, j]

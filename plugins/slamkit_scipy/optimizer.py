@@ -103,7 +103,9 @@ class ScipyOptimizer:
     def bundle_adjust(self, problem: BundleProblem, abort: AbortToken | None = None) -> BundleResult:
         """Local/global BA (slamkit_scipy.bundle); ``abort`` is checked before every LM iteration."""
         validate_bundle_problem(problem, supports_rig=True, backend=self.name)
-        result = bundle_adjust(problem, self.settings, abort, self.ba_robust_second_stage, self.ba_dense_max)
+        result = bundle_adjust(
+            problem, self.settings, abort, self.ba_robust_second_stage, self.ba_dense_max, report_costs=False
+        )
         result.cost_initial = bundle_cost(problem, problem.T_c_w, problem.xyz_w)
         result.cost_final = bundle_cost(problem, result.T_c_w, result.xyz_w, ~result.outlier)
         return result

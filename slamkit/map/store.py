@@ -315,12 +315,13 @@ class InMemoryMapStore:
         own = np.array(values, copy=True)
         own.setflags(write=False)  # each point gets a read-only row of this private copy
         points = self._points
-        scalar = own.ndim == 1
-        for pid, value in zip(ids.tolist(), own, strict=True):
-            point = points.get(pid)
-            if point is None:
-                raise ValueError(f"assign_points: map point {pid} is not in this map")
-            object.__setattr__(point, attribute, value.item() if scalar else value)
+        try:
+            targets = [points[pid].__dict__ for pid in ids.tolist()]
+        except KeyError as exc:
+            raise ValueError(f"assign_points: map point {exc.args[0]} is not in this map") from None
+        # a scalar attribute as a Python float (tolist: what .item() gives per row), an array attribute as a row view
+        for fields, value in zip(targets, own.tolist() if own.ndim == 1 else list(own), strict=True):
+            fields[attribute] = value
         self._table.assign(ids, attribute, own)
 
     def increase_visible(self, point_ids: I64, n: int = 1) -> None:

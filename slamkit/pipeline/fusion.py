@@ -137,6 +137,7 @@ def _fuse_view(
         None,
         None,
         right_gate=right_gate,
+        reuse_grid=taken is None,  # a one-camera keyframe's features: the same grid for every point set fused into it
     )
     if in_window_gate:
         gated = np.ones(len(m), bool)  # every candidate was gated in the window

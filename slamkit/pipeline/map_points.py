@@ -185,20 +185,29 @@ class _Gathered:
         self.scale_factor = np.ones(P)
         self.n_levels = np.ones(P, np.int64)
         if E:
+            # each keyframe's rows gathered into a contiguous slice of the rows sorted by keyframe, then one
+            # permutation back to the point-major order (slice writes instead of fancy-index writes per keyframe)
             order = np.argsort(kf_a, kind="stable")
             by_kf = kf_a[order]
+            feat_by_kf = feat_a[order]
             starts = np.flatnonzero(np.r_[True, by_kf[1:] != by_kf[:-1]])  # np.unique's return_index on sorted ids
             ids = by_kf[starts]
             bounds = np.append(starts, E)
-            for i, kf_id in enumerate(ids.tolist()):
-                rows = order[bounds[i] : bounds[i + 1]]
-                kf = keyframes[kf_id]
+            observers = [keyframes[k] for k in ids.tolist()]
+            level = np.zeros(E, np.int64)
+            desc = np.zeros((E, observers[0].features.descriptors.shape[1]), np.uint8)
+            for i, kf in enumerate(observers):
+                lo, hi = bounds[i], bounds[i + 1]
                 feats = kf.features
-                if i == 0:
-                    self.desc = np.zeros((E, feats.descriptors.shape[1]), np.uint8)
-                self.center[rows] = kf.center_w
-                self.level[rows] = feats.level[feat_a[rows]]
-                self.desc[rows] = feats.descriptors[feat_a[rows]]
+                sel = feat_by_kf[lo:hi]
+                level[lo:hi] = feats.level[sel]
+                desc[lo:hi] = feats.descriptors[sel]
+            rank = np.empty(E, np.int64)
+            rank[order] = np.arange(E)  # row r of the point-major order is row rank[r] of the keyframe order
+            centers = np.array([kf.center_w for kf in observers], np.float64).reshape(-1, 3)
+            self.center = centers[np.repeat(np.arange(ids.size), np.diff(bounds))[rank]]
+            self.level = level[rank]
+            self.desc = desc[rank]
         has_ref = np.flatnonzero(self.ref_row >= 0)
         if has_ref.size:  # the reference keyframe's pyramid (one per point)
             ref_ids, inverse = np.unique(kf_a[self.ref_row[has_ref]], return_inverse=True)

@@ -7,6 +7,8 @@ undistorted pinhole image for a pinhole camera, the raw image for a Kannala-Bran
 from __future__ import annotations
 
 import dataclasses
+import threading
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,9 +66,26 @@ class ProjectionMatches:
         return int(self.query.shape[0])
 
 
+#: Grids of every keypoint of a features record (nothing taken), by (id(features), width, height, cell): the record's
+#: weak reference, the grid and the indices of its keypoints. Bounded (oldest first out); see :func:`_free_grid`.
+_FULL_GRIDS: dict[tuple[int, int, int, float], tuple[weakref.ref[Features], FeatureGrid, I64]] = {}
+_FULL_GRIDS_MAX = 256
+_FULL_GRIDS_LOCK = threading.Lock()  # local mapping's and loop closing's fusion may run in two threads
+
+
 def _free_grid(
-    features: Features, taken: NDArray[np.bool_], bounds: ImageBounds, cell_px: float
+    features: Features, taken: NDArray[np.bool_], bounds: ImageBounds, cell_px: float, reuse: bool = False
 ) -> tuple[FeatureGrid, I64]:
+    """The grid of the keypoints not ``taken`` and their indices. ``reuse``: the caller promises ``features`` is never
+    modified (a keyframe's record): with nothing taken the grid is kept and handed out again for the same record
+    (fusion searches each covisible keyframe's features once per new keyframe, the same grid every time)."""
+    key = (id(features), int(np.ceil(bounds.max_u)), int(np.ceil(bounds.max_v)), float(cell_px))
+    full = reuse and not taken.any()
+    if full:
+        with _FULL_GRIDS_LOCK:
+            hit = _FULL_GRIDS.get(key)
+        if hit is not None and hit[0]() is features:  # the id may be a dead record's: the weak reference tells
+            return hit[1], hit[2]
     free = np.flatnonzero(~taken)
     grid = FeatureGrid.build(
         features.uv_undist_px[free],
@@ -75,6 +94,11 @@ def _free_grid(
         int(np.ceil(bounds.max_v)),
         cell_px,
     )
+    if full:
+        with _FULL_GRIDS_LOCK:
+            if len(_FULL_GRIDS) >= _FULL_GRIDS_MAX:
+                del _FULL_GRIDS[next(iter(_FULL_GRIDS))]
+            _FULL_GRIDS[key] = (weakref.ref(features), grid, free)
     return grid, free
 
 
@@ -94,6 +118,7 @@ def match_projected(
     cell_px: float = 10.0,
     ratio_same_level_only: bool = False,
     right_gate: RightGate | None = None,
+    reuse_grid: bool = False,
 ) -> ProjectionMatches:
     """Match projected points (uv_px (Q, 2), descriptors (Q, D)) to the frame's features not ``taken``.
 
@@ -103,11 +128,12 @@ def match_projected(
     (pipeline.matcher.rotation_bins; None when the queries carry no angles); each feature once.
     right_gate: the stereo/RGB-D candidate gate (:func:`right_u_gate`, :func:`fuse_reprojection_gate`) with its train
     arrays over all the frame's features; None (monocular): no gate.
+    reuse_grid: ``features`` never changes (a keyframe's record): its grid is built once while nothing is ``taken``.
     """
     if uv_px.shape[0] == 0 or len(features) == 0:
         empty = np.zeros(0, np.int64)
         return ProjectionMatches(empty, empty, np.zeros(0, np.int32))
-    grid, free = _free_grid(features, taken, bounds, cell_px)
+    grid, free = _free_grid(features, taken, bounds, cell_px, reuse_grid)
     if right_gate is not None:
         inv_s2 = right_gate.train_inv_sigma2
         right_gate = dataclasses.replace(

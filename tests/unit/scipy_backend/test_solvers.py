@@ -10,10 +10,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from slamkit_scipy.bundle import bundle_adjust
 from slamkit_scipy.optimizer import ScipyOptimizer
 
 from slamkit.optim import synthetic as syn
-from slamkit.optim.costs import bundle_chi2, essential_graph_cost, pose_chi2
+from slamkit.optim.costs import bundle_chi2, bundle_cost, essential_graph_cost, pose_chi2
 
 
 class CountdownToken:
@@ -130,6 +131,23 @@ def test_bundle_dense_and_sparse_reduced_system_agree() -> None:
     sparse = ScipyOptimizer(ba_dense_max=1).bundle_adjust(problem)
     np.testing.assert_allclose(dense.T_c_w, sparse.T_c_w, atol=1e-8)
     np.testing.assert_array_equal(dense.outlier, sparse.outlier)
+
+
+def test_bundle_costs_reported_once_by_the_optimizer(opt: ScipyOptimizer) -> None:
+    """The optimizer asks the solver for no cost report (it computes slamkit.optim.costs' own): the same solution as
+    with the solver's report, and the reported costs are bundle_cost's at the input and at the inliers of the result."""
+    problem, _ = _small_ba(23)
+    reported = bundle_adjust(problem, opt.settings)
+    bare = bundle_adjust(problem, opt.settings, report_costs=False)
+    assert np.isnan(bare.cost_initial) and np.isnan(bare.cost_final)
+    np.testing.assert_array_equal(bare.T_c_w, reported.T_c_w)
+    np.testing.assert_array_equal(bare.xyz_w, reported.xyz_w)
+    np.testing.assert_array_equal(bare.outlier, reported.outlier)
+    result = opt.bundle_adjust(problem)
+    np.testing.assert_array_equal(result.T_c_w, reported.T_c_w)
+    assert result.cost_initial == bundle_cost(problem, problem.T_c_w, problem.xyz_w)
+    assert result.cost_final == bundle_cost(problem, result.T_c_w, result.xyz_w, ~result.outlier)
+    np.testing.assert_allclose([result.cost_initial, result.cost_final], [reported.cost_initial, reported.cost_final])
 
 
 def test_bundle_abort_before_start_returns_the_input(opt: ScipyOptimizer) -> None:

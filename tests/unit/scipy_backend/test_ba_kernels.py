@@ -1,0 +1,179 @@
+"""The bundle adjustment's reduced camera system and Cholesky kernels (slamkit_scipy.kernels) against straightforward
+per-entry Python references: the same floating-point operations in the same order, so equal to the bit (the local BA's
+trajectory depends on it), and against dense linear algebra."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from slamkit_scipy.kernels import ba_reduced_system, cholesky_solve_upper
+
+F64 = np.ndarray
+
+
+def _inv3_reference(M: F64) -> F64:
+    """The kernels' closed-form 3x3 inverse (cofactors over the determinant), in Python floats."""
+    a, b, c = (float(v) for v in M[0])
+    d, e, f = (float(v) for v in M[1])
+    g, h, i = (float(v) for v in M[2])
+    A = e * i - f * h
+    Bc = -(d * i - f * g)
+    C = d * h - e * g
+    inv = 1.0 / (a * A + b * Bc + c * C)
+    return np.array(
+        [
+            [A * inv, -(b * i - c * h) * inv, (b * f - c * e) * inv],
+            [Bc * inv, (a * i - c * g) * inv, -(a * f - c * d) * inv],
+            [C * inv, -(a * h - b * g) * inv, (a * e - b * d) * inv],
+        ]
+    )
+
+
+def reduced_system_reference(
+    U: F64, V: F64, W: F64, gc: F64, gp: F64, lam: float, c: F64, ptr: F64, obs: F64
+) -> tuple[F64, F64, F64]:
+    """S = U + lam I - sum_q W_q (V_q + lam I)^-1 W_q^T one entry at a time: for each point in order, each pair
+    (a <= b) of its observations adds Y_a W_b^T (Y_a = W_a (V_q + lam I)^-1) to block (c_a, c_b), or its transpose to
+    block (c_b, c_a) when c_a > c_b; a keyframe observing the point twice gets both halves of the diagonal block."""
+    nc, npt = U.shape[0], V.shape[0]
+    S = np.zeros((6 * nc, 6 * nc))
+    rhs = np.zeros(6 * nc)
+    Vinv = np.zeros((npt, 3, 3))
+    for k in range(nc):
+        S[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] = U[k] + lam * np.eye(6)
+        rhs[6 * k : 6 * k + 6] = -gc[k]
+    for q in range(npt):
+        Vinv[q] = _inv3_reference(V[q] + lam * np.eye(3))
+        rows = [int(e) for e in obs[ptr[q] : ptr[q + 1]]]
+        Y = [[[W[e, i, 0] * Vinv[q, 0, k] + W[e, i, 1] * Vinv[q, 1, k] + W[e, i, 2] * Vinv[q, 2, k] for k in range(3)]
+              for i in range(6)] for e in rows]  # fmt: skip
+        for a, e in enumerate(rows):
+            for i in range(6):
+                rhs[6 * c[e] + i] += Y[a][i][0] * gp[q, 0] + Y[a][i][1] * gp[q, 1] + Y[a][i][2] * gp[q, 2]
+        for a, ea in enumerate(rows):
+            for b in range(a, len(rows)):
+                eb = rows[b]
+                ca, cb = int(c[ea]), int(c[eb])
+                for i in range(6):
+                    for j in range(6):
+                        v = Y[a][i][0] * W[eb, j, 0] + Y[a][i][1] * W[eb, j, 1] + Y[a][i][2] * W[eb, j, 2]
+                        if ca < cb:
+                            S[6 * ca + i, 6 * cb + j] -= v
+                        elif ca > cb:
+                            S[6 * cb + j, 6 * ca + i] -= v
+                        else:
+                            S[6 * ca + i, 6 * ca + j] -= v
+                            if b != a:
+                                S[6 * ca + j, 6 * ca + i] -= v
+    return S, rhs, Vinv
+
+
+def random_problem(seed: int, nc: int, npt: int, twice: bool) -> tuple:
+    """A random reduced-system input: each point observed by 1..nc free poses in a random order (as a local BA's
+    keyframe-id order against its free-pose order), ``twice``: some poses observe a point a second time (a rig)."""
+    rng = np.random.default_rng(seed)
+    c_list: list[int] = []
+    obs: list[int] = []
+    ptr = [0]
+    for _ in range(npt):
+        poses = list(rng.permutation(nc)[: rng.integers(1, nc + 1)])
+        if twice and rng.random() < 0.3:
+            poses.insert(int(rng.integers(0, len(poses) + 1)), poses[0])
+        for k in poses:
+            obs.append(len(c_list))
+            c_list.append(int(k))
+        ptr.append(len(obs))
+    E = len(c_list)
+    order = rng.permutation(E)  # the observations of a point are not adjacent rows of W
+    c = np.array(c_list, np.int64)[order]
+    obs_rows = np.argsort(order)[np.array(obs, np.int64)]
+    A = rng.normal(size=(nc, 6, 6))
+    B = rng.normal(size=(npt, 3, 3))
+    return (
+        np.einsum("kij,klj->kil", A, A) + 6 * np.eye(6),
+        np.einsum("kij,klj->kil", B, B) + 3 * np.eye(3),
+        rng.normal(size=(E, 6, 3)),
+        rng.normal(size=(nc, 6)),
+        rng.normal(size=(npt, 3)),
+        0.37,
+        c,
+        np.array(ptr, np.int64),
+        obs_rows.astype(np.int64),
+    )
+
+
+@pytest.mark.parametrize(("seed", "twice"), [(0, False), (1, False), (2, True), (3, True)])
+def test_reduced_system_is_the_reference_to_the_bit(seed: int, twice: bool) -> None:
+    args = random_problem(seed, nc=7, npt=60, twice=twice)
+    for got, want in zip(ba_reduced_system(*args), reduced_system_reference(*args), strict=True):
+        assert got.shape == want.shape
+        assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
+def test_reduced_system_is_the_schur_complement() -> None:
+    U, V, W, gc, gp, lam, c, ptr, obs = random_problem(4, nc=5, npt=40, twice=False)
+    nc, npt = U.shape[0], V.shape[0]
+    Wd = np.zeros((6 * nc, 3 * npt))
+    for q in range(npt):
+        for e in obs[ptr[q] : ptr[q + 1]]:
+            Wd[6 * c[e] : 6 * c[e] + 6, 3 * q : 3 * q + 3] += W[e]
+    Vi = np.zeros((3 * npt, 3 * npt))
+    for q in range(npt):
+        Vi[3 * q : 3 * q + 3, 3 * q : 3 * q + 3] = np.linalg.inv(V[q] + lam * np.eye(3))
+    Ud = np.zeros((6 * nc, 6 * nc))
+    for k in range(nc):
+        Ud[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] = U[k]
+    S_want = Ud + lam * np.eye(6 * nc) - Wd @ Vi @ Wd.T
+    S, rhs, _ = ba_reduced_system(U, V, W, gc, gp, lam, c, ptr, obs)
+    upper = np.triu(np.ones((6 * nc, 6 * nc), bool))
+    np.testing.assert_allclose(S[upper], S_want[upper], rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(rhs, -gc.ravel() + Wd @ Vi @ gp.ravel(), rtol=1e-10, atol=1e-10)
+
+
+def cholesky_reference(S: F64, rhs: F64) -> F64:
+    """Right-looking Cholesky S = R^T R of the upper triangle, one entry at a time, then the two triangular solves."""
+    n = S.shape[0]
+    R = S.copy()
+    x = rhs.copy()
+    for j in range(n):
+        if not R[j, j] > 0.0:
+            return np.full(n, np.nan)
+        d = float(np.sqrt(R[j, j]))
+        R[j, j] = d
+        inv = 1.0 / d
+        for k in range(j + 1, n):
+            R[j, k] *= inv
+        for i in range(j + 1, n):
+            f = R[j, i]
+            if f != 0.0:
+                for k in range(i, n):
+                    R[i, k] -= f * R[j, k]
+    for j in range(n):
+        x[j] /= R[j, j]
+        for k in range(j + 1, n):
+            x[k] -= R[j, k] * x[j]
+    for j in range(n - 1, -1, -1):
+        s = x[j]
+        for k in range(j + 1, n):
+            s -= R[j, k] * x[k]
+        x[j] = s / R[j, j]
+    return x
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cholesky_is_the_reference_to_the_bit(seed: int) -> None:
+    """On symmetric positive-definite systems of 6x6 blocks, some of them zero (skipped multipliers), with garbage in
+    the strictly lower triangle (never read)."""
+    rng = np.random.default_rng(seed)
+    n = 6 * 9
+    A = rng.uniform(-1.0, 1.0, size=(n, n))
+    S = A + A.T
+    zero = np.kron(rng.random((9, 9)) < 0.4, np.ones((6, 6), bool))
+    S[zero | zero.T] = 0.0
+    S += 2.0 * n * np.eye(n)  # diagonally dominant: positive definite
+    S[np.tril_indices(n, -1)] = 1e300
+    rhs = rng.normal(size=n)
+    got = cholesky_solve_upper(S, rhs)
+    assert np.all(np.isfinite(got))
+    assert np.array_equal(got.view(np.int64), cholesky_reference(S, rhs).view(np.int64))
+    np.testing.assert_allclose(got, np.linalg.solve(np.triu(S) + np.triu(S, 1).T, rhs), rtol=1e-9, atol=1e-12)
