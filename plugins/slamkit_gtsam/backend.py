@@ -552,16 +552,19 @@ class GtsamOptimizer:
             if not (same_problem and self.ba_skip_converged_second_stage):
                 active = ~excluded
                 # Points left without an active observation keep their estimate and leave the problem. So do, with
-                # ``ba_drop_undetermined_points``, points whose active observations give fewer residual rows than
-                # their 3 coordinates (one monocular observation): nothing fixes their depth along the ray, LM's
+                # ``ba_drop_undetermined_points``, points left with one monocular (pinhole, first camera)
+                # observation: 2 residual rows for 3 coordinates, nothing fixes their depth along the ray, LM's
                 # damping alone keeps the system positive definite, and GTSAM's Cholesky fails at the damping floor
-                # (every LM iteration then pays a rejected try, a full elimination, and a x10 damping). Their
-                # observation adds nothing to the poses either (the point absorbs its 2 residuals), so the poses
-                # are those of ORB-SLAM2's stage with the point in it; the point keeps its stage-1 estimate, whose
-                # reprojection passed the gate.
+                # (every LM iteration then pays a rejected try, a full elimination, and a x10 damping). Such a point
+                # absorbs its 2 residuals, so it adds nothing to the poses: the stage's poses are those with the
+                # point in it. Afterwards it is placed where LM would take it, on its observation's ray at its
+                # depth in that camera (_place_on_rays): reprojection error zero, as ORB-SLAM2's g2o stage leaves it.
                 rows = np.where(np.isfinite(problem.u_right_px), 3.0, 2.0)
-                need = 3.0 if self.ba_drop_undetermined_points else 1.0
-                observed = np.bincount(problem.obs_point[active], weights=rows[active], minlength=M) >= need
+                per_point = np.bincount(problem.obs_point[active], weights=rows[active], minlength=M)
+                placeable = active & _pinhole_first_camera(problem) & (rows == 2.0)
+                single = (per_point == 2.0) & ~problem.point_fixed & self.ba_drop_undetermined_points
+                single &= np.bincount(problem.obs_point[placeable], minlength=M) == 1
+                observed = (per_point > 0.0) & ~single
                 points_in = observed | problem.point_fixed
                 stage2 = run.values
                 for pt in np.flatnonzero(~points_in):
@@ -577,6 +580,7 @@ class GtsamOptimizer:
                 )
                 iterations += run.iterations
                 T_c_w, xyz_w = estimate(run.values, xyz_w)
+                _place_on_rays(problem, T_c_w, xyz_w, np.flatnonzero(placeable & single[problem.obs_point]))
                 chi2 = bundle_chi2(problem, T_c_w, xyz_w)
         # ORB-SLAM2 LocalBundleAdjustment erases an edge whose chi2 fails after the second stage; an edge the outlier
         # pass set to level 1 keeps its stage-1 chi2 (g2o computes errors of active edges only), so it is erased too:
@@ -724,6 +728,35 @@ class GtsamOptimizer:
             cost_final=2.0 * between.error(run.values),
             iterations=run.iterations,
         )
+
+
+def _pinhole_first_camera(problem: BundleProblem) -> B:
+    """(E,) observations made through a pinhole camera 0 (the model _place_on_rays inverts)."""
+    E = len(problem.obs_pose)
+    if problem.distortion is not None:
+        return np.zeros(E, dtype=bool)
+    if problem.camera_index is None:
+        return np.ones(E, dtype=bool)
+    return np.asarray(problem.camera_index) == 0
+
+
+def _place_on_rays(problem: BundleProblem, T_c_w: F64, xyz_w: F64, obs: I64) -> None:
+    """Move each point of the observations ``obs`` (one each, pinhole camera 0) to the closest point of its pixel's
+    ray, in place in ``xyz_w`` (M, 3) with the poses T_c_w (K, 4, 4): the reprojection error becomes zero with the
+    smallest move, perpendicular to the ray (the null space of the projection's Jacobian), where LM's damped
+    minimum-norm steps take a point with one observation. Points behind the camera stay."""
+    if not len(obs):
+        return
+    k, j = problem.obs_pose[obs], problem.obs_point[obs]
+    R, t = T_c_w[k, :3, :3], T_c_w[k, :3, 3]
+    pc = np.einsum("nij,nj->ni", R, xyz_w[j]) + t
+    fx, fy, cx, cy = (problem.intrinsics[k, c] for c in range(4))
+    ray = np.stack([(problem.uv_px[obs, 0] - cx) / fx, (problem.uv_px[obs, 1] - cy) / fy, np.ones(len(obs))], axis=1)
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    along = np.einsum("ni,ni->n", pc, ray)
+    ahead = (pc[:, 2] > 0.0) & (along > 0.0)
+    moved = np.einsum("nji,nj->ni", R, along[:, None] * ray - t)  # R^T (pc' - t)
+    xyz_w[j[ahead]] = moved[ahead]
 
 
 def reference_bundle_adjust(problem: BundleProblem) -> BundleResult:
