@@ -63,8 +63,7 @@ VARIANTS: dict[str, Callable[[], Any]] = {
     "tol7": _gtsam(relative_error_tol=1e-7),
     "tol10": _gtsam(relative_error_tol=1e-10),
     "keep1": _gtsam(ba_drop_undetermined_points=False),
-    "nopredict": _gtsam(ba_predict_convergence=False),
-    "s14": _gtsam(ba_predict_convergence=False, ba_drop_undetermined_points=False),
+    "predict": _gtsam(ba_predict_convergence=True),
     "mfchol": _gtsam(ba_linear_solver="MULTIFRONTAL_CHOLESKY"),
 }
 

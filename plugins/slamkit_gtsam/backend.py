@@ -11,8 +11,8 @@
   ``optimizer.iterate()`` ourselves: one Python call per iteration of 10-100+ ms). Elimination: points first, then
   poses (the Schur complement g2o forms), sequential Cholesky, damping never below ``ba_lambda_lower_bound``
   (measured on recorded real local BAs: docs/BENCHMARKS.md "Optimizer backends"). LM stops at GTSAM's relative
-  decrease test or, with ``ba_predict_convergence``, one iteration earlier when the extrapolated remaining decrease
-  is already below it; the second stage leaves out points with one monocular observation left
+  decrease test or, with ``ba_predict_convergence`` (off by default: fr1_xyz tracked worse with it), one iteration
+  earlier when the extrapolated remaining decrease is already below it; the second stage leaves out points with one monocular observation left
   (``ba_drop_undetermined_points``; docs/BENCHMARKS.md, branch ``gtsam2``).
 - Relative Sim3: one vectorised CustomFactor over all matches (slamkit_gtsam.sim3_factor).
 - Essential graph: BetweenFactorSimilarity3 (or BetweenFactorPose3 in the SE3 variant) on the inverse poses, whose
@@ -113,7 +113,7 @@ class GtsamOptimizer:
         ba_lambda_lower_bound: float = 1e-5,
         ba_skip_converged_second_stage: bool = True,
         ba_drop_undetermined_points: bool = True,
-        ba_predict_convergence: bool = True,
+        ba_predict_convergence: bool = False,
     ) -> None:
         for key, value in (
             ("lambda_initial", lambda_initial),

@@ -44,9 +44,10 @@ def slamkit_components() -> list[ComponentSpec]:
                 # observation) keeps its first-stage estimate and leaves the problem (its depth is unconstrained;
                 # GTSAM's Cholesky fails on it at the damping floor and LM pays a rejected try per iteration)
                 "ba_drop_undetermined_points": True,
-                # BA's LM also stops when the decrease still to come, extrapolated from the last two decreases as a
-                # geometric tail, is below relative_error_tol (the next iteration would only confirm convergence)
-                "ba_predict_convergence": True,
+                # true: BA's LM also stops when the decrease still to come, extrapolated from the last two decreases
+                # as a geometric tail, is below relative_error_tol (one iteration fewer per local BA on the room,
+                # 0.69x time); off: fr1_xyz's seed-0 ATE went from 1.00 to 3.68 cm with it (docs/BENCHMARKS.md, gtsam2)
+                "ba_predict_convergence": False,
             },
             description="GTSAM 4 (projection/stereo factors, Similarity3 pose graph, Levenberg-Marquardt)",
         )
