@@ -62,6 +62,9 @@ VARIANTS: dict[str, Callable[[], Any]] = {
     "noskip": _gtsam(ba_skip_converged_second_stage=False),
     "tol7": _gtsam(relative_error_tol=1e-7),
     "tol10": _gtsam(relative_error_tol=1e-10),
+    "keep1": _gtsam(ba_drop_undetermined_points=False),
+    "predict": _gtsam(ba_predict_convergence=True),
+    "mfchol": _gtsam(ba_linear_solver="MULTIFRONTAL_CHOLESKY"),
 }
 
 

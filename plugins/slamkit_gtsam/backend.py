@@ -10,7 +10,10 @@
   ORB-SLAM2, without the Huber kernel. The abort token is checked between LM iterations (we drive
   ``optimizer.iterate()`` ourselves: one Python call per iteration of 10-100+ ms). Elimination: points first, then
   poses (the Schur complement g2o forms), sequential Cholesky, damping never below ``ba_lambda_lower_bound``
-  (measured on recorded real local BAs: docs/BENCHMARKS.md "Optimizer backends").
+  (measured on recorded real local BAs: docs/BENCHMARKS.md "Optimizer backends"). LM stops at GTSAM's relative
+  decrease test or, with ``ba_predict_convergence`` (off by default: fr1_xyz tracked worse with it), one iteration
+  earlier when the extrapolated remaining decrease is already below it; the second stage leaves out points with one monocular observation left
+  (``ba_drop_undetermined_points``; docs/BENCHMARKS.md, branch ``gtsam2``).
 - Relative Sim3: one vectorised CustomFactor over all matches (slamkit_gtsam.sim3_factor).
 - Essential graph: BetweenFactorSimilarity3 (or BetweenFactorPose3 in the SE3 variant) on the inverse poses, whose
   error is exactly log(S_ij S_jw S_iw^-1).
@@ -109,6 +112,8 @@ class GtsamOptimizer:
         use_fixed_lambda_factor: bool = True,
         ba_lambda_lower_bound: float = 1e-5,
         ba_skip_converged_second_stage: bool = True,
+        ba_drop_undetermined_points: bool = True,
+        ba_predict_convergence: bool = False,
     ) -> None:
         for key, value in (
             ("lambda_initial", lambda_initial),
@@ -137,6 +142,8 @@ class GtsamOptimizer:
             ("ba_robust_second_stage", ba_robust_second_stage),
             ("use_fixed_lambda_factor", use_fixed_lambda_factor),
             ("ba_skip_converged_second_stage", ba_skip_converged_second_stage),
+            ("ba_drop_undetermined_points", ba_drop_undetermined_points),
+            ("ba_predict_convergence", ba_predict_convergence),
         ):
             if not isinstance(flag, bool):
                 raise ConfigError(f"optimizer.{key} = {flag!r}: expected true or false")
@@ -154,6 +161,8 @@ class GtsamOptimizer:
         self.ba_robust_second_stage = ba_robust_second_stage
         self.use_fixed_lambda_factor = use_fixed_lambda_factor
         self.ba_skip_converged_second_stage = ba_skip_converged_second_stage
+        self.ba_drop_undetermined_points = ba_drop_undetermined_points
+        self.ba_predict_convergence = ba_predict_convergence
 
     # ---- LM driver ----------------------------------------------------------------------------------
 
@@ -177,10 +186,18 @@ class GtsamOptimizer:
         iterations: int,
         abort: AbortToken | None = None,
         params: gtsam.LevenbergMarquardtParams | None = None,
+        predict: bool = False,
     ) -> _LmRun:
         """Up to ``iterations`` LM iterations, checking ``abort`` before each and stopping at convergence
         (GTSAM's own test: relative or absolute decrease below tolerance, or no decrease). ``params``: LM
-        parameters (default: ``_params()``)."""
+        parameters (default: ``_params()``).
+
+        ``predict``: also stop when the decrease still to come, extrapolated from the last two, is below the
+        relative tolerance. Decreases d_(i-1) then d_i with ratio r = d_i / d_(i-1) < 1 (LM near a minimum
+        converges at least linearly, Gauss-Newton quadratically on small residuals) leave at most the geometric
+        tail d_i r / (1 - r): when it is below ``relative_error_tol`` times the cost, the next iteration would
+        meet GTSAM's test, so it is not run (it would cost a linearization and an elimination to confirm a
+        decrease GTSAM then ignores)."""
         if iterations <= 0 or graph.size() == 0:
             return _LmRun(values, 0, bool(abort is not None and abort.is_set()), iterations <= 0)
         if params is None:
@@ -188,6 +205,7 @@ class GtsamOptimizer:
         params.setMaxIterations(iterations)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         previous = opt.error()
+        last_decrease = math.inf
         done = 0
         converged = False
         while done < iterations:
@@ -200,7 +218,11 @@ class GtsamOptimizer:
             if decrease <= 0.0 or decrease < self.absolute_error_tol or decrease < self.relative_error_tol * previous:
                 converged = True
                 break
-            previous = current
+            ratio = decrease / last_decrease  # 0 after the first iteration: no extrapolation from one decrease
+            if predict and 0.0 < ratio < 1.0 and decrease * ratio / (1.0 - ratio) < self.relative_error_tol * current:
+                converged = True
+                break
+            previous, last_decrease = current, decrease
         return _LmRun(opt.values(), done, False, converged)
 
     # ---- noise models -------------------------------------------------------------------------------
@@ -380,7 +402,7 @@ class GtsamOptimizer:
         base_values.insert(pose_key, pose3_from_T(invert_rigid(problem.T_c_w_init)))
         points = gtsam.NonlinearFactorGraph()
         for j in range(n):
-            base_values.insert(j, problem.xyz_w[j])
+            base_values.insertPoint3(j, problem.xyz_w[j])
             points.add(gtsam.PriorFactorPoint3(j, problem.xyz_w[j], point_noise))
         gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
         inlier = np.ones(n, dtype=bool)
@@ -451,7 +473,7 @@ class GtsamOptimizer:
         for k in range(K):
             values.insert(pose_key0 + k, pose3_from_T(T_w_c[k]))
         for j in range(M):
-            values.insert(j, problem.xyz_w[j])
+            values.insertPoint3(j, problem.xyz_w[j])
         priors = gtsam.NonlinearFactorGraph()
         pose_noise = gtsam.noiseModel.Isotropic.Sigma(6, self.fixed_sigma)
         point_noise = gtsam.noiseModel.Isotropic.Sigma(3, self.fixed_sigma)
@@ -503,6 +525,7 @@ class GtsamOptimizer:
             problem.iterations_first,
             abort,
             self._ba_params(points_in, pose_key0, K),
+            self.ba_predict_convergence,
         )
         iterations = run.iterations
 
@@ -528,8 +551,20 @@ class GtsamOptimizer:
             same_problem = not excluded.any() and run.converged
             if not (same_problem and self.ba_skip_converged_second_stage):
                 active = ~excluded
-                # Points left without an active observation keep their estimate and leave the problem.
-                observed = np.bincount(problem.obs_point[active], minlength=M) > 0
+                # Points left without an active observation keep their estimate and leave the problem. So do, with
+                # ``ba_drop_undetermined_points``, points left with one monocular (pinhole, first camera)
+                # observation: 2 residual rows for 3 coordinates, nothing fixes their depth along the ray, LM's
+                # damping alone keeps the system positive definite, and GTSAM's Cholesky fails at the damping floor
+                # (every LM iteration then pays a rejected try, a full elimination, and a x10 damping). Such a point
+                # absorbs its 2 residuals, so it adds nothing to the poses: the stage's poses are those with the
+                # point in it. Afterwards it is placed where LM would take it, on its observation's ray at its
+                # depth in that camera (_place_on_rays): reprojection error zero, as ORB-SLAM2's g2o stage leaves it.
+                rows = np.where(np.isfinite(problem.u_right_px), 3.0, 2.0)
+                per_point = np.bincount(problem.obs_point[active], weights=rows[active], minlength=M)
+                placeable = active & _pinhole_first_camera(problem) & (rows == 2.0)
+                single = (per_point == 2.0) & ~problem.point_fixed & self.ba_drop_undetermined_points
+                single &= np.bincount(problem.obs_point[placeable], minlength=M) == 1
+                observed = (per_point > 0.0) & ~single
                 points_in = observed | problem.point_fixed
                 stage2 = run.values
                 for pt in np.flatnonzero(~points_in):
@@ -541,9 +576,11 @@ class GtsamOptimizer:
                     problem.iterations_second,
                     abort,
                     self._ba_params(points_in, pose_key0, K),
+                    self.ba_predict_convergence,
                 )
                 iterations += run.iterations
                 T_c_w, xyz_w = estimate(run.values, xyz_w)
+                _place_on_rays(problem, T_c_w, xyz_w, np.flatnonzero(placeable & single[problem.obs_point]))
                 chi2 = bundle_chi2(problem, T_c_w, xyz_w)
         # ORB-SLAM2 LocalBundleAdjustment erases an edge whose chi2 fails after the second stage; an edge the outlier
         # pass set to level 1 keeps its stage-1 chi2 (g2o computes errors of active edges only), so it is erased too:
@@ -691,6 +728,35 @@ class GtsamOptimizer:
             cost_final=2.0 * between.error(run.values),
             iterations=run.iterations,
         )
+
+
+def _pinhole_first_camera(problem: BundleProblem) -> B:
+    """(E,) observations made through a pinhole camera 0 (the model _place_on_rays inverts)."""
+    E = len(problem.obs_pose)
+    if problem.distortion is not None:
+        return np.zeros(E, dtype=bool)
+    if problem.camera_index is None:
+        return np.ones(E, dtype=bool)
+    return np.asarray(problem.camera_index) == 0
+
+
+def _place_on_rays(problem: BundleProblem, T_c_w: F64, xyz_w: F64, obs: I64) -> None:
+    """Move each point of the observations ``obs`` (one each, pinhole camera 0) to the closest point of its pixel's
+    ray, in place in ``xyz_w`` (M, 3) with the poses T_c_w (K, 4, 4): the reprojection error becomes zero with the
+    smallest move, perpendicular to the ray (the null space of the projection's Jacobian), where LM's damped
+    minimum-norm steps take a point with one observation. Points behind the camera stay."""
+    if not len(obs):
+        return
+    k, j = problem.obs_pose[obs], problem.obs_point[obs]
+    R, t = T_c_w[k, :3, :3], T_c_w[k, :3, 3]
+    pc = np.einsum("nij,nj->ni", R, xyz_w[j]) + t
+    fx, fy, cx, cy = (problem.intrinsics[k, c] for c in range(4))
+    ray = np.stack([(problem.uv_px[obs, 0] - cx) / fx, (problem.uv_px[obs, 1] - cy) / fy, np.ones(len(obs))], axis=1)
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    along = np.einsum("ni,ni->n", pc, ray)
+    ahead = (pc[:, 2] > 0.0) & (along > 0.0)
+    moved = np.einsum("nji,nj->ni", R, along[:, None] * ray - t)  # R^T (pc' - t)
+    xyz_w[j[ahead]] = moved[ahead]
 
 
 def reference_bundle_adjust(problem: BundleProblem) -> BundleResult:

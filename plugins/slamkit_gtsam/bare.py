@@ -5,7 +5,8 @@ factor, Huber, sigma = scale_factor^level), priors on fixed keyframes, ``Levenbe
 for iterations_first, drop observations failing the chi-square gate, optimize iterations_second more. Same
 factors, noise models and LM settings as slamkit_gtsam.backend with its defaults (Huber in the first stage only,
 as ORB-SLAM2's LocalBundleAdjustment); none of its machinery (validation, grouped C++ insertion, abort checks,
-result costs, the Schur elimination ordering and sequential solver: GTSAM's default COLAMD multifrontal here).
+result costs, the Schur elimination ordering and sequential solver: GTSAM's default COLAMD multifrontal here) nor
+its speed rules (GTSAM's own stopping test only; every observed point stays in the second stage).
 """
 
 from __future__ import annotations

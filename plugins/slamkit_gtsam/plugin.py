@@ -40,6 +40,14 @@ def slamkit_components() -> list[ComponentSpec]:
                 # observation inside its gate, so inside its Huber kernel's quadratic zone: the kernel-free second
                 # stage has the first stage's cost; ORB-SLAM2's 10 more g2o iterations would not move it either)
                 "ba_skip_converged_second_stage": True,
+                # BA's second stage: a point left with fewer residual rows than coordinates (one monocular
+                # observation) keeps its first-stage estimate and leaves the problem (its depth is unconstrained;
+                # GTSAM's Cholesky fails on it at the damping floor and LM pays a rejected try per iteration)
+                "ba_drop_undetermined_points": True,
+                # true: BA's LM also stops when the decrease still to come, extrapolated from the last two decreases
+                # as a geometric tail, is below relative_error_tol (one iteration fewer per local BA on the room,
+                # 0.69x time); off: fr1_xyz's seed-0 ATE went from 1.00 to 3.68 cm with it (docs/BENCHMARKS.md, gtsam2)
+                "ba_predict_convergence": False,
             },
             description="GTSAM 4 (projection/stereo factors, Similarity3 pose graph, Levenberg-Marquardt)",
         )

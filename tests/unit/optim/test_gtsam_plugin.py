@@ -44,6 +44,8 @@ def test_essential_graph_cost_is_orb_slams_edge_error() -> None:
         ({"ba_linear_solver": "CHOLMOD"}, r"optimizer\.ba_linear_solver = 'CHOLMOD'"),
         ({"ba_robust_second_stage": "no"}, r"optimizer\.ba_robust_second_stage = 'no'"),
         ({"ba_lambda_lower_bound": -1.0}, r"optimizer\.ba_lambda_lower_bound = -1\.0"),
+        ({"ba_drop_undetermined_points": 1}, r"optimizer\.ba_drop_undetermined_points = 1"),
+        ({"ba_predict_convergence": "yes"}, r"optimizer\.ba_predict_convergence = 'yes'"),
     ],
 )
 def test_bad_config_is_rejected(kwargs: dict[str, Any], message: str) -> None:
@@ -52,8 +54,10 @@ def test_bad_config_is_rejected(kwargs: dict[str, Any], message: str) -> None:
 
 
 def test_backend_matches_the_bare_script() -> None:
+    """The bare script runs GTSAM's own stopping rule and keeps every observed point in the second stage: the
+    backend with those two speed rules off does the same iterations to the same result."""
     problem, _ = make_bundle_problem(np.random.default_rng(4), n_free=4, n_fixed=3, n_points=300, n_obs=1500)
-    opt = GtsamOptimizer()
+    opt = GtsamOptimizer(ba_predict_convergence=False, ba_drop_undetermined_points=False)
     ours = opt.bundle_adjust(problem)
     bare = opt.reference_bundle_adjust(problem)
     assert ours.iterations == bare.iterations
@@ -114,3 +118,40 @@ def test_converged_first_stage_without_outliers_skips_the_second() -> None:
     b = GtsamOptimizer(ba_skip_converged_second_stage=False).bundle_adjust(noisy)
     assert a.outlier.any() and a.iterations == b.iterations
     assert np.array_equal(a.T_c_w, b.T_c_w) and np.array_equal(a.outlier, b.outlier)
+
+
+def test_predicted_convergence_saves_an_iteration_not_the_solution() -> None:
+    """Stopping when the extrapolated remaining decrease is below the tolerance skips the confirming LM iteration
+    (a linearization and an elimination) and lands where GTSAM's own test stops, within its tolerance."""
+    problem, truth = make_bundle_problem(np.random.default_rng(5), n_free=5, n_fixed=1, n_points=400, n_obs=2000)
+    fast = GtsamOptimizer(ba_predict_convergence=True).bundle_adjust(problem)
+    plain = GtsamOptimizer(ba_predict_convergence=False).bundle_adjust(problem)
+    assert fast.iterations < plain.iterations
+    assert np.array_equal(fast.outlier, plain.outlier)
+    assert np.abs(fast.T_c_w[:, :3, 3] - plain.T_c_w[:, :3, 3]).max() < 1e-5
+    assert fast.cost_final == pytest.approx(plain.cost_final, rel=1e-4)
+    assert np.abs(fast.T_c_w[:, :3, 3] - truth.T_c_w[:, :3, 3]).max() < 0.05  # recovered (started 30 mm off)
+
+
+def test_undetermined_points_leave_the_second_stage() -> None:
+    """After the outlier pass some points keep one monocular observation: their depth is free, they add nothing
+    to the poses. Leaving them out of the second stage (GTSAM's Cholesky fails on them at the damping floor and LM
+    pays rejected tries) and then placing them on their observation's ray gives the poses, outlier flags and
+    points of the stage with them in it, within a millimetre."""
+    problem, _ = make_bundle_problem(
+        np.random.default_rng(0), n_free=5, n_fixed=2, n_points=400, n_obs=2000, outlier_ratio=0.05
+    )
+    drop = GtsamOptimizer().bundle_adjust(problem)
+    keep = GtsamOptimizer(ba_drop_undetermined_points=False).bundle_adjust(problem)
+    inliers_per_point = np.bincount(problem.obs_point[~drop.outlier], minlength=len(problem.xyz_w))
+    single = inliers_per_point == 1
+    assert single.sum() >= 5  # the case is there
+    assert np.array_equal(drop.outlier, keep.outlier)
+    assert np.abs(drop.T_c_w[:, :3, 3] - keep.T_c_w[:, :3, 3]).max() < 1e-5
+    assert np.abs(drop.xyz_w - keep.xyz_w).max() < 1e-3
+    # left at their first-stage estimate instead, the single-observation points would be centimetres off
+    from slamkit.optim.costs import bundle_chi2
+
+    chi2 = bundle_chi2(problem, drop.T_c_w, drop.xyz_w)
+    only = ~drop.outlier & single[problem.obs_point]
+    assert chi2[only].max() < 1e-12  # on the ray: reprojection error zero
