@@ -89,7 +89,18 @@ def main(argv: list[str]) -> None:
     def traced_step(self: Any, data: Any, camera: Any, mapping: Any = None) -> Any:
         busy = _lm_busy.is_set()
         n_facts = len(decision_facts)
-        outcome = step(self, data, camera, mapping)
+        if callable(mapping):  # read by the tracker once the frame's features are extracted
+            lazy = mapping
+            given: list[Any] = []
+
+            def mapping_now() -> Any:
+                given.append(lazy())
+                return given[-1]
+
+            outcome = step(self, data, camera, mapping_now)
+            mapping = given[-1] if given else None
+        else:
+            outcome = step(self, data, camera, mapping)
         facts = decision_facts[n_facts] if len(decision_facts) > n_facts else {}
         frames.append(
             {
@@ -178,7 +189,7 @@ def main(argv: list[str]) -> None:
         _lm_stage["stage"] = "local_ba"
         return lba(self, kf, abort)
 
-    def traced_lm_step(self: Any, kf: Any, abort: Any = None) -> Any:
+    def traced_lm_step(self: Any, kf: Any, abort: Any = None, points_made: Any = None) -> Any:
         _lm_busy.set()
         _lm_stage.update(stage="insert", kf=kf.id)
         current.clear()
@@ -204,7 +215,7 @@ def main(argv: list[str]) -> None:
 
         self._search_in_neighbors = traced_fusion
         try:
-            outcome = lm_step(self, kf, abort)
+            outcome = lm_step(self, kf, abort, points_made)
         finally:
             del self._create_new_points, self._search_in_neighbors
             _lm_busy.clear()

@@ -72,6 +72,10 @@ STOP_TIMEOUT_S = 60.0
 SOURCE_JOIN_TIMEOUT_S = 10.0
 #: ``RunLog.source_end`` of a live run Ctrl-C ended.
 CTRL_C = "Ctrl-C"
+#: ``runner.frame_waits_for``: what a monocular frame waits for, as fast as possible, before it is tracked
+FRAME_WAITS_FOR_NEW_POINTS = "new_points"
+FRAME_WAITS_FOR_LOCAL_MAPPING = "local_mapping"
+FRAME_WAITS_FOR = ("none", FRAME_WAITS_FOR_NEW_POINTS, FRAME_WAITS_FOR_LOCAL_MAPPING)
 
 
 class ThreadedRunner:
@@ -105,6 +109,7 @@ class ThreadedRunner:
         modelled_mapping_ms: float = 0.0,
         modelled_mapping_new_map_ms: float | None = None,
         wait_for_local_mapping: bool = True,
+        frame_waits_for: str = FRAME_WAITS_FOR_LOCAL_MAPPING,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -114,13 +119,27 @@ class ThreadedRunner:
         within it of the last keyframe makes no keyframe, as in ORB-SLAM at a camera's rate; 0: the runner waits for
         local mapping whenever tracking wants a keyframe. wait_for_local_mapping: as fast as possible only; False:
         never wait — a monocular frame that wants a keyframe while local mapping is busy interrupts its local BA and
-        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (needs ``modelled_mapping_ms`` 0)."""
+        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (needs ``modelled_mapping_ms`` 0).
+        frame_waits_for: as fast as possible with ``wait_for_local_mapping`` and no modelled mapping time, monocular
+        frames only, what a frame waits for once its features are extracted, before it is tracked: "local_mapping" —
+        local mapping is done with every keyframe handed to it (the sequential runner's map, hence its keyframe
+        decisions); "new_points" — local mapping has triangulated and fused their new points (their local BA goes on
+        beside the frame); "none" — nothing (docs/runtime.md)."""
+        if frame_waits_for not in FRAME_WAITS_FOR:
+            raise ConfigError(
+                f"runner.frame_waits_for = {frame_waits_for!r}: expected one of {', '.join(FRAME_WAITS_FOR)}"
+            )
         if not wait_for_local_mapping and modelled_mapping_ms > 0.0:
             raise ConfigError(
                 "runner.wait_for_local_mapping=false with runner.modelled_mapping_ms="
                 f"{modelled_mapping_ms:g}: the model's frames past its time wait for local mapping; set one of them"
             )
         self.wait_for_local_mapping = wait_for_local_mapping
+        self.frame_waits_for = frame_waits_for
+        # keyframes handed to local mapping / of them, those whose new points it made and fused (or dropped)
+        self._new_points = threading.Condition()
+        self._kfs_handed = 0
+        self._kfs_with_points = 0
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -137,7 +156,9 @@ class ThreadedRunner:
         self.bad_frames = check_bad_frames_policy(bad_frames)
         self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
         self._modelled_busy = False  # the frame being tracked saw local mapping busy by the model, not by the thread
-        self._modelled_wait_ms = 0.0  # how long the frame being tracked waited for the model's end of mapping, ms
+        # how long the frame being tracked waited for local mapping before it was tracked (the model's end of mapping,
+        # or the last keyframe's new points), ms
+        self._pre_track_wait_ms = 0.0
         self._depth_frames = False  # the frames tracked so far carry depth (stereo/RGB-D: the model does not apply)
         self.log = RunLog(runner="threaded")
         self.events = events
@@ -179,6 +200,8 @@ class ThreadedRunner:
         for worker in (self._mapping, self._closing):
             if worker is not None and worker.name != fault.thread_name:
                 worker.stop(drain=False)
+        with self._new_points:  # a frame waiting for local mapping's new points stops waiting
+            self._new_points.notify_all()
 
     # ---- worker bodies --------------------------------------------------------------------------------
 
@@ -188,7 +211,18 @@ class ThreadedRunner:
         if self._mapping.pending() > 0:
             abort.set()  # ORB-SLAM skips local BA while newer keyframes wait
         t_start = time.perf_counter()
-        outcome = self.mapper.step(kf, abort=abort)
+        counted = False
+
+        def points_made() -> None:
+            nonlocal counted
+            counted = True
+            self._count_points_made()
+
+        try:
+            outcome = self.mapper.step(kf, abort=abort, points_made=points_made)
+        finally:
+            if not counted:  # failed before: a frame waiting for it goes on (the fault stops the run)
+                self._count_points_made()
         self.log.mapping.append(outcome)
         if "local_ba_ms" in outcome.timings_ms:
             # the stages ran in the order of their timings: the BA began after the ones listed before it
@@ -202,6 +236,32 @@ class ThreadedRunner:
         self._run_events.keyframe_mapped(outcome)
         if self._closing is not None and self.store.has_keyframe(kf.id):
             self._closing.submit(kf)
+
+    def _count_points_made(self) -> None:
+        """Local mapping is done with a keyframe's new points (or the keyframe): wake a frame waiting for them."""
+        with self._new_points:
+            self._kfs_with_points += 1
+            self._new_points.notify_all()
+
+    def _wait_for_new_points(self) -> None:
+        """As fast as possible, before a monocular frame is tracked: wait until local mapping has triangulated and
+        fused the new points of every keyframe handed to it (``LocalMapper.step``'s ``points_made``), so the frame
+        tracks them and its keyframe decision counts the last keyframe's points as the sequential runner's frame does;
+        its local BA and keyframe culling go on beside the frame. The wait is added to ``_pre_track_wait_ms``."""
+        assert self._mapping is not None
+        with self._new_points:
+            if self._kfs_with_points >= self._kfs_handed:
+                return
+            t0 = time.perf_counter()
+            self._new_points.wait_for(
+                lambda: self._kfs_with_points >= self._kfs_handed or self._fault is not None or self._mapping_gone()
+            )
+        self._pre_track_wait_ms += (time.perf_counter() - t0) * 1e3
+
+    def _mapping_gone(self) -> bool:
+        """Local mapping will not process what it was handed (parked, stopping or dead): nothing to wait for."""
+        assert self._mapping is not None
+        return self._mapping.stopping() or not self._mapping.is_alive()
 
     def _close_loops(self, kf: KeyFrame, abort: threading.Event) -> None:
         """Loop closing thread: detect a loop at one keyframe while local mapping goes on; only the correction of
@@ -268,6 +328,9 @@ class ThreadedRunner:
             for worker in (self._mapping, self._closing):
                 if worker is not None:
                     dropped = worker.clear()
+                    if worker is self._mapping:
+                        with self._new_points:  # parked: every keyframe handed to it is processed or dropped now
+                            self._kfs_with_points = self._kfs_handed
                     if dropped:
                         log.info("active map change: %s dropped %d queued keyframes", worker.name, dropped)
             yield
@@ -280,12 +343,21 @@ class ThreadedRunner:
         (``waits_for_idle``), as a camera's frame period would give it time to finish — unless the modelled mapping
         time (``modelled_mapping_ms``) says a camera's frame would still find it busy: then it is busy, and a
         monocular frame makes no keyframe, as in ORB-SLAM; a frame past the modelled time first waits for the thread
-        to finish the keyframes made so far (``_modelled_wait_ms``), as a camera's frame would find them mapped.
-        Without local mapping (localization only) it accepts nothing, as ORB-SLAM's stopped local mapping."""
+        to finish the keyframes made so far (``_pre_track_wait_ms``), as a camera's frame would find them mapped.
+        Without the model, a monocular frame first waits for what ``frame_waits_for`` says (called by the tracker once
+        the frame's features are extracted: ``_frame_waits``). Without local mapping (localization only) it accepts
+        nothing, as ORB-SLAM's stopped local mapping."""
         self._modelled_busy = False
-        self._modelled_wait_ms = 0.0
+        self._pre_track_wait_ms = 0.0
         if self._mapping is None:
             return MappingState(idle=False, accepting_keyframes=False)
+        if self._frame_waits():
+            if self.frame_waits_for == FRAME_WAITS_FOR_NEW_POINTS:
+                self._wait_for_new_points()
+            elif not self._mapping.idle():  # "local_mapping": the finished map, as the sequential runner's frame
+                t0 = time.perf_counter()
+                self._mapping.wait_idle()
+                self._pre_track_wait_ms += (time.perf_counter() - t0) * 1e3
         stopping = self._mapping.stopping()
         if not self.realtime and not self._depth_frames and self.modelled_mapping.enabled:
             if not self.modelled_mapping.state(timestamp_s).idle:
@@ -297,7 +369,7 @@ class ThreadedRunner:
                 # sees the map local mapping finished whatever the machine's speed or load
                 t0 = time.perf_counter()
                 self._mapping.wait_idle()
-                self._modelled_wait_ms = (time.perf_counter() - t0) * 1e3
+                self._pre_track_wait_ms = (time.perf_counter() - t0) * 1e3
                 stopping = self._mapping.stopping()
         return MappingState(
             idle=self._mapping.idle() and not stopping,
@@ -330,14 +402,29 @@ class ThreadedRunner:
             out.timings_ms["track_ms"] += waited_ms
         return out
 
+    def _frame_waits(self) -> bool:
+        """Whether the frame being tracked waits for local mapping after its extraction (``frame_waits_for``)."""
+        return (
+            self.frame_waits_for != "none"
+            and self.wait_for_local_mapping
+            and not self.realtime
+            and not self._depth_frames
+            and not self.modelled_mapping.enabled
+        )
+
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
         map_before = self.atlas.active_id
-        out = self.tracker.step(data, camera, self._mapping_state(data.timestamp_s))
-        if self._modelled_wait_ms > 0.0:
-            # the frame waited for local mapping before it was tracked: part of its tracking time, as a keyframe's wait
-            out.timings_ms["mapping_wait_ms"] = self._modelled_wait_ms
-            if "track_ms" in out.timings_ms:
-                out.timings_ms["track_ms"] += self._modelled_wait_ms
+        self._modelled_busy, self._pre_track_wait_ms = False, 0.0
+        if self._frame_waits():
+            # local mapping's state is read once the frame's features are extracted (the wait overlaps extraction)
+            out = self.tracker.step(data, camera, lambda: self._mapping_state(data.timestamp_s))
+        else:
+            out = self.tracker.step(data, camera, self._mapping_state(data.timestamp_s))
+            if self._pre_track_wait_ms > 0.0 and "track_ms" in out.timings_ms:
+                # the frame waited for local mapping before it was tracked: part of its tracking time
+                out.timings_ms["track_ms"] += self._pre_track_wait_ms
+        if self._pre_track_wait_ms > 0.0:
+            out.timings_ms["mapping_wait_ms"] = self._pre_track_wait_ms
         frame = self.tracker.current_frame
         if frame is not None and frame.index == out.frame_index:
             self._depth_frames = frame.features.bf > 0.0
@@ -367,6 +454,8 @@ class ThreadedRunner:
                 self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
             for kf in out.new_keyframes:
                 assert self._mapping is not None
+                with self._new_points:
+                    self._kfs_handed += 1
                 self._mapping.submit(kf)
             out.release_keyframes()  # local mapping has them; the log must not keep the culled ones alive
             if out.state == TrackingState.OK and out.T_c_w is not None and out.T_ref_w is not None:
