@@ -189,7 +189,7 @@ def main(argv: list[str]) -> None:
         _lm_stage["stage"] = "local_ba"
         return lba(self, kf, abort)
 
-    def traced_lm_step(self: Any, kf: Any, abort: Any = None, points_made: Any = None) -> Any:
+    def traced_lm_step(self: Any, kf: Any, abort: Any = None) -> Any:
         _lm_busy.set()
         _lm_stage.update(stage="insert", kf=kf.id)
         current.clear()
@@ -215,7 +215,7 @@ def main(argv: list[str]) -> None:
 
         self._search_in_neighbors = traced_fusion
         try:
-            outcome = lm_step(self, kf, abort, points_made)
+            outcome = lm_step(self, kf, abort)
         finally:
             del self._create_new_points, self._search_in_neighbors
             _lm_busy.clear()

@@ -50,8 +50,8 @@ def main(argv: list[str]) -> None:
     local_mapping.time = types.SimpleNamespace(perf_counter=time.thread_time)  # type: ignore[assignment]
     step = local_mapping.LocalMapper.step
 
-    def timed_step(self: local_mapping.LocalMapper, kf: Any, abort: Any = None, points_made: Any = None) -> Any:
-        outcome = step(self, kf, abort, points_made)
+    def timed_step(self: local_mapping.LocalMapper, kf: Any, abort: Any = None) -> Any:
+        outcome = step(self, kf, abort)
         records.append(dict(outcome.timings_ms))
         return outcome
 

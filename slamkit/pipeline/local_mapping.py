@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -67,14 +66,8 @@ class LocalMapper:
         """The active map of the Atlas."""
         return self.atlas.active
 
-    def step(
-        self, kf: KeyFrame, abort: AbortToken | None = None, points_made: Callable[[], None] | None = None
-    ) -> MappingOutcome:
-        """Process one new keyframe (VI-A to VI-E): one tracking made, or one of the two of a new map.
-
-        points_made: called (from this thread, no lock held) once the keyframe is in the map with its new points
-        triangulated (VI-C) and fused with its neighbours' (VI-D's search in neighbours), before local BA: the threaded
-        runner's next frame waits for it as fast as possible (docs/runtime.md)."""
+    def step(self, kf: KeyFrame, abort: AbortToken | None = None) -> MappingOutcome:
+        """Process one new keyframe (VI-A to VI-E): one tracking made, or one of the two of a new map."""
         out = MappingOutcome(kf.id)
         t = time.perf_counter()
 
@@ -96,8 +89,6 @@ class LocalMapper:
         lap("triangulation_ms")
         out.points_fused = self._search_in_neighbors(kf)
         lap("fusion_ms")
-        if points_made is not None:
-            points_made()
         out.ba_due = self.cfg.local_ba and self.store.n_keyframes() > 2
         out.ba_skipped = out.ba_due and abort is not None and abort.is_set()
         if out.ba_due and not out.ba_skipped:

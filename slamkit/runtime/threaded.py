@@ -73,9 +73,8 @@ SOURCE_JOIN_TIMEOUT_S = 10.0
 #: ``RunLog.source_end`` of a live run Ctrl-C ended.
 CTRL_C = "Ctrl-C"
 #: ``runner.frame_waits_for``: what a monocular frame waits for, as fast as possible, before it is tracked
-FRAME_WAITS_FOR_NEW_POINTS = "new_points"
 FRAME_WAITS_FOR_LOCAL_MAPPING = "local_mapping"
-FRAME_WAITS_FOR = ("none", FRAME_WAITS_FOR_NEW_POINTS, FRAME_WAITS_FOR_LOCAL_MAPPING)
+FRAME_WAITS_FOR = (FRAME_WAITS_FOR_LOCAL_MAPPING, "none")
 
 
 class ThreadedRunner:
@@ -123,8 +122,7 @@ class ThreadedRunner:
         frame_waits_for: as fast as possible with ``wait_for_local_mapping`` and no modelled mapping time, monocular
         frames only, what a frame waits for once its features are extracted, before it is tracked: "local_mapping" —
         local mapping is done with every keyframe handed to it (the sequential runner's map, hence its keyframe
-        decisions); "new_points" — local mapping has triangulated and fused their new points (their local BA goes on
-        beside the frame); "none" — nothing (docs/runtime.md)."""
+        decisions); "none" — nothing (docs/runtime.md)."""
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
                 f"runner.frame_waits_for = {frame_waits_for!r}: expected one of {', '.join(FRAME_WAITS_FOR)}"
@@ -136,10 +134,6 @@ class ThreadedRunner:
             )
         self.wait_for_local_mapping = wait_for_local_mapping
         self.frame_waits_for = frame_waits_for
-        # keyframes handed to local mapping / of them, those whose new points it made and fused (or dropped)
-        self._new_points = threading.Condition()
-        self._kfs_handed = 0
-        self._kfs_with_points = 0
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -157,7 +151,7 @@ class ThreadedRunner:
         self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
         self._modelled_busy = False  # the frame being tracked saw local mapping busy by the model, not by the thread
         # how long the frame being tracked waited for local mapping before it was tracked (the model's end of mapping,
-        # or the last keyframe's new points), ms
+        # or frame_waits_for), ms
         self._pre_track_wait_ms = 0.0
         self._depth_frames = False  # the frames tracked so far carry depth (stereo/RGB-D: the model does not apply)
         self.log = RunLog(runner="threaded")
@@ -200,8 +194,6 @@ class ThreadedRunner:
         for worker in (self._mapping, self._closing):
             if worker is not None and worker.name != fault.thread_name:
                 worker.stop(drain=False)
-        with self._new_points:  # a frame waiting for local mapping's new points stops waiting
-            self._new_points.notify_all()
 
     # ---- worker bodies --------------------------------------------------------------------------------
 
@@ -211,18 +203,7 @@ class ThreadedRunner:
         if self._mapping.pending() > 0:
             abort.set()  # ORB-SLAM skips local BA while newer keyframes wait
         t_start = time.perf_counter()
-        counted = False
-
-        def points_made() -> None:
-            nonlocal counted
-            counted = True
-            self._count_points_made()
-
-        try:
-            outcome = self.mapper.step(kf, abort=abort, points_made=points_made)
-        finally:
-            if not counted:  # failed before: a frame waiting for it goes on (the fault stops the run)
-                self._count_points_made()
+        outcome = self.mapper.step(kf, abort=abort)
         self.log.mapping.append(outcome)
         if "local_ba_ms" in outcome.timings_ms:
             # the stages ran in the order of their timings: the BA began after the ones listed before it
@@ -236,32 +217,6 @@ class ThreadedRunner:
         self._run_events.keyframe_mapped(outcome)
         if self._closing is not None and self.store.has_keyframe(kf.id):
             self._closing.submit(kf)
-
-    def _count_points_made(self) -> None:
-        """Local mapping is done with a keyframe's new points (or the keyframe): wake a frame waiting for them."""
-        with self._new_points:
-            self._kfs_with_points += 1
-            self._new_points.notify_all()
-
-    def _wait_for_new_points(self) -> None:
-        """As fast as possible, before a monocular frame is tracked: wait until local mapping has triangulated and
-        fused the new points of every keyframe handed to it (``LocalMapper.step``'s ``points_made``), so the frame
-        tracks them and its keyframe decision counts the last keyframe's points as the sequential runner's frame does;
-        its local BA and keyframe culling go on beside the frame. The wait is added to ``_pre_track_wait_ms``."""
-        assert self._mapping is not None
-        with self._new_points:
-            if self._kfs_with_points >= self._kfs_handed:
-                return
-            t0 = time.perf_counter()
-            self._new_points.wait_for(
-                lambda: self._kfs_with_points >= self._kfs_handed or self._fault is not None or self._mapping_gone()
-            )
-        self._pre_track_wait_ms += (time.perf_counter() - t0) * 1e3
-
-    def _mapping_gone(self) -> bool:
-        """Local mapping will not process what it was handed (parked, stopping or dead): nothing to wait for."""
-        assert self._mapping is not None
-        return self._mapping.stopping() or not self._mapping.is_alive()
 
     def _close_loops(self, kf: KeyFrame, abort: threading.Event) -> None:
         """Loop closing thread: detect a loop at one keyframe while local mapping goes on; only the correction of
@@ -328,9 +283,6 @@ class ThreadedRunner:
             for worker in (self._mapping, self._closing):
                 if worker is not None:
                     dropped = worker.clear()
-                    if worker is self._mapping:
-                        with self._new_points:  # parked: every keyframe handed to it is processed or dropped now
-                            self._kfs_with_points = self._kfs_handed
                     if dropped:
                         log.info("active map change: %s dropped %d queued keyframes", worker.name, dropped)
             yield
@@ -351,13 +303,11 @@ class ThreadedRunner:
         self._pre_track_wait_ms = 0.0
         if self._mapping is None:
             return MappingState(idle=False, accepting_keyframes=False)
-        if self._frame_waits():
-            if self.frame_waits_for == FRAME_WAITS_FOR_NEW_POINTS:
-                self._wait_for_new_points()
-            elif not self._mapping.idle():  # "local_mapping": the finished map, as the sequential runner's frame
-                t0 = time.perf_counter()
-                self._mapping.wait_idle()
-                self._pre_track_wait_ms += (time.perf_counter() - t0) * 1e3
+        if self._frame_waits() and not self._mapping.idle():
+            # the map local mapping finished, as the sequential runner's frame sees it (frame_waits_for)
+            t0 = time.perf_counter()
+            self._mapping.wait_idle()
+            self._pre_track_wait_ms = (time.perf_counter() - t0) * 1e3
         stopping = self._mapping.stopping()
         if not self.realtime and not self._depth_frames and self.modelled_mapping.enabled:
             if not self.modelled_mapping.state(timestamp_s).idle:
@@ -405,7 +355,7 @@ class ThreadedRunner:
     def _frame_waits(self) -> bool:
         """Whether the frame being tracked waits for local mapping after its extraction (``frame_waits_for``)."""
         return (
-            self.frame_waits_for != "none"
+            self.frame_waits_for == FRAME_WAITS_FOR_LOCAL_MAPPING
             and self.wait_for_local_mapping
             and not self.realtime
             and not self._depth_frames
@@ -454,8 +404,6 @@ class ThreadedRunner:
                 self._mapping.abort.set()  # V-E: stop the running local BA so the new keyframe goes in soon
             for kf in out.new_keyframes:
                 assert self._mapping is not None
-                with self._new_points:
-                    self._kfs_handed += 1
                 self._mapping.submit(kf)
             out.release_keyframes()  # local mapping has them; the log must not keep the culled ones alive
             if out.state == TrackingState.OK and out.T_c_w is not None and out.T_ref_w is not None:

@@ -145,55 +145,62 @@ def test_as_fast_as_possible_without_waiting_a_busy_local_mapping_gets_no_keyfra
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
 
-@pytest.mark.parametrize("waits_for", ["new_points", "local_mapping", "none"])
-def test_as_fast_as_possible_a_frame_is_tracked_once_the_earlier_keyframes_are_mapped_as_far_as_it_waits_for(
+@pytest.mark.parametrize("waits_for", ["local_mapping", "none"])
+def test_as_fast_as_possible_a_frame_is_tracked_once_local_mapping_is_done_with_the_keyframes_before_it(
     waits_for: str,
 ) -> None:
     """``runner.frame_waits_for``. local_mapping (the default): each monocular frame is tracked (after its
-    extraction) only once local mapping is done with every keyframe made before it; new_points: once local mapping
-    has triangulated and fused their new points, while their local BA still runs beside later frames; none: frames are
-    tracked while local mapping triangulates (the thread's triangulation slowed to 0.1 s here)."""
+    extraction, which runs beside local mapping) only once local mapping is done with every keyframe made before it, so
+    it is never tracked, nor decides on a keyframe, with local mapping busy; none: frames are tracked while local
+    mapping works (the thread's triangulation slowed to 0.1 s here)."""
     runner, dataset = _runner(f"runner.frame_waits_for={waits_for}")
     tracked_from: dict[float, float] = {}  # frame timestamp -> wall clock when tracking got local mapping's state
-    points_made_at: dict[int, float] = {}  # keyframe id -> wall clock when its new points were made and fused
+    extracted: dict[float, float] = {}  # frame timestamp -> wall clock when its feature extraction began
     mapped_at: dict[int, float] = {}  # keyframe id -> wall clock when local mapping was done with it
     assert runner.mapper is not None
-    mapping_state, mapper_step = runner._mapping_state, runner.mapper.step
+    mapping_state, mapper_step, observe = runner._mapping_state, runner.mapper.step, runner.tracker.frontend.observe
     create_new_points = runner.mapper._create_new_points
 
     def slow_triangulation(*args: Any, **kwargs: Any) -> Any:
         time.sleep(0.1)
         return create_new_points(*args, **kwargs)
 
+    def timed_observe(data: Any, *args: Any, **kwargs: Any) -> Any:
+        extracted.setdefault(data.timestamp_s, time.perf_counter())
+        return observe(data, *args, **kwargs)
+
     def timed_state(timestamp_s: float) -> Any:
         state = mapping_state(timestamp_s)
         tracked_from[timestamp_s] = time.perf_counter()
         return state
 
-    def timed_map(kf: Any, abort: Any = None, points_made: Any = None) -> Any:
-        def noted() -> None:
-            points_made_at[kf.id] = time.perf_counter()
-            if points_made is not None:
-                points_made()
-
-        out = mapper_step(kf, abort, noted)
+    def timed_map(kf: Any, *args: Any, **kwargs: Any) -> Any:
+        out = mapper_step(kf, *args, **kwargs)
         mapped_at[kf.id] = time.perf_counter()
         return out
 
+    busy_decisions: list[int] = []  # frames that wanted a keyframe while local mapping was busy
+    wanted_while_busy = runner._keyframe_wanted_while_mapping_busy
+
+    def noted_busy(out: Any) -> Any:
+        busy_decisions.append(out.frame_index)
+        return wanted_while_busy(out)
+
+    runner._keyframe_wanted_while_mapping_busy = noted_busy  # type: ignore[method-assign]
     runner.mapper._create_new_points = slow_triangulation  # type: ignore[method-assign]
+    runner.tracker.frontend.observe = timed_observe  # type: ignore[method-assign]
     runner._mapping_state, runner.mapper.step = timed_state, timed_map  # type: ignore[method-assign]
     log = runner.run(dataset, dataset.camera)
     made = [(out.timestamp_s, kf_id) for out in log.tracking for kf_id in out.keyframe_ids]
     assert len(made) >= 5
-    later = [(tracked_from[t], points_made_at[k], mapped_at[k]) for t_kf, k in made for t in tracked_from if t > t_kf]
-    if waits_for == "new_points":
-        assert all(start >= points for start, points, _ in later)
-        # not a wait for an idle local mapping: frames were tracked during a local BA (or keyframe culling)
-        assert any(start < done for start, _, done in later)
-    elif waits_for == "local_mapping":
-        assert all(start >= done for start, _, done in later)
+    later = [(extracted[t], tracked_from[t], mapped_at[k]) for t_kf, k in made for t in tracked_from if t > t_kf]
+    if waits_for == "local_mapping":
+        assert all(start >= done for _, start, done in later)
+        assert busy_decisions == []  # every keyframe decision found local mapping idle, as the sequential runner's
+        # the next frame's extraction ran beside local mapping's work on the keyframe before it
+        assert any(extraction < done for extraction, _, done in later)
     else:
-        assert any(start < points for start, points, _ in later)
+        assert any(start < done for _, start, done in later) and busy_decisions
     metrics = runner_metrics(runner, dataset)
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 

@@ -216,57 +216,6 @@ def test_a_local_ba_a_newer_keyframe_aborted_before_it_started_is_skipped_and_re
     assert counts == {"due": 2, "completed": 1, "skipped": 1, "aborted": 0, "fraction": 0.5}
 
 
-def two_keyframe_map(xyz: np.ndarray, desc: np.ndarray) -> tuple[InMemoryMapStore, np.ndarray]:
-    """Keyframes 0 and 1 observing points 0..N_MAPPED-1, and the map-point matches of a third keyframe's features
-    (its first N_MAPPED features matched to those points; the rest for local mapping to triangulate)."""
-    store = InMemoryMapStore()
-    for kf in (keyframe(store, 0.0, xyz, desc), keyframe(store, 0.3, xyz, desc)):
-        store.add_keyframe(kf)
-    for j in range(N_MAPPED):
-        pid = store.new_point_id()
-        store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
-        store.add_observation(pid, 0, j)
-        store.add_observation(pid, 1, j)
-    refresh_points(store, store.point_ids())
-    store.update_connections(0)
-    store.update_connections(1)
-    tracked = np.full(N_POINTS, -1, np.int64)
-    tracked[:N_MAPPED] = np.arange(N_MAPPED)
-    return store, tracked
-
-
-def test_points_made_is_called_once_the_keyframes_new_points_are_in_the_map_before_its_local_ba() -> None:
-    """``LocalMapper.step``'s ``points_made`` (the threaded runner's next frame waits for it): called once, from the
-    mapping thread with no lock held, after the keyframe is in the map and its new points are triangulated and fused,
-    before the local BA starts."""
-    xyz, desc = scene()
-    store, tracked = two_keyframe_map(xyz, desc)
-    kf2 = keyframe(store, 0.6, xyz, desc, tracked)
-    optimizer = WatchingOptimizer(store)
-    mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), optimizer, None)  # type: ignore[arg-type]
-    calls: list[tuple[bool, int, int, bool]] = []
-
-    def points_made() -> None:
-        writer_got_in = threading.Event()
-
-        def write() -> None:
-            with store.write():
-                writer_got_in.set()
-
-        writer = threading.Thread(target=write, daemon=True)
-        writer.start()
-        writer.join(timeout=10.0)
-        new_points = sum(1 for p in store.point_ids() if p >= N_MAPPED)
-        calls.append((store.has_keyframe(kf2.id), new_points, len(optimizer.reader_got_in), writer_got_in.is_set()))
-
-    out = mapper.step(kf2, points_made=points_made)
-    assert out.points_created >= 0.9 * (N_POINTS - N_MAPPED)
-    new_points = sum(1 for p in store.point_ids() if p >= N_MAPPED)
-    # in the map with its new points, the local BA not started yet, no lock held
-    assert calls == [(True, new_points, 0, True)]
-    assert optimizer.reader_got_in == [True] and out.ba_due and not out.ba_skipped  # then the local BA ran
-
-
 @pytest.mark.parametrize("n", [1, 6, 150, 200])
 def test_cholesky_kernel_reads_the_upper_triangle_only(n: int) -> None:
     rng = np.random.default_rng(n)
