@@ -7,7 +7,12 @@ Runs ``slamkit`` with the arguments after ``--`` and records, without changing w
 - every tracked frame: index, timestamp (s), the local-mapping state tracking was given (idle, and whether the
   threaded runner would wait for it), the keyframe decision, the keyframes made, map points tracked (inliers), the
   time tracking waited for local mapping (ms), and whether local mapping was processing a keyframe while the frame
-  was tracked (``lm_busy``: the frame saw a map local mapping had not finished);
+  was tracked (``lm_busy``: the frame saw a map local mapping had not finished); where the keyframe decision ran,
+  its numbers (ORB-SLAM2 NeedNewKeyFrame): ``tracked`` (mnMatchesInliers), ``n_ref`` (the reference
+  keyframe's nRefMatches, None when the reference is not in the map), ``ref``, ``c1a``, ``c1b``, ``c2``, the last
+  keyframe tracking made (``last_kf``), whether local mapping has inserted it (``last_kf_in_map``) and whether it is
+  the reference (``ref_is_last_kf``); while it is not inserted, ``n_ref_if_last_kf_in_map``: its nRefMatches as if
+  it were (its own observation added to its points');
 - every keyframe local mapping processed: its id, whether the abort token was already set when local mapping took
   it (``abort_at_start``) and when local BA would start (``abort_before_ba``: local BA skipped), whether local BA
   ran and was aborted, points created / fused, keyframes culled, and the stage timings (ms);
@@ -34,7 +39,13 @@ from slamkit.cli import main as slamkit_main
 
 frames: list[dict[str, Any]] = []
 keyframes: list[dict[str, Any]] = []
+#: the keyframe decision's numbers of each frame it ran on (Tracker._keyframe_facts), merged into its ``frames`` row
+decision_facts: list[dict[str, Any]] = []
 _lm_busy = threading.Event()  # local mapping is inside LocalMapper.step
+#: local mapping's stage now: "idle", "insert" (ProcessNewKeyFrame and point culling), "triangulation", "fusion",
+#: "after_fusion" (no local BA, or keyframe culling without one), "local_ba" (local BA, then keyframe culling), and
+#: the keyframe it works on
+_lm_stage: dict[str, Any] = {"stage": "idle", "kf": None}
 
 
 def summarize() -> str:
@@ -77,7 +88,20 @@ def main(argv: list[str]) -> None:
 
     def traced_step(self: Any, data: Any, camera: Any, mapping: Any = None) -> Any:
         busy = _lm_busy.is_set()
-        outcome = step(self, data, camera, mapping)
+        n_facts = len(decision_facts)
+        if callable(mapping):  # read by the tracker once the frame's features are extracted
+            lazy = mapping
+            given: list[Any] = []
+
+            def mapping_now() -> Any:
+                given.append(lazy())
+                return given[-1]
+
+            outcome = step(self, data, camera, mapping_now)
+            mapping = given[-1] if given else None
+        else:
+            outcome = step(self, data, camera, mapping)
+        facts = decision_facts[n_facts] if len(decision_facts) > n_facts else {}
         frames.append(
             {
                 "frame": outcome.frame_index,
@@ -90,11 +114,60 @@ def main(argv: list[str]) -> None:
                 "inliers": outcome.inliers,
                 "lm_busy": busy or _lm_busy.is_set(),
                 "wait_ms": 0.0,
+                **facts,
             }
         )
         return outcome
 
     tracker_mod.Tracker.step = traced_step  # type: ignore[method-assign]
+
+    new_kf = tracker_mod.Tracker._new_keyframe
+    last_kf: dict[str, Any] = {}
+
+    def traced_new_kf(self: Any, frame: Any) -> Any:
+        kf = new_kf(self, frame)
+        last_kf["kf"] = kf
+        return kf
+
+    tracker_mod.Tracker._new_keyframe = traced_new_kf  # type: ignore[method-assign]
+
+    kf_facts = tracker_mod.Tracker._keyframe_facts
+
+    def traced_facts(self: Any, frame: Any, inliers: int, mapping: Any) -> Any:
+        facts = kf_facts(self, frame, inliers, mapping)
+        cfg = self.cfg
+        store = self.store
+        kf = last_kf.get("kf")
+        row: dict[str, Any] = {
+            "tracked": facts.tracked_points,
+            "n_ref": facts.reference_tracked_points,
+            "ref": self.reference_kf_id,
+            "n_kfs": facts.keyframes_in_map,
+            "c1a": facts.frame_index >= facts.last_keyframe_frame_index + facts.max_frames,
+            "c1b": bool(facts.mapping.idle or facts.mapping.waits_for_idle),
+            "lm_stage": _lm_stage["stage"],
+            "lm_kf": _lm_stage["kf"],
+        }
+        ref = facts.reference_tracked_points
+        row["c2"] = bool(
+            (ref is None or facts.tracked_points < cfg.keyframe_max_ref_ratio * ref)
+            and facts.tracked_points > cfg.keyframe_min_tracked_points
+        )
+        with store.read():
+            row["last_kf"] = None if kf is None else kf.id
+            row["last_kf_in_map"] = kf is not None and store.has_keyframe(kf.id)
+            row["ref_is_last_kf"] = kf is not None and self.reference_kf_id == kf.id
+            if kf is not None and not row["last_kf_in_map"]:
+                # the last keyframe's count as if local mapping had inserted it (its own observation added)
+                ids = kf.point_ids[kf.point_ids >= 0]
+                ids = ids[store.has_points(ids)]
+                n_obs = store.point_rows(ids, "n_observations") + 1 if ids.size else np.zeros(0, np.int64)
+                need = tracker_mod.reference_min_observations(facts.keyframes_in_map + 1, cfg)
+                row["n_ref_if_last_kf_in_map"] = int(np.count_nonzero(n_obs >= need))
+        decision_facts.append(row)
+        return facts
+
+    tracker_mod.Tracker._keyframe_facts = traced_facts  # type: ignore[method-assign]
 
     make = tracker_mod.Tracker.make_keyframe
 
@@ -113,16 +186,19 @@ def main(argv: list[str]) -> None:
 
     def traced_lba(self: Any, kf: Any, abort: Any) -> Any:
         current["ba_ran"] = True
+        _lm_stage["stage"] = "local_ba"
         return lba(self, kf, abort)
 
     def traced_lm_step(self: Any, kf: Any, abort: Any = None) -> Any:
         _lm_busy.set()
+        _lm_stage.update(stage="insert", kf=kf.id)
         current.clear()
         current["ba_ran"] = False
         at_start = abort is not None and abort.is_set()
         cnp = self._create_new_points
 
         def traced_cnp(kf_: Any, abort_: Any = None) -> Any:
+            _lm_stage["stage"] = "triangulation"
             n = cnp(kf_, abort_)
             current["abort_after_tri"] = abort_ is not None and abort_.is_set()
             return n
@@ -131,8 +207,10 @@ def main(argv: list[str]) -> None:
         fusion = self._search_in_neighbors
 
         def traced_fusion(kf_: Any) -> Any:
+            _lm_stage["stage"] = "fusion"
             n = fusion(kf_)
             current["abort_before_ba"] = abort is not None and abort.is_set()
+            _lm_stage["stage"] = "after_fusion"
             return n
 
         self._search_in_neighbors = traced_fusion
@@ -141,6 +219,7 @@ def main(argv: list[str]) -> None:
         finally:
             del self._create_new_points, self._search_in_neighbors
             _lm_busy.clear()
+            _lm_stage.update(stage="idle", kf=None)
         keyframes.append(
             {
                 "kf": outcome.kf_id,

@@ -242,6 +242,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             modelled_mapping_ms=modelled_ms,
             modelled_mapping_new_map_ms=None if new_map_ms is None else float(new_map_ms),
             wait_for_local_mapping=bool(cfg.runner.get("wait_for_local_mapping", True)),
+            frame_waits_for=str(cfg.runner.get("frame_waits_for", "local_mapping")),
         )
     else:
         runner = SequentialRunner(

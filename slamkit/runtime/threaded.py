@@ -72,6 +72,9 @@ STOP_TIMEOUT_S = 60.0
 SOURCE_JOIN_TIMEOUT_S = 10.0
 #: ``RunLog.source_end`` of a live run Ctrl-C ended.
 CTRL_C = "Ctrl-C"
+#: ``runner.frame_waits_for``: what a monocular frame waits for, as fast as possible, before it is tracked
+FRAME_WAITS_FOR_LOCAL_MAPPING = "local_mapping"
+FRAME_WAITS_FOR = (FRAME_WAITS_FOR_LOCAL_MAPPING, "none")
 
 
 class ThreadedRunner:
@@ -105,6 +108,7 @@ class ThreadedRunner:
         modelled_mapping_ms: float = 0.0,
         modelled_mapping_new_map_ms: float | None = None,
         wait_for_local_mapping: bool = True,
+        frame_waits_for: str = FRAME_WAITS_FOR_LOCAL_MAPPING,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -114,13 +118,22 @@ class ThreadedRunner:
         within it of the last keyframe makes no keyframe, as in ORB-SLAM at a camera's rate; 0: the runner waits for
         local mapping whenever tracking wants a keyframe. wait_for_local_mapping: as fast as possible only; False:
         never wait — a monocular frame that wants a keyframe while local mapping is busy interrupts its local BA and
-        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (needs ``modelled_mapping_ms`` 0)."""
+        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (needs ``modelled_mapping_ms`` 0).
+        frame_waits_for: as fast as possible with ``wait_for_local_mapping`` and no modelled mapping time, monocular
+        frames only, what a frame waits for once its features are extracted, before it is tracked: "local_mapping" —
+        local mapping is done with every keyframe handed to it (the sequential runner's map, hence its keyframe
+        decisions); "none" — nothing (docs/runtime.md)."""
+        if frame_waits_for not in FRAME_WAITS_FOR:
+            raise ConfigError(
+                f"runner.frame_waits_for = {frame_waits_for!r}: expected one of {', '.join(FRAME_WAITS_FOR)}"
+            )
         if not wait_for_local_mapping and modelled_mapping_ms > 0.0:
             raise ConfigError(
                 "runner.wait_for_local_mapping=false with runner.modelled_mapping_ms="
                 f"{modelled_mapping_ms:g}: the model's frames past its time wait for local mapping; set one of them"
             )
         self.wait_for_local_mapping = wait_for_local_mapping
+        self.frame_waits_for = frame_waits_for
         self.tracker = tracker
         self.mapper = mapper
         self.loop_closer = loop_closer
@@ -137,7 +150,9 @@ class ThreadedRunner:
         self.bad_frames = check_bad_frames_policy(bad_frames)
         self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
         self._modelled_busy = False  # the frame being tracked saw local mapping busy by the model, not by the thread
-        self._modelled_wait_ms = 0.0  # how long the frame being tracked waited for the model's end of mapping, ms
+        # how long the frame being tracked waited for local mapping before it was tracked (the model's end of mapping,
+        # or frame_waits_for), ms
+        self._pre_track_wait_ms = 0.0
         self._depth_frames = False  # the frames tracked so far carry depth (stereo/RGB-D: the model does not apply)
         self.log = RunLog(runner="threaded")
         self.events = events
@@ -280,12 +295,19 @@ class ThreadedRunner:
         (``waits_for_idle``), as a camera's frame period would give it time to finish — unless the modelled mapping
         time (``modelled_mapping_ms``) says a camera's frame would still find it busy: then it is busy, and a
         monocular frame makes no keyframe, as in ORB-SLAM; a frame past the modelled time first waits for the thread
-        to finish the keyframes made so far (``_modelled_wait_ms``), as a camera's frame would find them mapped.
-        Without local mapping (localization only) it accepts nothing, as ORB-SLAM's stopped local mapping."""
+        to finish the keyframes made so far (``_pre_track_wait_ms``), as a camera's frame would find them mapped.
+        Without the model, a monocular frame first waits for what ``frame_waits_for`` says (called by the tracker once
+        the frame's features are extracted: ``_frame_waits``). Without local mapping (localization only) it accepts
+        nothing, as ORB-SLAM's stopped local mapping."""
         self._modelled_busy = False
-        self._modelled_wait_ms = 0.0
+        self._pre_track_wait_ms = 0.0
         if self._mapping is None:
             return MappingState(idle=False, accepting_keyframes=False)
+        if self._frame_waits() and not self._mapping.idle():
+            # the map local mapping finished, as the sequential runner's frame sees it (frame_waits_for)
+            t0 = time.perf_counter()
+            self._mapping.wait_idle()
+            self._pre_track_wait_ms = (time.perf_counter() - t0) * 1e3
         stopping = self._mapping.stopping()
         if not self.realtime and not self._depth_frames and self.modelled_mapping.enabled:
             if not self.modelled_mapping.state(timestamp_s).idle:
@@ -297,7 +319,7 @@ class ThreadedRunner:
                 # sees the map local mapping finished whatever the machine's speed or load
                 t0 = time.perf_counter()
                 self._mapping.wait_idle()
-                self._modelled_wait_ms = (time.perf_counter() - t0) * 1e3
+                self._pre_track_wait_ms = (time.perf_counter() - t0) * 1e3
                 stopping = self._mapping.stopping()
         return MappingState(
             idle=self._mapping.idle() and not stopping,
@@ -330,14 +352,29 @@ class ThreadedRunner:
             out.timings_ms["track_ms"] += waited_ms
         return out
 
+    def _frame_waits(self) -> bool:
+        """Whether the frame being tracked waits for local mapping after its extraction (``frame_waits_for``)."""
+        return (
+            self.frame_waits_for == FRAME_WAITS_FOR_LOCAL_MAPPING
+            and self.wait_for_local_mapping
+            and not self.realtime
+            and not self._depth_frames
+            and not self.modelled_mapping.enabled
+        )
+
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
         map_before = self.atlas.active_id
-        out = self.tracker.step(data, camera, self._mapping_state(data.timestamp_s))
-        if self._modelled_wait_ms > 0.0:
-            # the frame waited for local mapping before it was tracked: part of its tracking time, as a keyframe's wait
-            out.timings_ms["mapping_wait_ms"] = self._modelled_wait_ms
-            if "track_ms" in out.timings_ms:
-                out.timings_ms["track_ms"] += self._modelled_wait_ms
+        self._modelled_busy, self._pre_track_wait_ms = False, 0.0
+        if self._frame_waits():
+            # local mapping's state is read once the frame's features are extracted (the wait overlaps extraction)
+            out = self.tracker.step(data, camera, lambda: self._mapping_state(data.timestamp_s))
+        else:
+            out = self.tracker.step(data, camera, self._mapping_state(data.timestamp_s))
+            if self._pre_track_wait_ms > 0.0 and "track_ms" in out.timings_ms:
+                # the frame waited for local mapping before it was tracked: part of its tracking time
+                out.timings_ms["track_ms"] += self._pre_track_wait_ms
+        if self._pre_track_wait_ms > 0.0:
+            out.timings_ms["mapping_wait_ms"] = self._pre_track_wait_ms
         frame = self.tracker.current_frame
         if frame is not None and frame.index == out.frame_index:
             self._depth_frames = frame.features.bf > 0.0

@@ -145,6 +145,66 @@ def test_as_fast_as_possible_without_waiting_a_busy_local_mapping_gets_no_keyfra
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
 
+@pytest.mark.parametrize("waits_for", ["local_mapping", "none"])
+def test_as_fast_as_possible_a_frame_is_tracked_once_local_mapping_is_done_with_the_keyframes_before_it(
+    waits_for: str,
+) -> None:
+    """``runner.frame_waits_for``. local_mapping (the default): each monocular frame is tracked (after its
+    extraction, which runs beside local mapping) only once local mapping is done with every keyframe made before it, so
+    it is never tracked, nor decides on a keyframe, with local mapping busy; none: frames are tracked while local
+    mapping works (the thread's triangulation slowed to 0.1 s here)."""
+    runner, dataset = _runner(f"runner.frame_waits_for={waits_for}")
+    tracked_from: dict[float, float] = {}  # frame timestamp -> wall clock when tracking got local mapping's state
+    extracted: dict[float, float] = {}  # frame timestamp -> wall clock when its feature extraction began
+    mapped_at: dict[int, float] = {}  # keyframe id -> wall clock when local mapping was done with it
+    assert runner.mapper is not None
+    mapping_state, mapper_step, observe = runner._mapping_state, runner.mapper.step, runner.tracker.frontend.observe
+    create_new_points = runner.mapper._create_new_points
+
+    def slow_triangulation(*args: Any, **kwargs: Any) -> Any:
+        time.sleep(0.1)
+        return create_new_points(*args, **kwargs)
+
+    def timed_observe(data: Any, *args: Any, **kwargs: Any) -> Any:
+        extracted.setdefault(data.timestamp_s, time.perf_counter())
+        return observe(data, *args, **kwargs)
+
+    def timed_state(timestamp_s: float) -> Any:
+        state = mapping_state(timestamp_s)
+        tracked_from[timestamp_s] = time.perf_counter()
+        return state
+
+    def timed_map(kf: Any, *args: Any, **kwargs: Any) -> Any:
+        out = mapper_step(kf, *args, **kwargs)
+        mapped_at[kf.id] = time.perf_counter()
+        return out
+
+    busy_decisions: list[int] = []  # frames that wanted a keyframe while local mapping was busy
+    wanted_while_busy = runner._keyframe_wanted_while_mapping_busy
+
+    def noted_busy(out: Any) -> Any:
+        busy_decisions.append(out.frame_index)
+        return wanted_while_busy(out)
+
+    runner._keyframe_wanted_while_mapping_busy = noted_busy  # type: ignore[method-assign]
+    runner.mapper._create_new_points = slow_triangulation  # type: ignore[method-assign]
+    runner.tracker.frontend.observe = timed_observe  # type: ignore[method-assign]
+    runner._mapping_state, runner.mapper.step = timed_state, timed_map  # type: ignore[method-assign]
+    log = runner.run(dataset, dataset.camera)
+    made = [(out.timestamp_s, kf_id) for out in log.tracking for kf_id in out.keyframe_ids]
+    assert len(made) >= 5
+    later = [(extracted[t], tracked_from[t], mapped_at[k]) for t_kf, k in made for t in tracked_from if t > t_kf]
+    if waits_for == "local_mapping":
+        assert all(start >= done for _, start, done in later)
+        assert busy_decisions == []  # every keyframe decision found local mapping idle, as the sequential runner's
+        # the next frame's extraction ran beside local mapping's work on the keyframe before it
+        assert any(extraction < done for extraction, _, done in later)
+    else:
+        assert any(start < done for _, start, done in later) and busy_decisions
+    metrics = runner_metrics(runner, dataset)
+    assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
+
+
 def test_not_waiting_for_local_mapping_and_its_modelled_time_conflict_with_a_clear_error() -> None:
     from slamkit.errors import ConfigError
 

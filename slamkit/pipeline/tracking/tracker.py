@@ -199,16 +199,30 @@ class Tracker:
         state of the tracker."""
         self.frontend.warm_up(camera)
 
-    def step(self, data: FrameData, camera: Camera, mapping: MappingState = IDLE_MAPPING) -> TrackingOutcome:
-        """Track one frame. camera: the dataset's (left) camera. mapping: local mapping's state now (the runner's;
-        default: idle, for a tracker stepped without a local mapping thread)."""
+    def step(
+        self,
+        data: FrameData,
+        camera: Camera,
+        mapping: MappingState | Callable[[], MappingState] = IDLE_MAPPING,
+    ) -> TrackingOutcome:
+        """Track one frame. camera: the dataset's (left) camera. mapping: local mapping's state (the runner's;
+        default: idle, for a tracker stepped without a local mapping thread), or a function giving it, called once the
+        frame's features are extracted and before it is tracked (the threaded runner may wait there for local
+        mapping: docs/runtime.md)."""
         t0 = time.perf_counter()
+        given: list[MappingState] = []
+
+        def mapping_now() -> MappingState:
+            if not given:
+                given.append(mapping() if callable(mapping) else mapping)
+            return given[0]
+
         initializing = self.state == TrackingState.NOT_INITIALIZED
         timings: dict[str, float] = {}
         if initializing and self._loaded_map_id is not None:
             # a new session on a loaded map: relocalization there first, with the tracking extractor
             frame = self._frame(data, camera, False, timings)
-            outcome = self._relocalize_in_loaded_map(frame, timings, mapping)
+            outcome = self._relocalize_in_loaded_map(frame, timings, mapping_now())
             outcome.map_moves = self._n_moves()  # no merge runs before the session's first tracked frame
             if outcome.state == TrackingState.OK:
                 timings["track_ms"] = (time.perf_counter() - t0) * 1e3
@@ -224,7 +238,7 @@ class Tracker:
             outcome = self._initialize(frame)
             outcome.map_moves = self._n_moves()  # a map being initialised is not merged
         else:
-            outcome = self._track(frame, timings, mapping)
+            outcome = self._track(frame, timings, mapping_now())
         timings["track_ms"] = (time.perf_counter() - t0) * 1e3
         outcome.timings_ms.update(timings)
         return outcome
