@@ -76,6 +76,7 @@ class TwoViewInitializer:
         max_cos_parallax: float = 0.99998,
         parallax_rank: int = 50,
         min_singular_ratio: float = 1.00001,
+        parallel_models: bool = True,
     ) -> None:
         numbers = {
             "ransac_iterations": ransac_iterations,
@@ -114,6 +115,7 @@ class TwoViewInitializer:
         _check(0.0 < v["max_cos_parallax"] < 1.0, "max_cos_parallax", "a cosine in (0, 1)", max_cos_parallax)
         _check(v["min_singular_ratio"] >= 1.0, "min_singular_ratio", "a ratio >= 1", min_singular_ratio)
         _check(isinstance(refine_on_inliers, bool), "refine_on_inliers", "true or false", refine_on_inliers)
+        _check(isinstance(parallel_models, bool), "parallel_models", "true or false", parallel_models)
         self.ransac_iterations = int(ransac_iterations)
         self.sigma_px = float(sigma_px)
         self.T_H = float(T_H)
@@ -122,6 +124,7 @@ class TwoViewInitializer:
         self.rh_threshold = float(rh_threshold)
         self.h_points_per_set = int(h_points_per_set)
         self.refine_on_inliers = bool(refine_on_inliers)
+        self.parallel_models = bool(parallel_models)
         self.min_parallax_deg = float(min_parallax_deg)
         self.min_triangulated = int(min_triangulated)
         self.min_good_fraction = float(min_good_fraction)
@@ -164,6 +167,7 @@ class TwoViewInitializer:
             gamma=self.gamma,
             h_points_per_set=self.h_points_per_set,
             refine=self.refine_on_inliers,
+            parallel=self.parallel_models,
         )
         total = fit_h.score + fit_f.score
         r_h = fit_h.score / total if total > 0 else 0.0
