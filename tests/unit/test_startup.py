@@ -11,7 +11,7 @@ from pathlib import Path
 
 from slamkit.startup import freeze_startup_heap
 
-KERNELS = '''
+KERNELS = """
 import numba
 import numpy as np
 
@@ -24,7 +24,7 @@ def called(x):
 @numba.njit(cache=True)
 def never_called(x):
     return x.max()
-'''
+"""
 
 PROBE = """
 import json, sys
