@@ -79,6 +79,7 @@ from slamkit.pipeline.map_merging import moved_pose
 from slamkit.pipeline.map_points import orbslam_observation_counts
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
 from slamkit.pipeline.pose_optimization import optimize_pose as motion_only_ba
+from slamkit.pipeline.startup import freeze_startup_heap, load_cached_kernels
 from slamkit.pipeline.tracking.frame_pose import PoseRefiner
 from slamkit.pipeline.tracking.keyframe_decision import (
     KeyFrameFacts,
@@ -97,7 +98,6 @@ from slamkit.pipeline.tracking.reference_keyframe import track_reference_keyfram
 from slamkit.pipeline.tracking.relocalization import relocalize
 from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
 from slamkit.sensors import FrameData
-from slamkit.startup import freeze_startup_heap, load_cached_kernels
 
 log = logging.getLogger("slamkit.tracking")
 
@@ -198,10 +198,10 @@ class Tracker:
         """One-off work before a timed run (the runner calls it before the clock starts); changes no state of the
         tracker and no result. Runs the front end's feature extractors once on a synthetic image and throws the
         result away (the first extraction loads compiled kernels and starts thread pools), loads every other cached
-        compiled kernel (:func:`slamkit.startup.load_cached_kernels`: the BA, matching, bag-of-words and pose
+        compiled kernel (:func:`slamkit.pipeline.startup.load_cached_kernels`: the BA, matching, bag-of-words and pose
         kernels the frames after initialisation call first, 0.5-0.9 s of loading that dropped those frames in real
         time) and freezes the start-up heap out of the garbage collector's full collections
-        (:func:`slamkit.startup.freeze_startup_heap`: 70-200 ms pauses with the GIL held, every few seconds)."""
+        (:func:`slamkit.pipeline.startup.freeze_startup_heap`: 70-200 ms pauses with the GIL held, every few seconds)."""
         self.frontend.warm_up(camera)
         done = load_cached_kernels()
         frozen = freeze_startup_heap()

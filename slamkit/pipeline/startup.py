@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
-log = logging.getLogger("slamkit.startup")
+log = logging.getLogger("slamkit.pipeline.startup")
 
 #: The packages whose modules are searched for cached kernels: slamkit and its plugins (``slamkit_*``).
 PACKAGE_PREFIXES = ("slamkit",)

@@ -1,4 +1,4 @@
-"""slamkit.startup: cached kernels loaded before a run (never compiled there) and the start-up heap frozen."""
+"""slamkit.pipeline.startup: cached kernels loaded before a run (never compiled there) and the start-up heap frozen."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from slamkit.startup import freeze_startup_heap
+from slamkit.pipeline.startup import freeze_startup_heap
 
 KERNELS = """
 import numba
@@ -31,7 +31,7 @@ import json, sys
 sys.path.insert(0, sys.argv[1])
 import numpy as np
 import kernels_under_test as mod
-from slamkit.startup import load_cached_kernels
+from slamkit.pipeline.startup import load_cached_kernels
 if sys.argv[2] == "call":
     mod.called(np.arange(3.0))
     print(json.dumps({}))
