@@ -22,7 +22,14 @@ from slamkit_twoview.decompose import (
     decompose_homography,
     homography_singular_values,
 )
-from slamkit_twoview.ransac import SET_SIZE, ModelFit, draw_minimal_sets, fit_models, score_fundamentals
+from slamkit_twoview.ransac import (
+    SET_SIZE,
+    ModelFit,
+    draw_minimal_sets,
+    fit_models,
+    model_pool,
+    score_fundamentals,
+)
 from slamkit_twoview.reconstruct import (
     HypothesisCheck,
     Selection,
@@ -250,10 +257,13 @@ class TwoViewInitializer:
     def _grade(
         self, hyp: MotionHypotheses, uv1: F64, uv2: F64, K: F64, inliers: NDArray[np.bool_]
     ) -> list[HypothesisCheck]:
-        # Paper sec. IV-4: rather than Faugeras' visibility test (fragile at low parallax), triangulate
-        # every hypothesis and count the points that are good under it.
-        return [
-            check_motion(
+        """Paper sec. IV-4: rather than Faugeras' visibility test (fragile at low parallax), triangulate every
+        hypothesis and count the points that are good under it. With ``parallel_models`` the second half of the
+        hypotheses (4 of H's 8) is graded in the F-fitting thread meanwhile (its batched triangulation SVDs release
+        the GIL); each check is a pure function of its hypothesis, so the list is the same either way."""
+
+        def grade(i: int) -> HypothesisCheck:
+            return check_motion(
                 hyp.R[i],
                 hyp.t[i],
                 K,
@@ -264,8 +274,13 @@ class TwoViewInitializer:
                 max_cos_parallax=self.max_cos_parallax,
                 parallax_rank=self.parallax_rank,
             )
-            for i in range(hyp.R.shape[0])
-        ]
+
+        n = hyp.R.shape[0]
+        if not self.parallel_models or n < 2:
+            return [grade(i) for i in range(n)]
+        half = n // 2
+        later = [model_pool().submit(grade, i) for i in range(half, n)]
+        return [grade(i) for i in range(half)] + [f.result() for f in later]
 
     @staticmethod
     def _result(

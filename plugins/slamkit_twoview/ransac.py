@@ -210,7 +210,7 @@ def fit_models(
 
     if not parallel:
         return fit("H"), fit("F")
-    f_fit = _model_pool().submit(fit, "F")
+    f_fit = model_pool().submit(fit, "F")
     h_fit = fit("H")
     return h_fit, f_fit.result()
 
@@ -219,8 +219,9 @@ _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
 
 
-def _model_pool() -> ThreadPoolExecutor:
-    """The one worker thread that fits F beside the caller's H (made at first use, shared by every initializer)."""
+def model_pool() -> ThreadPoolExecutor:
+    """The one worker thread that fits F beside the caller's H, and grades half the motion hypotheses (made at first
+    use, shared by every initializer)."""
     global _POOL
     with _POOL_LOCK:
         if _POOL is None:
