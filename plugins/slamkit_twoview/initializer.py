@@ -22,7 +22,14 @@ from slamkit_twoview.decompose import (
     decompose_homography,
     homography_singular_values,
 )
-from slamkit_twoview.ransac import SET_SIZE, ModelFit, draw_minimal_sets, fit_models, score_fundamentals
+from slamkit_twoview.ransac import (
+    SET_SIZE,
+    ModelFit,
+    draw_minimal_sets,
+    fit_models,
+    model_pool,
+    score_fundamentals,
+)
 from slamkit_twoview.reconstruct import (
     HypothesisCheck,
     Selection,
@@ -76,6 +83,7 @@ class TwoViewInitializer:
         max_cos_parallax: float = 0.99998,
         parallax_rank: int = 50,
         min_singular_ratio: float = 1.00001,
+        parallel_models: bool = True,
     ) -> None:
         numbers = {
             "ransac_iterations": ransac_iterations,
@@ -114,6 +122,7 @@ class TwoViewInitializer:
         _check(0.0 < v["max_cos_parallax"] < 1.0, "max_cos_parallax", "a cosine in (0, 1)", max_cos_parallax)
         _check(v["min_singular_ratio"] >= 1.0, "min_singular_ratio", "a ratio >= 1", min_singular_ratio)
         _check(isinstance(refine_on_inliers, bool), "refine_on_inliers", "true or false", refine_on_inliers)
+        _check(isinstance(parallel_models, bool), "parallel_models", "true or false", parallel_models)
         self.ransac_iterations = int(ransac_iterations)
         self.sigma_px = float(sigma_px)
         self.T_H = float(T_H)
@@ -122,6 +131,7 @@ class TwoViewInitializer:
         self.rh_threshold = float(rh_threshold)
         self.h_points_per_set = int(h_points_per_set)
         self.refine_on_inliers = bool(refine_on_inliers)
+        self.parallel_models = bool(parallel_models)
         self.min_parallax_deg = float(min_parallax_deg)
         self.min_triangulated = int(min_triangulated)
         self.min_good_fraction = float(min_good_fraction)
@@ -164,6 +174,7 @@ class TwoViewInitializer:
             gamma=self.gamma,
             h_points_per_set=self.h_points_per_set,
             refine=self.refine_on_inliers,
+            parallel=self.parallel_models,
         )
         total = fit_h.score + fit_f.score
         r_h = fit_h.score / total if total > 0 else 0.0
@@ -246,10 +257,13 @@ class TwoViewInitializer:
     def _grade(
         self, hyp: MotionHypotheses, uv1: F64, uv2: F64, K: F64, inliers: NDArray[np.bool_]
     ) -> list[HypothesisCheck]:
-        # Paper sec. IV-4: rather than Faugeras' visibility test (fragile at low parallax), triangulate
-        # every hypothesis and count the points that are good under it.
-        return [
-            check_motion(
+        """Paper sec. IV-4: rather than Faugeras' visibility test (fragile at low parallax), triangulate every
+        hypothesis and count the points that are good under it. With ``parallel_models`` the second half of the
+        hypotheses (4 of H's 8) is graded in the F-fitting thread meanwhile (its batched triangulation SVDs release
+        the GIL); each check is a pure function of its hypothesis, so the list is the same either way."""
+
+        def grade(i: int) -> HypothesisCheck:
+            return check_motion(
                 hyp.R[i],
                 hyp.t[i],
                 K,
@@ -260,8 +274,13 @@ class TwoViewInitializer:
                 max_cos_parallax=self.max_cos_parallax,
                 parallax_rank=self.parallax_rank,
             )
-            for i in range(hyp.R.shape[0])
-        ]
+
+        n = hyp.R.shape[0]
+        if not self.parallel_models or n < 2:
+            return [grade(i) for i in range(n)]
+        half = n // 2
+        later = [model_pool().submit(grade, i) for i in range(half, n)]
+        return [grade(i) for i in range(half)] + [f.result() for f in later]
 
     @staticmethod
     def _result(

@@ -39,6 +39,10 @@ def slamkit_components() -> list[ComponentSpec]:
                 "max_cos_parallax": 0.99998,  # ORB-SLAM2 CheckRT: rays with cos >= 0.99998 (~0.36 deg) not mapped
                 "parallax_rank": 50,  # ORB-SLAM2 CheckRT: parallax of the 51st most-parallax good point
                 "min_singular_ratio": 1.00001,  # ORB-SLAM2 ReconstructH: refuse if d1/d2 or d2/d3 < 1.00001
+                # ORB-SLAM2/3 Initializer::Initialize: FindHomography and FindFundamental in two threads; slamkit
+                # also grades half of the motion hypotheses in the second thread (same result either way; false:
+                # everything in the calling thread)
+                "parallel_models": True,
             },
             description="ORB-SLAM's two-view map initializer: H/F model selection (sec. IV)",
         )

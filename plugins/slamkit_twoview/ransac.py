@@ -6,18 +6,23 @@ S_M = sum_i rho_M(d_cr^2) + rho_M(d_rc^2) with rho_M(d^2) = Gamma - d^2 if d^2 <
 of sigma^2). Points are undistorted px; view 1 is the reference, view 2 the current frame, and
 H21 / F21 map view 1 to view 2 (x2 ~ H21 x1, x2^T F21 x1 = 0).
 
-"In parallel": ORB-SLAM runs H and F in two threads. Here both run in one vectorised pass instead: each
-model is a few batched numpy calls over all iterations (a (B, 2k, 9) SVD, a (B, M, 3) transfer), so a
-second thread would only add scheduling on this 2-core target, and one pass keeps the result a pure
-function of the drawn sets.
+"In parallel": ORB-SLAM runs H and F in two threads. Here each model is a few batched numpy calls over all
+iterations (a (B, 2k, 9) SVD) and a compiled scoring pass (kernels.py), all GIL-free; with ``parallel`` (the
+initializer's ``parallel_models``) F is fitted in a second thread while the caller fits H, as ORB-SLAM does. On
+fr1_xyz in real time the second core is free during initialisation (local mapping has no keyframe yet). Either way
+the result is a pure function of the drawn sets.
 """
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from slamkit_twoview.kernels import fundamental_contributions, homography_contributions
 
 F64 = NDArray[np.float64]
 
@@ -105,40 +110,28 @@ def adjugate(M: F64) -> F64:
     return out
 
 
-def _rho(chi2: F64, threshold: float, gamma: float) -> tuple[F64, NDArray[np.bool_]]:
-    """Per-entry score contribution Gamma - chi2 where chi2 <= threshold (else 0), and the pass mask.
-
-    NaN/inf chi2 (a degenerate hypothesis) fails the test, as in ORB-SLAM.
-    """
-    ok = chi2 <= threshold
-    return np.where(ok, gamma - chi2, 0.0), ok
-
-
-def _transfer_sq(H: F64, x_from: F64, x_to: F64) -> F64:
-    """H: (B, 3, 3); x_from, x_to: (M, 2) -> (B, M) squared distance between x_to and H x_from (px^2)."""
-    # p[b, m] = H[b] @ [x, y, 1]: written out (einsum took 4x as long here, with the same result bit for bit)
-    p = x_from[None, :, 0, None] * H[:, None, :, 0] + x_from[None, :, 1, None] * H[:, None, :, 1] + H[:, None, :, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        proj = p[..., :2] / p[..., 2:3]
-    d2: F64 = np.sum((proj - x_to) ** 2, axis=-1)
-    return d2
-
-
 def score_homographies(
     H21: F64, uv1: F64, uv2: F64, sigma_px: float, T_H: float, gamma: float
 ) -> tuple[F64, NDArray[np.bool_]]:
     """H21: (B, 3, 3); uv1, uv2: (M, 2) px -> (scores S_H (B,), inliers (B, M)).
 
-    As ORB-SLAM's CheckHomography: transfer errors in both images, inlier when both pass T_H.
+    As ORB-SLAM's CheckHomography: transfer errors in both images, inlier when both pass T_H. Each match's
+    contribution is computed by a compiled kernel (kernels.py, the arithmetic of ``_transfer_sq`` and ``_rho``);
+    the sum over the matches is numpy's.
     """
     inv_s2 = 1.0 / (sigma_px * sigma_px)
-    with np.errstate(invalid="ignore", over="ignore"):
-        chi_cur = _transfer_sq(H21, uv1, uv2) * inv_s2  # x1 transferred into the current image
-        chi_ref = _transfer_sq(adjugate(H21), uv2, uv1) * inv_s2  # x2 transferred back with H12 ~ adj(H21)
-        s_cur, ok_cur = _rho(chi_cur, T_H, gamma)
-        s_ref, ok_ref = _rho(chi_ref, T_H, gamma)
-    scores: F64 = (s_cur + s_ref).sum(axis=1)
-    return scores, ok_cur & ok_ref
+    # x1 transferred into the current image with H21, x2 back with H12 ~ adj(H21)
+    contributions, inliers = homography_contributions(
+        np.ascontiguousarray(H21, dtype=np.float64),
+        np.ascontiguousarray(adjugate(H21), dtype=np.float64),
+        np.ascontiguousarray(uv1, dtype=np.float64),
+        np.ascontiguousarray(uv2, dtype=np.float64),
+        inv_s2,
+        float(T_H),
+        float(gamma),
+    )
+    scores: F64 = contributions.sum(axis=1)
+    return scores, inliers
 
 
 def score_fundamentals(
@@ -147,21 +140,20 @@ def score_fundamentals(
     """F21: (B, 3, 3); uv1, uv2: (M, 2) px -> (scores S_F (B,), inliers (B, M)).
 
     As ORB-SLAM's CheckFundamental: point-to-epipolar-line distances in both images tested against T_F,
-    scored with Gamma (= T_H, so that both models are scored on the same scale).
+    scored with Gamma (= T_H, so that both models are scored on the same scale). Each match's contribution is
+    computed by a compiled kernel (kernels.py); the sum over the matches is numpy's.
     """
     inv_s2 = 1.0 / (sigma_px * sigma_px)
-    # epipolar lines in image 2 (F x1) and in image 1 (F^T x2), written out as _transfer_sq's product
-    l2 = uv1[None, :, 0, None] * F21[:, None, :, 0] + uv1[None, :, 1, None] * F21[:, None, :, 1] + F21[:, None, :, 2]
-    l1 = uv2[None, :, 0, None] * F21[:, None, 0, :] + uv2[None, :, 1, None] * F21[:, None, 1, :] + F21[:, None, 2, :]
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        num2 = l2[..., 0] * uv2[:, 0] + l2[..., 1] * uv2[:, 1] + l2[..., 2]
-        num1 = l1[..., 0] * uv1[:, 0] + l1[..., 1] * uv1[:, 1] + l1[..., 2]
-        chi2 = num2 * num2 / (l2[..., 0] ** 2 + l2[..., 1] ** 2) * inv_s2
-        chi1 = num1 * num1 / (l1[..., 0] ** 2 + l1[..., 1] ** 2) * inv_s2
-        s2, ok2 = _rho(chi2, T_F, gamma)
-        s1, ok1 = _rho(chi1, T_F, gamma)
-    scores: F64 = (s1 + s2).sum(axis=1)
-    return scores, ok1 & ok2
+    contributions, inliers = fundamental_contributions(
+        np.ascontiguousarray(F21, dtype=np.float64),
+        np.ascontiguousarray(uv1, dtype=np.float64),
+        np.ascontiguousarray(uv2, dtype=np.float64),
+        inv_s2,
+        float(T_F),
+        float(gamma),
+    )
+    scores: F64 = contributions.sum(axis=1)
+    return scores, inliers
 
 
 def _best(matrices: F64, scores: F64, inliers: NDArray[np.bool_], offset: int, current: ModelFit | None) -> ModelFit:
@@ -183,34 +175,58 @@ def fit_models(
     gamma: float,
     h_points_per_set: int,
     refine: bool,
+    parallel: bool = False,
 ) -> tuple[ModelFit, ModelFit]:
     """RANSAC for H21 and F21 on the same minimal sets -> (best homography, best fundamental matrix).
 
     uv1, uv2: (M, 2) undistorted px; sets: (B, 8) match indices; h_points_per_set: how many of each
     set's matches the homography DLT uses (4 or 8; the F fit always uses all 8). refine: refit each
     winner on its inliers (``_refit``; not in ORB-SLAM). Each model is estimated in Hartley-normalised
-    coordinates and denormalised before scoring in px.
+    coordinates and denormalised before scoring in px. parallel: F in a second thread while this one does H
+    (ORB-SLAM2/3 Initializer: FindHomography and FindFundamental in two std::threads); the batched SVDs and the
+    compiled scoring release the GIL. The two models never share state: the result is the same either way.
     """
     n1, T1 = hartley_normalization(uv1)
     n2, T2 = hartley_normalization(uv2)
     T2_inv = np.linalg.inv(T2)
     chunk = max(1, _MAX_SCORED_ENTRIES // max(1, uv1.shape[0]))
-    best_h: ModelFit | None = None
-    best_f: ModelFit | None = None
-    for start in range(0, sets.shape[0], chunk):
-        idx = sets[start : start + chunk]
-        x1, x2 = n1[idx], n2[idx]  # (b, 8, 2)
-        H = T2_inv @ homographies_dlt(x1[:, :h_points_per_set], x2[:, :h_points_per_set]) @ T1
-        F = T2.T @ fundamentals_8point(x1, x2) @ T1
-        s_h, in_h = score_homographies(H, uv1, uv2, sigma_px, T_H, gamma)
-        s_f, in_f = score_fundamentals(F, uv1, uv2, sigma_px, T_F, gamma)
-        best_h = _best(H, s_h, in_h, start, best_h)
-        best_f = _best(F, s_f, in_f, start, best_f)
-    assert best_h is not None and best_f is not None  # sets has at least one row (checked by the caller)
-    if refine:
-        best_h = _refit(best_h, n1, n2, T1, T2, uv1, uv2, sigma_px, T_H, T_F, gamma, "H")
-        best_f = _refit(best_f, n1, n2, T1, T2, uv1, uv2, sigma_px, T_H, T_F, gamma, "F")
-    return best_h, best_f
+
+    def fit(model: str) -> ModelFit:
+        best: ModelFit | None = None
+        for start in range(0, sets.shape[0], chunk):
+            idx = sets[start : start + chunk]
+            x1, x2 = n1[idx], n2[idx]  # (b, 8, 2)
+            if model == "H":
+                M = T2_inv @ homographies_dlt(x1[:, :h_points_per_set], x2[:, :h_points_per_set]) @ T1
+                s, inl = score_homographies(M, uv1, uv2, sigma_px, T_H, gamma)
+            else:
+                M = T2.T @ fundamentals_8point(x1, x2) @ T1
+                s, inl = score_fundamentals(M, uv1, uv2, sigma_px, T_F, gamma)
+            best = _best(M, s, inl, start, best)
+        assert best is not None  # sets has at least one row (checked by the caller)
+        if refine:
+            best = _refit(best, n1, n2, T1, T2, uv1, uv2, sigma_px, T_H, T_F, gamma, model)
+        return best
+
+    if not parallel:
+        return fit("H"), fit("F")
+    f_fit = model_pool().submit(fit, "F")
+    h_fit = fit("H")
+    return h_fit, f_fit.result()
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def model_pool() -> ThreadPoolExecutor:
+    """The one worker thread that fits F beside the caller's H, and grades half the motion hypotheses (made at first
+    use, shared by every initializer)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(1, thread_name_prefix="twoview-F")
+        return _POOL
 
 
 def _refit(

@@ -41,9 +41,11 @@ def _fundamental(R: F64, t: F64, K_inv: F64) -> F64:
     return out
 
 
-def _retract(R: F64, t: F64, delta: F64) -> tuple[F64, F64]:
-    """Apply a 5-vector [omega (3), beta (2)]: R <- exp(omega) R, t <- normalise(t + B beta)."""
-    t_new = t + _tangent_basis(t) @ delta[3:]
+def _retract(R: F64, t: F64, delta: F64, basis: F64 | None = None) -> tuple[F64, F64]:
+    """Apply a 5-vector [omega (3), beta (2)]: R <- exp(omega) R, t <- normalise(t + B beta). basis: B =
+    ``_tangent_basis(t)`` when the caller has it (a pure function of t: the same B either way)."""
+    B = _tangent_basis(t) if basis is None else basis
+    t_new = t + B @ delta[3:]
     return so3_exp(delta[:3]) @ R, t_new / np.linalg.norm(t_new)
 
 
@@ -60,17 +62,18 @@ def refine_essential(R: F64, t: F64, K: F64, uv1: F64, uv2: F64, *, iterations: 
     lam = 1e-3
     for _ in range(iterations):
         J = np.empty((r.size, 5))
+        basis = _tangent_basis(t)  # the tangent plane at t, for the 5 differences and the trial steps
         for k in range(5):  # forward differences: 5 cheap vectorised evaluations
             step = np.zeros(5)
             step[k] = _FD_STEP
-            Rk, tk = _retract(R, t, step)
+            Rk, tk = _retract(R, t, step, basis)
             J[:, k] = (sampson_residuals_px(_fundamental(Rk, tk, K_inv), uv1, uv2) - r) / _FD_STEP
         g = J.T @ r
         A = J.T @ J
         improved = False
         for _ in range(5):  # raise the damping until the step lowers the cost
             delta: F64 = np.asarray(np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g), dtype=np.float64)
-            R_new, t_new = _retract(R, t, delta)
+            R_new, t_new = _retract(R, t, delta, basis)
             r_new = sampson_residuals_px(_fundamental(R_new, t_new, K_inv), uv1, uv2)
             cost_new = float(r_new @ r_new)
             if cost_new < cost:

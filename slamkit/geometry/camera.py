@@ -16,6 +16,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -28,6 +29,44 @@ __all__ = ["KannalaBrandtCamera", "PinholeCamera", "camera_from_config"]
 _MAX_NEWTON_ITERS = 50
 # A solution whose re-distorted pixel misses the input by more than this is rejected (NaN).
 _RESIDUAL_TOL_PX = 1e-7
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _newton_undistort(
+    xd: F64, yd: F64, x: F64, y: F64, k1: float, k2: float, p1: float, p2: float, k3: float, max_iters: int
+) -> None:  # pragma: no cover - numba
+    """Newton's method on the 2x2 system distort(x, y) = (xd, yd) (radial k1 k2 k3, tangential p1 p2), for every point
+    at once: x, y (N,) (the start, finite) are updated in place. Each iteration updates every point, and the loop
+    stops when every step is below 1e-15 relative (or after ``max_iters``): the vectorised numpy iteration this
+    replaced, operation for operation (same results bit for bit: no fused multiply-add without fastmath), without its
+    per-iteration temporaries and with the GIL released. A step that is not finite (a singular Jacobian) is 0."""
+    n = x.shape[0]
+    dx = np.empty(n)
+    dy = np.empty(n)
+    for _ in range(max_iters):
+        for i in range(n):
+            xi, yi = x[i], y[i]
+            r2 = xi * xi + yi * yi
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r^2
+            ex = xi * radial + 2.0 * p1 * xi * yi + p2 * (r2 + 2.0 * xi * xi) - xd[i]
+            ey = yi * radial + p1 * (r2 + 2.0 * yi * yi) + 2.0 * p2 * xi * yi - yd[i]
+            j11 = radial + 2.0 * xi * xi * dradial + 2.0 * p1 * yi + 6.0 * p2 * xi
+            j12 = 2.0 * xi * yi * dradial + 2.0 * p1 * xi + 2.0 * p2 * yi
+            j22 = radial + 2.0 * yi * yi * dradial + 6.0 * p1 * yi + 2.0 * p2 * xi
+            det = j11 * j22 - j12 * j12
+            sx = (j22 * ex - j12 * ey) / det
+            sy = (j11 * ey - j12 * ex) / det
+            dx[i] = sx if np.isfinite(sx) else 0.0
+            dy[i] = sy if np.isfinite(sy) else 0.0
+        converged = True
+        for i in range(n):
+            x[i] -= dx[i]
+            y[i] -= dy[i]
+            if not (abs(dx[i]) + abs(dy[i]) <= 1e-15 * (1.0 + abs(x[i]) + abs(y[i]))):
+                converged = False
+        if converged:
+            return
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -196,30 +235,23 @@ class PinholeCamera(_CameraBase):
         """Invert the distortion by Newton's method on the 2x2 system, starting from the distorted point."""
         if not self.is_distorted:
             return xd.copy(), yd.copy()
-        k1, k2, p1, p2, k3 = self.dist
+        k1, k2, p1, p2, k3 = (float(c) for c in self.dist)
         x, y = xd.copy(), yd.copy()
         finite = np.isfinite(xd) & np.isfinite(yd)
         x[~finite] = 0.0
         y[~finite] = 0.0
-        for _ in range(_MAX_NEWTON_ITERS):
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r^2
-            ex = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
-            ey = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-            j11 = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-            j12 = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-            j22 = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-            det = j11 * j22 - j12 * j12
-            with np.errstate(invalid="ignore", divide="ignore"):
-                dx = (j22 * ex - j12 * ey) / det
-                dy = (j11 * ey - j12 * ex) / det
-            dx[~np.isfinite(dx)] = 0.0
-            dy[~np.isfinite(dy)] = 0.0
-            x -= dx
-            y -= dy
-            if np.all(np.abs(dx) + np.abs(dy) <= 1e-15 * (1.0 + np.abs(x) + np.abs(y))):
-                break
+        _newton_undistort(
+            np.ascontiguousarray(xd, dtype=np.float64),
+            np.ascontiguousarray(yd, dtype=np.float64),
+            x,
+            y,
+            k1,
+            k2,
+            p1,
+            p2,
+            k3,
+            _MAX_NEWTON_ITERS,
+        )
         # Keep only true inverses inside the one-to-one region of the model.
         rx, ry = self._distort(x, y)
         err_px = np.hypot((rx - xd) * self.fx, (ry - yd) * self.fy)

@@ -193,3 +193,73 @@ def test_essential_refinement_reaches_the_true_motion_from_a_perturbed_start(tv:
     assert tv.rot_err_deg(R, views.R) < 1e-5 and tv.dir_err_deg(t, views.t) < 1e-5
     F = np.linalg.inv(tv.K).T @ hat(t) @ R @ np.linalg.inv(tv.K)
     assert np.abs(sampson_residuals_px(F, views.uv_ref, views.uv_cur)).max() < 1e-6
+
+
+def _numpy_transfer_sq(H: np.ndarray, x_from: np.ndarray, x_to: np.ndarray) -> np.ndarray:
+    """The numpy expression the compiled homography scoring replaced (ransac.py before the kernels)."""
+    p = x_from[None, :, 0, None] * H[:, None, :, 0] + x_from[None, :, 1, None] * H[:, None, :, 1] + H[:, None, :, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = p[..., :2] / p[..., 2:3]
+    d2: np.ndarray = np.sum((proj - x_to) ** 2, axis=-1)
+    return d2
+
+
+def _numpy_rho(chi2: np.ndarray, threshold: float, gamma: float) -> tuple[np.ndarray, np.ndarray]:
+    ok = chi2 <= threshold
+    return np.where(ok, gamma - chi2, 0.0), ok
+
+
+def _numpy_scores(
+    model: str, M: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, T: float, gamma: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """ORB-SLAM's CheckHomography / CheckFundamental as numpy expressions (sigma 1 px)."""
+    from slamkit_twoview.ransac import adjugate
+
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if model == "H":
+            s_a, ok_a = _numpy_rho(_numpy_transfer_sq(M, uv1, uv2), T, gamma)
+            s_b, ok_b = _numpy_rho(_numpy_transfer_sq(adjugate(M), uv2, uv1), T, gamma)
+        else:
+            l2 = uv1[None, :, 0, None] * M[:, None, :, 0] + uv1[None, :, 1, None] * M[:, None, :, 1] + M[:, None, :, 2]
+            l1 = uv2[None, :, 0, None] * M[:, None, 0, :] + uv2[None, :, 1, None] * M[:, None, 1, :] + M[:, None, 2, :]
+            num2 = l2[..., 0] * uv2[:, 0] + l2[..., 1] * uv2[:, 1] + l2[..., 2]
+            num1 = l1[..., 0] * uv1[:, 0] + l1[..., 1] * uv1[:, 1] + l1[..., 2]
+            s_b, ok_b = _numpy_rho(num2 * num2 / (l2[..., 0] ** 2 + l2[..., 1] ** 2), T, gamma)
+            s_a, ok_a = _numpy_rho(num1 * num1 / (l1[..., 0] ** 2 + l1[..., 1] ** 2), T, gamma)
+    return (s_a + s_b).sum(axis=1), ok_a & ok_b
+
+
+@pytest.mark.parametrize("scene", ["general", "plane"])
+def test_compiled_scores_are_the_numpy_scores_bit_for_bit(tv: Any, scene: str) -> None:
+    """The compiled scoring (kernels.py) gives ORB-SLAM's scores and inlier masks exactly as the numpy expressions
+    did, degenerate hypotheses (rank-deficient, a zero row: NaN and inf errors) included."""
+    views = tv.make(scene, noise_px=0.8, outlier_fraction=0.3)
+    uv1, uv2 = views.uv_ref, views.uv_cur
+    sets = draw_minimal_sets(len(uv1), 64, 8, np.random.default_rng(3))
+    n1, T1 = hartley_normalization(uv1)
+    n2, T2 = hartley_normalization(uv2)
+    H = np.linalg.inv(T2) @ homographies_dlt(n1[sets], n2[sets]) @ T1
+    F = T2.T @ fundamentals_8point(n1[sets], n2[sets]) @ T1
+    H[0] = 0.0  # every transfer is 0/0
+    H[1, 2] = 0.0  # points sent to infinity
+    F[0] = 0.0  # no epipolar line at all (0/0)
+    F[1, 2, :2] = 0.0  # epipolar lines in image 1 with a zero normal
+    for model, M, T in (("H", H, 5.991), ("F", F, 3.841)):
+        scorer = score_homographies if model == "H" else score_fundamentals
+        scores, inliers = scorer(M, uv1, uv2, 1.0, T, 5.991)
+        ref_scores, ref_inliers = _numpy_scores(model, M, uv1, uv2, T, 5.991)
+        assert scores.tobytes() == ref_scores.tobytes()
+        np.testing.assert_array_equal(inliers, ref_inliers)
+        assert inliers[2:].any() and not inliers[0].any()
+
+
+def test_fit_models_in_two_threads_is_the_serial_fit(tv: Any) -> None:
+    """parallel (ORB-SLAM's two threads) changes where F is fitted, not what is found."""
+    views = tv.make("general", noise_px=0.5, outlier_fraction=0.25)
+    sets = draw_minimal_sets(len(views.uv_ref), 200, 8, np.random.default_rng(5))
+    kw: dict[str, Any] = {"sigma_px": 1.0, "T_H": 5.991, "T_F": 3.841, "gamma": 5.991, "h_points_per_set": 8}
+    serial = fit_models(views.uv_ref, views.uv_cur, sets, refine=True, parallel=False, **kw)
+    threaded = fit_models(views.uv_ref, views.uv_cur, sets, refine=True, parallel=True, **kw)
+    for a, b in zip(serial, threaded, strict=True):
+        assert a.matrix.tobytes() == b.matrix.tobytes() and a.score == b.score and a.iteration == b.iteration
+        np.testing.assert_array_equal(a.inliers, b.inliers)

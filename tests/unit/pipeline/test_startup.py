@@ -1,0 +1,89 @@
+"""slamkit.pipeline.startup: cached kernels loaded before a run (never compiled there) and the start-up heap frozen."""
+
+from __future__ import annotations
+
+import gc
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+from slamkit.pipeline.startup import freeze_startup_heap
+
+KERNELS = """
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True)
+def called(x):
+    return x.sum() * {factor}
+
+
+@numba.njit(cache=True)
+def never_called(x):
+    return x.max()
+"""
+
+PROBE = """
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+import kernels_under_test as mod
+from slamkit.pipeline.startup import load_cached_kernels
+if sys.argv[2] == "call":
+    mod.called(np.arange(3.0))
+    print(json.dumps({}))
+else:
+    done = load_cached_kernels([mod])
+    print(json.dumps({
+        "loaded": done.loaded,
+        "kernels": done.kernels,
+        "called_overloads": len(mod.called.overloads),
+        "never_called_overloads": len(mod.never_called.overloads),
+        "misses": sum(mod.called._cache_misses.values()),
+        "result": float(mod.called(np.arange(3.0))) if mod.called.overloads else None,
+        "misses_after_call": sum(mod.called._cache_misses.values()),
+    }))
+"""
+
+
+def _probe(tmp_path: Path, mode: str) -> dict[str, object]:
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE, str(tmp_path), mode], capture_output=True, text=True, check=True, timeout=240
+    )
+    result: dict[str, object] = json.loads(out.stdout.strip().splitlines()[-1])
+    return result
+
+
+def test_load_cached_kernels_loads_what_the_cache_holds_and_compiles_nothing(tmp_path: Path) -> None:
+    source = tmp_path / "kernels_under_test.py"
+    source.write_text(textwrap.dedent(KERNELS.format(factor=2.0)))
+    _probe(tmp_path, "call")  # a first run compiles ``called`` for float64 arrays and writes numba's disk cache
+    fresh = _probe(tmp_path, "load")
+    # the cached signature is loaded before any call; the kernel never called has nothing cached, nothing compiled
+    assert fresh["loaded"] == 1 and fresh["kernels"] == 1
+    assert fresh["called_overloads"] == 1 and fresh["never_called_overloads"] == 0
+    assert fresh["misses"] == 0 and fresh["misses_after_call"] == 0  # the call used the loaded code
+    assert fresh["result"] == 6.0
+    # the kernel's code changed: its cache no longer matches, and nothing is loaded (nor compiled) for it
+    source.write_text(textwrap.dedent(KERNELS.format(factor=3.0)))
+    stale = _probe(tmp_path, "load")
+    assert stale["loaded"] == 0 and stale["called_overloads"] == 0 and stale["result"] is None
+
+
+def test_freeze_startup_heap_moves_live_objects_out_of_collections() -> None:
+    class Node:
+        pass
+
+    before = Node()
+    try:
+        frozen = freeze_startup_heap()
+        after = Node()
+        tracked = {id(o) for o in gc.get_objects()}
+        assert frozen == gc.get_freeze_count() and frozen > 0
+        assert id(before) not in tracked  # frozen: full collections no longer walk it
+        assert id(after) in tracked  # objects made later are collected as usual
+    finally:
+        gc.unfreeze()
