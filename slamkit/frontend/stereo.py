@@ -410,6 +410,15 @@ class StereoFrontEnd(MonocularFrontEnd):
         features = extractor.extract(image, camera)
         return features, image_pyramid(image, int(features.n_levels), float(features.scale_factor))
 
+    @staticmethod
+    def _monocular_record(left: Features, camera: Camera) -> Observations:
+        """The left image's record without the right coordinate (the monocular front end's: keypoints in the
+        pipeline's image, unit bearings)."""
+        if not camera.image_undistorted:
+            left = dataclasses.replace(left, uv_undist_px=left.uv_px.copy())
+        bearing = camera.unproject_image(left.uv_undist_px.astype(np.float64))
+        return Observations.monocular(left, bearing)
+
     def observe(self, data: FrameData, camera: Camera, initializing: bool = False) -> Observations:
         """data.image and data.image_right (H, W) uint8, rectified -> the record with u_right_px and depth_m of the
         left keypoints matched in the right image (NaN elsewhere).
@@ -425,13 +434,16 @@ class StereoFrontEnd(MonocularFrontEnd):
         if self.bf is None:
             raise ConfigError("frontend=stereo: no bf (baseline x fx): bind the front end to a stereo dataset")
         # each image's extraction and its matching pyramid in one thread (the right one in the pool's), each
-        # extraction alone in its thread
+        # extraction alone in its thread; the left keypoints' monocular record is made while the right image may
+        # still be in extraction
         if self._pool is not None:
             future = self._pool.submit(self._extract_with_pyramid, self.right_extractor, right_image, camera, False)
             left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera, False)
+            obs = self._monocular_record(left, camera)
             right, pyr_r = future.result()
         else:
             left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera, True)
+            obs = self._monocular_record(left, camera)
             right, pyr_r = self._extract_with_pyramid(self.right_extractor, right_image, camera, True)
         fx = float(camera.K[0, 0])
         u_right, depth = stereo_matches(
@@ -449,10 +461,6 @@ class StereoFrontEnd(MonocularFrontEnd):
             (pyr_l, pyr_r),
             self._match_pool,
         )
-        if not camera.image_undistorted:
-            left = dataclasses.replace(left, uv_undist_px=left.uv_px.copy())
-        bearing = camera.unproject_image(left.uv_undist_px.astype(np.float64))
-        obs = Observations.monocular(left, bearing)
         return dataclasses.replace(
             obs,
             u_right_px=u_right,
