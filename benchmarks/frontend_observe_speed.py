@@ -5,10 +5,12 @@ Usage: python benchmarks/frontend_observe_speed.py [--frames 60] [--rounds 4] [-
 Builds the three front ends of this checkout on the synthetic room (640 x 480, 1000 ORB features, each front end
 with an extractor of its own) and, with ``--base``, the stereo and RGB-D front ends of another checkout's
 slamkit/frontend/stereo.py and rgbd.py (loaded by path, so one process times both). The stereo front end is timed
-twice: as configured (``parallel_matching`` off, the default) and with ``parallel_matching`` on. Every frame is observed by
+three times: as configured (``parallel_matching`` off, the default), with ``parallel_matching`` on and with
+``matching_pyramid=own`` (main's INTER_LINEAR matching pyramids, the base's records bit for bit). Every frame is observed by
 every front end in turn, the order rotating frame to frame, so a change of machine load hits all alike; prints each
 front end's median time (ms) and the median of its per-frame ratio to the monocular one (paired, less
-load-sensitive than medians of separate runs). Checks first that the base and this checkout's records are identical.
+load-sensitive than medians of separate runs). Checks first that the base's records and this checkout's with
+``matching_pyramid=own`` are identical.
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ def main() -> None:
         "mono": MonocularFrontEnd(extractor()),
         "stereo": StereoFrontEnd(extractor()),
         "stereo, parallel_matching on": split,
+        "stereo, matching_pyramid own": StereoFrontEnd(extractor(), matching_pyramid="own"),
         "rgbd": RgbdFrontEnd(extractor()),
     }
     if args.base is not None:
@@ -75,7 +78,7 @@ def main() -> None:
             front.observe(data, camera)
     if args.base is not None:
         for data in frames[:10]:
-            for ours, theirs in (("stereo", "stereo (base)"), ("rgbd", "rgbd (base)")):
+            for ours, theirs in (("stereo, matching_pyramid own", "stereo (base)"), ("rgbd", "rgbd (base)")):
                 a, b = fronts[ours].observe(data, camera), fronts[theirs].observe(data, camera)
                 for field in ("u_right_px", "depth_m", "uv_px", "descriptors"):
                     if not np.array_equal(getattr(a, field), getattr(b, field), equal_nan=True):
@@ -96,7 +99,8 @@ def main() -> None:
         ratio = float(np.median(v / arr["mono"]))
         print(f"  {name:30s} median {np.median(v):7.2f} ms   paired ratio to mono {ratio:.3f}")
     if args.base is not None:
-        for ours, theirs in (("stereo", "stereo (base)"), ("stereo, parallel_matching on", "stereo (base)")):
+        for ours in ("stereo", "stereo, parallel_matching on", "stereo, matching_pyramid own"):
+            theirs = "stereo (base)"
             print(f"  paired {ours} / {theirs}: {float(np.median(arr[ours] / arr[theirs])):.3f}")
         print(f"  paired rgbd / rgbd (base): {float(np.median(arr['rgbd'] / arr['rgbd (base)'])):.3f}")
 

@@ -2,7 +2,10 @@
 (issue 16's speed bars: stereo at most 1.6x, RGB-D at most 1.2x the monocular tracking median).
 
 Usage: python benchmarks/tracking_speed_paired.py [--frames 300] [--seed 0] [--modes mono,stereo,rgbd] [--json F]
-       [overrides for every run ...]; a mode may carry overrides of its own: ``--modes mono,stereo,stereo+features.n_threads=1``
+       [--base /path/to/other/checkout] [overrides for every run ...]; a mode may carry overrides of its own:
+       ``--modes mono,stereo,stereo+features.n_threads=1``; with ``--base``, a mode ending in ``@base`` tracks with the
+       other checkout's front end and ORB extractor (``--modes mono,stereo@base,stereo,rgbd@base,rgbd``: before and
+       after in one run)
 
 Builds one sequential runner per sensor (the commands' ``slamkit run runner=sequential seed=S dataset.max_frames=N
 [frontend=stereo dataset.stereo=true | frontend=rgbd]``, each with its own dataset, extractor and map) and steps
@@ -21,12 +24,16 @@ two-view initialisation) are left out of every sensor's figures, as are frames a
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import inspect
 import json
 import os
+import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numba
@@ -66,6 +73,43 @@ def core_scaling(n: int = 50_000_000) -> float:
     return serial / parallel
 
 
+def _module(name: str, path: Path) -> ModuleType:
+    """The Python file at ``path`` loaded as module ``name`` (its own imports resolve to this checkout's packages)."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise SystemExit(f"--base: cannot load {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def _kwargs(node: Any, cls: type) -> dict[str, Any]:
+    """A config node's keys that ``cls.__init__`` takes (a key the other checkout does not know is left out)."""
+    accepted = inspect.signature(cls).parameters
+    return {str(k): v for k, v in node.items() if k != "_target_" and k in accepted}
+
+
+def base_frontend(base: Path, cfg: Any, dataset: Any) -> Any:
+    """The front end of ``cfg`` built from the other checkout's front-end module and slamkit_orb extractor, each
+    loaded by path (the helpers they import, e.g. the level kernels, are this checkout's)."""
+    orb = _module("base_orbslam_extractor", base / "plugins" / "slamkit_orb" / "orbslam_extractor.py")
+    target = str(cfg.frontend._target_)
+    module_name, class_name = target.rsplit(".", 1)
+    front_module = _module("base_" + module_name.replace(".", "_"), base / (module_name.replace(".", "/") + ".py"))
+    features = {str(k): v for k, v in cfg.features.items() if k != "_target_"}
+    extractor = orb.OrbSlamExtractor(**features)
+    factor = float(cfg.pipeline.tracking.init_feature_factor)
+    init = None
+    if factor != 1:
+        init = orb.OrbSlamExtractor(**{**features, "n_features": round(int(features["n_features"]) * factor)})
+    cls = getattr(front_module, class_name)
+    front = cls(extractor, init, **_kwargs(cfg.frontend, cls))
+    if hasattr(front, "bind_dataset"):
+        front.bind_dataset(dataset)
+    return front
+
+
 def _cpu_timed(step: Callable[..., Any], out: list[float]) -> Callable[..., Any]:
     """``step`` that appends its process CPU time (ms, all threads) to ``out``."""
 
@@ -87,6 +131,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None, help="write the per-frame timings here")
     parser.add_argument("overrides", nargs="*", help="config overrides given to every run")
     parser.add_argument("--core-check", action="store_true", help="first time two compute-bound threads against one")
+    parser.add_argument("--base", type=Path, default=None, help="another checkout, for the modes ending in @base")
     args = parser.parse_args()
     if args.core_check:
         print(f"two threads against one: {core_scaling():.2f}x faster (2.00: two free cores)")
@@ -96,13 +141,18 @@ def main() -> None:
     runs: dict[str, Any] = {}
     cpu_ms: dict[str, list[float]] = {}  # the process CPU time of each Tracker.step (local mapping not included)
     for mode in modes:
+        spec, _, tree = mode.partition("@")
+        if tree and (tree != "base" or args.base is None):
+            raise SystemExit(f"mode {mode}: only @base, with --base")
         cfg = compose_config(
             ["runner=sequential", "runner.progress=false", f"seed={args.seed}", f"dataset.max_frames={args.frames}"]
-            + MODES[mode.split("+")[0]]
-            + mode.split("+")[1:]
+            + MODES[spec.split("+")[0]]
+            + spec.split("+")[1:]
             + list(args.overrides)
         )
         runner, dataset = build_runner(cfg)
+        if tree:
+            runner.tracker.frontend = base_frontend(args.base, cfg, dataset)
         runner.begin(dataset, dataset.camera)
         runner.tracker.step = _cpu_timed(runner.tracker.step, cpu_ms.setdefault(mode, []))  # type: ignore[method-assign]
         runs[mode] = (runner, dataset, iter(dataset))
@@ -140,14 +190,14 @@ def main() -> None:
     mono = np.array([r[1] for r in rows["mono"]])
     mono_cpu = np.array([r[3] for r in rows["mono"]])
     print(
-        f"{'sensor':8s} {'track ms':>9s} {'extract':>8s} {'cpu ms':>8s} {'ratio of medians':>17s} {'paired ratio':>13s} {'cpu ratio':>10s}"
+        f"{'sensor':14s} {'track ms':>9s} {'extract':>8s} {'cpu ms':>8s} {'ratio of medians':>17s} {'paired ratio':>13s} {'cpu ratio':>10s}"
     )
     for mode in modes:
         t = np.array([r[1] for r in rows[mode]])
         e = np.array([r[2] for r in rows[mode]])
         c = np.array([r[3] for r in rows[mode]])
         print(
-            f"{mode:8s} {np.median(t[use]):9.2f} {np.median(e[use]):8.2f} {np.median(c[use]):8.2f} "
+            f"{mode:14s} {np.median(t[use]):9.2f} {np.median(e[use]):8.2f} {np.median(c[use]):8.2f} "
             f"{np.median(t[use]) / np.median(mono[use]):17.3f} {np.median(t[use] / mono[use]):13.3f} "
             f"{np.median(c[use]) / np.median(mono_cpu[use]):10.3f}"
         )

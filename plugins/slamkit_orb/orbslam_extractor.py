@@ -43,7 +43,14 @@ from slamkit.interfaces import Camera
 from slamkit_orb.grid_fast import FAST_BACKENDS, FAST_RADIUS, FastBackend, GridFast
 from slamkit_orb.level_kernel import levels_keypoints
 from slamkit_orb.orientation import circular_patch_extent, intensity_centroid_angles
-from slamkit_orb.pyramid import build_pyramid, features_per_level, level_scales, level_sizes
+from slamkit_orb.pyramid import (
+    PackedPyramid,
+    build_packed_pyramid,
+    build_pyramid,
+    features_per_level,
+    level_scales,
+    level_sizes,
+)
 from slamkit_orb.quadtree import distribute_quadtree
 
 #: ORB's learned test pattern is defined on a 31 x 31 patch (OpenCV falls back to a random one otherwise).
@@ -293,7 +300,11 @@ class OrbSlamExtractor:
         image = self._check_image(image)
         h, w = image.shape
         pyramid = build_pyramid(image, level_sizes(w, h, self.scale_factor, self.n_levels))
-        pool = self._executor()
+        return self._keypoints(pyramid, self._executor())
+
+    def _keypoints(self, pyramid: list[NDArray[np.uint8]], pool: ThreadPoolExecutor | None) -> LevelKeypoints:
+        """The keypoints of the level images ``pyramid`` (level 0 first), the levels shared out to ``pool``'s
+        threads (None: all in the calling thread)."""
         if self.fast_backend == "compiled":
             results = self._compiled_levels(pyramid, pool)
         elif pool is None:
@@ -325,14 +336,37 @@ class OrbSlamExtractor:
         keypoints the camera model cannot undistort (beyond its valid radius: NaN) are dropped. Raises
         CalibrationError when the camera's size differs from the image's.
         """
-        image = self._check_image(image)
+        image = self._checked(image, camera)
+        return self._features(self.detect_and_describe(image), camera)
+
+    def extract_with_pyramid(
+        self, image: NDArray[np.uint8], camera: Camera | None = None, threaded: bool = True
+    ) -> tuple[Features, PackedPyramid]:
+        """:meth:`extract`, and the pyramid the keypoints were found on (ORB-SLAM's ``mvImagePyramid``: the stereo
+        front end's SAD windows are read from it, as in ORB-SLAM2's ComputeStereoMatches), packed into one array.
+
+        threaded: share the levels out to ``n_threads`` threads as :meth:`extract` does; False: all in the calling
+        thread (a caller running two extractions at once, one per thread, keeps the machine's cores busy without
+        a third and fourth thread). The features are those of :meth:`extract` either way."""
+        image = self._checked(image, camera)
         h, w = image.shape
+        pyramid = build_packed_pyramid(image, level_sizes(w, h, self.scale_factor, self.n_levels))
+        kps = self._keypoints(pyramid.levels, self._executor() if threaded else None)
+        return self._features(kps, camera), pyramid
+
+    def _checked(self, image: object, camera: Camera | None) -> NDArray[np.uint8]:
+        """The image as a contiguous (H, W) uint8 array; CalibrationError when the camera's size differs."""
+        checked = self._check_image(image)
+        h, w = checked.shape
         if camera is not None and (int(camera.width), int(camera.height)) != (w, h):
             raise CalibrationError(
                 f"extract: image is {w}x{h} px but the camera ({camera.model}) is calibrated for "
                 f"{camera.width}x{camera.height} px"
             )
-        kps = self.detect_and_describe(image)
+        return checked
+
+    def _features(self, kps: LevelKeypoints, camera: Camera | None) -> Features:
+        """Level keypoints -> Features in level-0 px, undistorted through the camera when one is given."""
         uv = kps.xy.astype(np.float32) * self.level_scale[kps.level][:, None]
         if camera is not None and uv.shape[0]:
             uv_undist = np.asarray(camera.undistort_points(uv.astype(np.float64)), dtype=np.float64)

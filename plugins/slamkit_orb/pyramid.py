@@ -10,6 +10,8 @@ of room and KITTI frames: docs/BENCHMARKS.md, issue 16 branch ``stspeed``.)
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -55,3 +57,56 @@ def build_pyramid(image: NDArray[np.uint8], sizes: list[tuple[int, int]]) -> lis
             break
         levels.append(np.asarray(cv2.resize(levels[-1], (w, h), interpolation=cv2.INTER_LINEAR_EXACT), np.uint8))
     return levels
+
+
+@dataclass(frozen=True)
+class PackedPyramid:
+    """The level images of :func:`build_pyramid` stored row-major one after the other in one uint8 array (the
+    layout a compiled kernel reads a whole pyramid from, e.g. stereo matching's SAD windows).
+
+    pixels: (sum of w x h,) uint8; offsets, widths, heights: (n_levels,) int64, level l is
+    ``pixels[offsets[l] : offsets[l] + widths[l] * heights[l]]`` reshaped (heights[l], widths[l]); a level past an
+    empty one has width and height 0. levels: the non-empty levels as (h, w) views of ``pixels`` (what
+    :func:`build_pyramid` returns, with level 0 a copy of the image).
+    """
+
+    pixels: NDArray[np.uint8]
+    offsets: NDArray[np.int64]
+    widths: NDArray[np.int64]
+    heights: NDArray[np.int64]
+    levels: list[NDArray[np.uint8]]
+
+    def packed(self) -> tuple[NDArray[np.uint8], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """(pixels, offsets, widths, heights)."""
+        return self.pixels, self.offsets, self.widths, self.heights
+
+
+def build_packed_pyramid(image: NDArray[np.uint8], sizes: list[tuple[int, int]]) -> PackedPyramid:
+    """:func:`build_pyramid` with every level resized straight into its place in one packed array (the same pixels:
+    the same INTER_LINEAR_EXACT resizes of the same sources); one entry per size, zero-sized from the first
+    empty level on."""
+    n = len(sizes)
+    widths = np.zeros(n, np.int64)
+    heights = np.zeros(n, np.int64)
+    for k, (w, h) in enumerate(sizes):
+        if k and (w < 1 or h < 1):
+            break
+        widths[k], heights[k] = w, h
+    h0, w0 = image.shape[:2]
+    widths[0], heights[0] = w0, h0
+    area = widths * heights
+    offsets = np.zeros(n, np.int64)
+    offsets[1:] = np.cumsum(area)[:-1]
+    pixels = np.empty(int(area.sum()), np.uint8)
+    levels = [pixels[: w0 * h0].reshape(h0, w0)]
+    levels[0][...] = image
+    for k in range(1, n):
+        w, h = int(widths[k]), int(heights[k])
+        if w == 0:
+            break
+        level = pixels[int(offsets[k]) : int(offsets[k]) + w * h].reshape(h, w)
+        out = cv2.resize(levels[-1], (w, h), dst=level, interpolation=cv2.INTER_LINEAR_EXACT)
+        if not np.shares_memory(out, level):  # OpenCV allocated its own output after all
+            level[...] = out
+        levels.append(level)
+    return PackedPyramid(pixels, offsets, widths, heights, levels)

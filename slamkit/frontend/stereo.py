@@ -49,18 +49,37 @@ def _hamming(a: NDArray[np.uint8], b: NDArray[np.uint8], table: NDArray[np.int64
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _sad(
-    pyr_l: NDArray[np.uint8], pyr_r: NDArray[np.uint8], off: int, width: int, vl: int, ul: int, ur: int, w: int
-) -> float:  # pragma: no cover - numba
-    """Sum of |(IL - IL[centre]) - (IR - IR[centre])| of the (2w+1)^2 windows centred at (ul, vl) of the left level
-    image and (ur, vl) of the right one (both stored row-major from ``off`` with ``width`` columns)."""
-    c = np.int64(pyr_l[off + vl * width + ul]) - np.int64(pyr_r[off + vl * width + ur])
-    s = np.int64(0)
-    for dy in range(-w, w + 1):
-        row = off + (vl + dy) * width
-        for dx in range(-w, w + 1):
-            s += abs(np.int64(pyr_l[row + ul + dx]) - np.int64(pyr_r[row + ur + dx]) - c)
-    return float(s)
+def _sad_slide(
+    pyr_l: NDArray[np.uint8],
+    pyr_r: NDArray[np.uint8],
+    off: int,
+    width: int,
+    vl: int,
+    ul: int,
+    ur0: int,
+    w: int,
+    slide: int,
+    dists: NDArray[np.int32],
+) -> None:  # pragma: no cover - numba
+    """dists[k] (k = 0 .. 2 slide) = sum of |(IL - IL[centre]) - (IR - IR[centre])| over the (2w+1)^2 windows centred
+    at (ul, vl) of the left level image and (ur0 - slide + k, vl) of the right one (both stored row-major from
+    ``off`` with ``width`` columns; the caller keeps every window inside the level).
+
+    Integer sums (at most 121 x 510 for w = 5: int32 holds them), the same values as ORB-SLAM's float sums of
+    integers. Indices are uint64 (numba checks a signed index for wraparound at every access, an unsigned one it
+    does not) and the window's rows are the inner loops, which LLVM vectorizes."""
+    side = 2 * w + 1
+    lc = np.int32(pyr_l[np.uint64(off + vl * width + ul)])
+    for k in range(2 * slide + 1):
+        ur = ur0 - slide + k
+        c = lc - np.int32(pyr_r[np.uint64(off + vl * width + ur)])
+        s = np.int32(0)
+        for dy in range(side):
+            row_l = np.uint64(off + (vl - w + dy) * width + ul - w)
+            row_r = np.uint64(off + (vl - w + dy) * width + ur - w)
+            for dx in range(side):
+                s += abs(np.int32(pyr_l[row_l + np.uint64(dx)]) - np.int32(pyr_r[row_r + np.uint64(dx)]) - c)
+        dists[k] = s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -116,7 +135,7 @@ def _stereo_match_kernel(
         for y in range(lo, hi + 1):
             table_r[fill[y]] = i
             fill[y] += 1
-    dists = np.empty(2 * slide + 1)
+    dists = np.empty(2 * slide + 1, np.int32)
     for i in range(start, n_l, step):
         ul = uv_l[i, 0]
         vl = uv_l[i, 1]
@@ -155,19 +174,19 @@ def _stereo_match_kernel(
             continue
         if sur0 - slide - w < 0 or sur0 + slide + w >= width:
             continue
+        _sad_slide(pyr_l, pyr_r, off, width, svl, sul, sur0, w, slide, dists)
         best_sad = np.inf
         best_inc = 0
         for inc in range(-slide, slide + 1):
-            s = _sad(pyr_l, pyr_r, off, width, svl, sul, sur0 + inc, w)
-            dists[slide + inc] = s
+            s = float(dists[slide + inc])
             if s < best_sad:
                 best_sad = s
                 best_inc = inc
         if best_inc == -slide or best_inc == slide:
             continue
-        d1 = dists[slide + best_inc - 1]
-        d2 = dists[slide + best_inc]
-        d3 = dists[slide + best_inc + 1]
+        d1 = float(dists[slide + best_inc - 1])
+        d2 = float(dists[slide + best_inc])
+        d3 = float(dists[slide + best_inc + 1])
         den = 2.0 * (d1 + d3 - 2.0 * d2)
         if den == 0.0:
             continue
@@ -311,9 +330,18 @@ class StereoFrontEnd(MonocularFrontEnd):
     bf: baseline x fx (m px), used only when the front end is not bound to a dataset with a stereo pair
     (``bind_dataset`` takes it from the dataset's ``T_l_r`` and camera). th_depth: close/far threshold in baselines
     (ORB-SLAM2 settings ``ThDepth``; KITTI: 35, EuRoC: 35). The remaining keywords are ComputeStereoMatches'
-    constants (see :func:`stereo_matches`). parallel: extract the right image in a second thread (and build each
-    image's matching pyramid in its extraction's thread); parallel_matching: with ``parallel``, match the odd left
-    keypoints in that thread while the caller's matches the even ones. Neither changes the result.
+    constants (see :func:`stereo_matches`).
+
+    matching_pyramid: the level images the SAD windows are read from. "extractor": the pyramid the image's keypoints
+    were found on, as ORB-SLAM2 reads its extractor's ``mvImagePyramid`` (for an extractor offering it,
+    ``extract_with_pyramid``: slamkit_orb's, whose levels are OpenCV's INTER_LINEAR_EXACT resizes; any other
+    extractor: "own"); "own": a pyramid of ORB-SLAM's INTER_LINEAR resizes built for the matching
+    (:func:`image_pyramid`), the SAD windows of ORB-SLAM2's own extractor, at the cost of a second pyramid per image.
+
+    parallel: extract the two images at once, the right one in a second thread, each extraction in its own thread
+    alone (the extractor's level threads are not used: two threads for the two cores, not four); parallel_matching:
+    with ``parallel``, match the odd left keypoints in that thread while the caller's matches the even ones. Neither
+    changes the result.
     """
 
     uses_depth: ClassVar[bool] = False
@@ -329,6 +357,7 @@ class StereoFrontEnd(MonocularFrontEnd):
         sad_half_window: int = 5,
         sad_slide_px: int = 5,
         outlier_factor: float = 2.1,
+        matching_pyramid: str = "extractor",
         parallel: bool = True,
         parallel_matching: bool = False,
     ) -> None:
@@ -344,6 +373,9 @@ class StereoFrontEnd(MonocularFrontEnd):
         self.window = int(sad_half_window)
         self.slide = int(sad_slide_px)
         self.outlier_factor = float(outlier_factor)
+        if matching_pyramid not in ("extractor", "own"):
+            raise ConfigError(f"frontend.matching_pyramid must be 'extractor' or 'own', got {matching_pyramid!r}")
+        self.matching_pyramid = matching_pyramid
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="orb-right") if parallel else None
         # half of the stereo matching in that thread too (idle once the right image is extracted)
         self._match_pool = self._pool if parallel_matching else None
@@ -366,12 +398,26 @@ class StereoFrontEnd(MonocularFrontEnd):
         self.bf = baseline * float(dataset.camera.K[0, 0])
 
     def _extract_with_pyramid(
-        self, extractor: FeatureExtractor, image: NDArray[np.uint8], camera: Camera
+        self, extractor: FeatureExtractor, image: NDArray[np.uint8], camera: Camera, threaded: bool
     ) -> tuple[Features, Pyramid]:
         """The features of one image of the pair and the image's matching pyramid (ComputeStereoMatches' SAD
-        levels, :func:`image_pyramid`), built in the calling thread."""
+        levels: the extractor's own, or :func:`image_pyramid`'s built in the calling thread; see the class
+        docstring). threaded: let the extractor share the levels out to its own threads."""
+        with_pyramid = getattr(extractor, "extract_with_pyramid", None)
+        if self.matching_pyramid == "extractor" and with_pyramid is not None:
+            features, pyramid = with_pyramid(image, camera, threaded=threaded)
+            return features, pyramid.packed()
         features = extractor.extract(image, camera)
         return features, image_pyramid(image, int(features.n_levels), float(features.scale_factor))
+
+    @staticmethod
+    def _monocular_record(left: Features, camera: Camera) -> Observations:
+        """The left image's record without the right coordinate (the monocular front end's: keypoints in the
+        pipeline's image, unit bearings)."""
+        if not camera.image_undistorted:
+            left = dataclasses.replace(left, uv_undist_px=left.uv_px.copy())
+        bearing = camera.unproject_image(left.uv_undist_px.astype(np.float64))
+        return Observations.monocular(left, bearing)
 
     def observe(self, data: FrameData, camera: Camera, initializing: bool = False) -> Observations:
         """data.image and data.image_right (H, W) uint8, rectified -> the record with u_right_px and depth_m of the
@@ -387,14 +433,18 @@ class StereoFrontEnd(MonocularFrontEnd):
             )
         if self.bf is None:
             raise ConfigError("frontend=stereo: no bf (baseline x fx): bind the front end to a stereo dataset")
-        # each image's extraction and its matching pyramid in one thread (the right one in the pool's)
+        # each image's extraction and its matching pyramid in one thread (the right one in the pool's), each
+        # extraction alone in its thread; the left keypoints' monocular record is made while the right image may
+        # still be in extraction
         if self._pool is not None:
-            future = self._pool.submit(self._extract_with_pyramid, self.right_extractor, right_image, camera)
-            left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera)
+            future = self._pool.submit(self._extract_with_pyramid, self.right_extractor, right_image, camera, False)
+            left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera, False)
+            obs = self._monocular_record(left, camera)
             right, pyr_r = future.result()
         else:
-            left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera)
-            right, pyr_r = self._extract_with_pyramid(self.right_extractor, right_image, camera)
+            left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera, True)
+            obs = self._monocular_record(left, camera)
+            right, pyr_r = self._extract_with_pyramid(self.right_extractor, right_image, camera, True)
         fx = float(camera.K[0, 0])
         u_right, depth = stereo_matches(
             left,
@@ -411,10 +461,6 @@ class StereoFrontEnd(MonocularFrontEnd):
             (pyr_l, pyr_r),
             self._match_pool,
         )
-        if not camera.image_undistorted:
-            left = dataclasses.replace(left, uv_undist_px=left.uv_px.copy())
-        bearing = camera.unproject_image(left.uv_undist_px.astype(np.float64))
-        obs = Observations.monocular(left, bearing)
         return dataclasses.replace(
             obs,
             u_right_px=u_right,

@@ -11,11 +11,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from slamkit_orb.orbslam_extractor import OrbSlamExtractor
 
 from slamkit.app import build_components
 from slamkit.config import compose_config
 from slamkit.errors import ConfigError, DatasetError
-from slamkit.frontend.stereo import StereoFrontEnd, image_pyramid, stereo_matches
+from slamkit.frontend.stereo import StereoFrontEnd, _sad_slide, image_pyramid, stereo_matches
 from slamkit.interfaces import FrontEnd
 from slamkit.plugins import ComponentRegistry
 
@@ -80,10 +81,11 @@ def test_missing_right_image_or_baseline_is_refused() -> None:
 
 
 def test_given_pyramids_and_split_matching_give_the_rebuilt_one_thread_matches() -> None:
-    """The front end builds each image's matching pyramid in its extraction's thread and matches the odd keypoints in
-    a second thread (issue 16, speed): the matches must be those of stereo_matches building its own pyramids in one
-    thread, bit for bit, and the packed pyramid must hold ORB-SLAM's INTER_LINEAR levels (each from the one above)."""
-    frontend, dataset = _built("dataset.stereo=true")
+    """``frontend.matching_pyramid=own``: the front end builds each image's matching pyramid in its extraction's thread
+    and matches the odd keypoints in a second thread (issue 16, speed): the matches must be those of stereo_matches
+    building its own pyramids in one thread, bit for bit, and the packed pyramid must hold ORB-SLAM's INTER_LINEAR
+    levels (each from the one above)."""
+    frontend, dataset = _built("dataset.stereo=true", "frontend.matching_pyramid=own")
     data = dataset[2]  # type: ignore[index]
     camera = dataset.camera  # type: ignore[attr-defined]
     extractor = frontend.extractor
@@ -113,3 +115,68 @@ def test_given_pyramids_and_split_matching_give_the_rebuilt_one_thread_matches()
             level = cv2.resize(level, (int(widths[lev]), int(heights[lev])), interpolation=cv2.INTER_LINEAR)
         packed = pixels[offsets[lev] : offsets[lev] + widths[lev] * heights[lev]].reshape(heights[lev], widths[lev])
         np.testing.assert_array_equal(packed, level)
+
+
+def test_default_matching_reads_the_extractors_pyramid() -> None:
+    """The default (``matching_pyramid: extractor``, ORB-SLAM2's mvImagePyramid): each image is extracted alone in
+    its thread, with the pyramid its keypoints were found on, and the SAD windows are read from those pyramids; the
+    record is stereo_matches' on them, in one thread or split over two, and its depths are the rendered ones as with
+    INTER_LINEAR levels (within a few hundredths of a pixel of disparity)."""
+    frontend, dataset = _built("dataset.stereo=true")
+    assert frontend.matching_pyramid == "extractor"
+    data = dataset[2]  # type: ignore[index]
+    camera = dataset.camera  # type: ignore[attr-defined]
+    extractor = frontend.extractor
+    assert isinstance(extractor, OrbSlamExtractor)
+    left, pyr_l = extractor.extract_with_pyramid(data.image, camera)
+    right, pyr_r = extractor.extract_with_pyramid(data.image_right, camera)
+    fx = float(camera.K[0, 0])
+    assert frontend.bf is not None
+    ours = stereo_matches(
+        left, right, data.image, data.image_right, frontend.bf, fx, pyramids=(pyr_l.packed(), pyr_r.packed())
+    )
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        split = stereo_matches(
+            left,
+            right,
+            data.image,
+            data.image_right,
+            frontend.bf,
+            fx,
+            pyramids=(pyr_l.packed(), pyr_r.packed()),
+            pool=pool,
+        )
+    obs = frontend.observe(data, camera)
+    for a, b, c in zip(ours, split, (obs.u_right_px, obs.depth_m), strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+    np.testing.assert_array_equal(obs.uv_px, left.uv_px)
+    # against ORB-SLAM's INTER_LINEAR levels: nearly the same matches, sub-pixel positions within a few hundredths
+    linear = stereo_matches(left, right, data.image, data.image_right, frontend.bf, fx)
+    both = np.isfinite(ours[0]) & np.isfinite(linear[0])
+    assert both.sum() > 0.97 * max(np.isfinite(ours[0]).sum(), np.isfinite(linear[0]).sum())
+    du = np.abs(ours[0][both] - linear[0][both])
+    assert np.median(du) < 0.05 and np.percentile(du, 95) < 0.5
+    with pytest.raises(ConfigError, match="matching_pyramid"):
+        StereoFrontEnd(extractor, matching_pyramid="linear")
+
+
+@pytest.mark.parametrize(("w", "slide"), [(5, 5), (3, 2)])
+def test_sad_slide_is_orbslams_window_sum(w: int, slide: int) -> None:
+    """The compiled SAD slide (ComputeStereoMatches' 11 x 11 window minus its centre, slid +-5 px) against the sums
+    written out with numpy, on random level images packed at an offset."""
+    rng = np.random.default_rng(7)
+    height, width, off = 40, 60, 123
+    left = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    right = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    pad = rng.integers(0, 256, off, dtype=np.uint8)
+    pyr_l = np.concatenate([pad, left.ravel()])
+    pyr_r = np.concatenate([pad, right.ravel()])
+    dists = np.zeros(2 * slide + 1, np.int32)
+    for vl, ul, ur0 in ((w, w, w + slide), (20, 30, 25), (height - 1 - w, width - 1 - w, width - 1 - w - slide)):
+        _sad_slide(pyr_l, pyr_r, off, width, vl, ul, ur0, w, slide, dists)
+        wl = left[vl - w : vl + w + 1, ul - w : ul + w + 1].astype(np.int64) - int(left[vl, ul])
+        for k in range(2 * slide + 1):
+            ur = ur0 - slide + k
+            wr = right[vl - w : vl + w + 1, ur - w : ur + w + 1].astype(np.int64) - int(right[vl, ur])
+            assert dists[k] == np.abs(wl - wr).sum()

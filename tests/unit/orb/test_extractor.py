@@ -133,6 +133,31 @@ def test_output_is_deterministic_and_independent_of_threads() -> None:
             np.testing.assert_array_equal(getattr(runs[0], name), getattr(other, name))
 
 
+def test_extract_with_pyramid_gives_extracts_features_and_the_levels_they_were_found_on() -> None:
+    """The stereo front end's call (issue 16): the features of ``extract`` whether the levels are shared out to the
+    extractor's threads or all found in the calling thread, and the packed pyramid holds the level images the
+    keypoints come from (a keypoint's level position is inside its level image)."""
+    image = uneven_texture_image(seed=41)
+    camera = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0, [0.05, -0.02, 0.0, 0.0])
+    extractor = OrbSlamExtractor(n_threads=2)
+    reference = extractor.extract(image, camera)
+    assert len(reference) > 500
+    for threaded in (True, False):
+        features, pyramid = extractor.extract_with_pyramid(image, camera, threaded=threaded)
+        for name in ("uv_px", "uv_undist_px", "level", "angle_deg", "response", "descriptors"):
+            np.testing.assert_array_equal(getattr(features, name), getattr(reference, name))
+        pixels, offsets, widths, heights = pyramid.packed()
+        assert len(pyramid.levels) == 8 and offsets.shape == widths.shape == heights.shape == (8,)
+        np.testing.assert_array_equal(pyramid.levels[0], image)
+        for level, view in enumerate(pyramid.levels):
+            assert view.shape == (heights[level], widths[level]) and np.shares_memory(view, pixels)
+        scale = np.float32(1.2) ** features.level.astype(np.float32)
+        xy = np.rint(features.uv_px / scale[:, None]).astype(np.int64)
+        assert np.all(xy[:, 0] < widths[features.level]) and np.all(xy[:, 1] < heights[features.level])
+    with pytest.raises(CalibrationError, match="calibrated for 752x480"):
+        extractor.extract_with_pyramid(image, PinholeCamera(752, 480, 458.0, 457.0, 367.0, 248.0))
+
+
 @pytest.mark.parametrize(
     "image",
     [

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from slamkit_orb.patterns import textured_image
-from slamkit_orb.pyramid import build_pyramid, features_per_level, level_scales, level_sizes
+from slamkit_orb.pyramid import build_packed_pyramid, build_pyramid, features_per_level, level_scales, level_sizes
 
 
 def test_budget_split_is_orbslams_geometric_series() -> None:
@@ -61,3 +61,21 @@ def test_pyramid_stops_at_an_empty_level() -> None:
     assert sizes[4] == (0, 0)  # 1 / 1.2^4 = 0.48 rounds to 0
     pyramid = build_pyramid(np.zeros((1, 1), np.uint8), sizes)
     assert [p.shape for p in pyramid] == [(1, 1)] * 4
+
+
+@pytest.mark.parametrize(("width", "height"), [(640, 480), (1241, 376), (1, 1)])
+def test_packed_pyramid_holds_the_pyramids_levels(width: int, height: int) -> None:
+    """build_packed_pyramid: the same pixels as build_pyramid, each level at its offset in one array, and one
+    zero-sized entry per level past the first empty one."""
+    image = textured_image(seed=5, width=width, height=height) if width > 1 else np.full((1, 1), 7, np.uint8)
+    sizes = level_sizes(width, height, 1.2, 8)
+    levels = build_pyramid(image, sizes)
+    packed = build_packed_pyramid(image, sizes)
+    assert len(packed.levels) == len(levels)
+    assert packed.pixels.size == sum(level.size for level in levels)
+    for k, (ours, theirs) in enumerate(zip(packed.levels, levels, strict=True)):
+        np.testing.assert_array_equal(ours, theirs)
+        start = int(packed.offsets[k])
+        np.testing.assert_array_equal(packed.pixels[start : start + ours.size], theirs.ravel())
+    assert packed.widths.tolist() == [w for w, _ in sizes[: len(levels)]] + [0] * (8 - len(levels))
+    assert packed.heights.tolist() == [h for _, h in sizes[: len(levels)]] + [0] * (8 - len(levels))
