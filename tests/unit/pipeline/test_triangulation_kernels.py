@@ -74,7 +74,7 @@ def test_epipolar_kernel_decides_as_numpy(seed: int) -> None:
     v2 = -(lines[:, 0] * u2 + lines[:, 2]) / lines[:, 1] + rng.normal(scale=2.0, size=M)
     uv2 = np.where(rng.random((M, 1)) < 0.5, np.c_[u2, v2], rng.uniform(0, 480, (M, 2)))
     uv2[:5] = np.nan  # a keypoint without pinhole coordinates (rig bearings behind the camera)
-    sigma2 = 1.2 ** (2.0 * rng.integers(0, 8, M))
+    sigma2 = np.asarray(1.2 ** (2.0 * rng.integers(0, 8, M)), np.float64)
     scale2 = 1.2 ** rng.integers(0, 8, M).astype(np.float64)
     epipole = project_points(T2, (invert_T(T1)[:3, 3])[None], CAMERA)[0][0]
     uv2[5:400] = epipole + rng.normal(scale=8.0, size=(395, 2))  # around the epipole
@@ -101,7 +101,7 @@ def test_parallax_and_point_checks_decide_as_numpy(seed: int) -> None:
     X[200:260] *= 1e4  # far away: almost parallel rays
     uv1 = project_points(T1, X, CAMERA)[0] + rng.normal(scale=1.5, size=(M, 2))
     uv2 = project_points(T2, X, CAMERA)[0] + rng.normal(scale=1.5, size=(M, 2))
-    Kinv = np.linalg.inv(CAMERA.K)
+    Kinv = np.asarray(np.linalg.inv(CAMERA.K), np.float64)
     rays1 = (np.c_[uv1, np.ones(M)] @ Kinv.T) @ T1[:3, :3]
     rays2 = (np.c_[uv2, np.ones(M)] @ Kinv.T) @ T2[:3, :3]
     cos_par = np.einsum("ij,ij->i", rays1, rays2) / (np.linalg.norm(rays1, axis=1) * np.linalg.norm(rays2, axis=1))
@@ -115,7 +115,7 @@ def test_parallax_and_point_checks_decide_as_numpy(seed: int) -> None:
     xyz = triangulate_points(T1, T2, CAMERA.K, CAMERA.K, uv1, uv2)
     xyz[:3] = np.nan
     level1, level2 = rng.integers(0, 8, M), rng.integers(0, 8, M)
-    s1, s2 = 1.2 ** (2.0 * level1), 1.2 ** (2.0 * level2)
+    s1, s2 = np.asarray(1.2 ** (2.0 * level1), np.float64), np.asarray(1.2 ** (2.0 * level2), np.float64)
     ok = np.all(np.isfinite(xyz), axis=1)
     xyz0 = np.where(np.isfinite(xyz), xyz, 0.0)
     for T, uv, s in ((T1, uv1, s1), (T2, uv2, s2)):
