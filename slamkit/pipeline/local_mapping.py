@@ -13,10 +13,11 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.geometry.camera import PinholeCamera
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.so3 import hat
 from slamkit.geometry.twoview import triangulate_points
-from slamkit.interfaces import AbortToken, MapStore, Optimizer, PlaceRecognizer
+from slamkit.interfaces import AbortToken, Camera, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
@@ -30,11 +31,13 @@ from slamkit.pipeline.map_points import (
     create_depth_points,
     flat_observations,
     orbslam_observation_counts,
+    refresh_new_pairs,
     refresh_points,
 )
 from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.outcomes import CulledKeyFrame, MappingOutcome
 from slamkit.pipeline.projection import project_points, require_pinhole_image
+from slamkit.pipeline.triangulation_kernels import epipolar_candidates, parallax_ok, triangulated_ok
 
 log = logging.getLogger("slamkit.mapping")
 
@@ -253,6 +256,22 @@ class LocalMapper:
         uv1 = _pinhole_uv(kf1, a)
         uv2 = _pinhole_uv(kf2, b)
         F21 = _fundamental_21(kf1, kf2)
+        if not (kf1.features.two_cameras or kf2.features.two_cameras):
+            # one compiled pass: the epipolar distance and the epipole test below, for one-camera keyframes
+            epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
+            ok = epipolar_candidates(
+                uv1,
+                uv2,
+                F21,
+                kf2.features.level_sigma2()[b],
+                self.cfg.chi2.epipolar,
+                True,
+                np.ascontiguousarray(epipole, np.float64),
+                kf2.features.level_scale()[b],
+                matcher.epipole_min_dist2,
+                np.isfinite(kf1.features.u_right_px[a]) | np.isfinite(kf2.features.u_right_px[b]),
+            )
+            return self._select_matches(kf1, kf2, a[ok], b[ok], d[ok])
         lines = np.c_[uv1, np.ones(a.size)] @ F21.T  # epipolar lines in image 2
         num = np.einsum("ij,ij->i", lines, np.c_[uv2, np.ones(b.size)])
         dist2 = num**2 / np.maximum(lines[:, 0] ** 2 + lines[:, 1] ** 2, 1e-12)
@@ -271,7 +290,12 @@ class LocalMapper:
             # on either side is refused near the epipole (a stereo keypoint can be made from its depth)
             near_epipole &= ~(np.isfinite(kf1.features.u_right_px[a]) | np.isfinite(kf2.features.u_right_px[b]))
             ok &= ~near_epipole
-        a, b, dd = a[ok], b[ok], d[ok]
+        return self._select_matches(kf1, kf2, a[ok], b[ok], d[ok])
+
+    def _select_matches(self, kf1: KeyFrame, kf2: KeyFrame, a: I64, b: I64, dd: I64) -> tuple[I64, I64]:
+        """The candidates (a, b, Hamming distance dd) (K,) that passed the epipolar tests -> the best per kf1 feature,
+        one-to-one, rotation-consistent (ORB-SLAM SearchForTriangulation's last steps)."""
+        matcher = self.cfg.matcher
         # best candidate per kf1 feature
         order = np.lexsort((b, dd, a))
         first = np.ones(order.size, bool)
@@ -291,10 +315,12 @@ class LocalMapper:
         K1, K2 = kf1.camera.K, kf2.camera.K
         uv1 = _pinhole_uv(kf1, i1)
         uv2 = _pinhole_uv(kf2, i2)
+        stereo = kf1.features.bf > 0.0 or kf2.features.bf > 0.0
+        if not stereo and _pinhole_one_camera(kf1) and _pinhole_one_camera(kf2):
+            return self._triangulate_mono(kf1, kf2, i1, i2, uv1, uv2)
         rays1 = (np.c_[uv1, np.ones(i1.size)] @ np.linalg.inv(K1).T) @ kf1.T_c_w[:3, :3]
         rays2 = (np.c_[uv2, np.ones(i2.size)] @ np.linalg.inv(K2).T) @ kf2.T_c_w[:3, :3]
         cos_par = np.einsum("ij,ij->i", rays1, rays2) / (np.linalg.norm(rays1, axis=1) * np.linalg.norm(rays2, axis=1))
-        stereo = kf1.features.bf > 0.0 or kf2.features.bf > 0.0
         if stereo:
             ok, xyz = _triangulate_with_depths(kf1, kf2, i1, i2, uv1, uv2, cos_par, cfg.min_parallax_cos)
         else:
@@ -331,10 +357,55 @@ class LocalMapper:
             return None
         return i1[ok], i2[ok], xyz[ok]
 
+    def _triangulate_mono(
+        self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64, uv1: F64, uv2: F64
+    ) -> tuple[I64, I64, F64] | None:
+        """:meth:`_triangulate` for two monocular one-camera keyframes with pinhole images (uv1 / uv2 (M, 2) their
+        undistorted px) in two compiled passes: the parallax test before the DLT (only its survivors are
+        triangulated: the DLT solves each pair on its own), the other tests after."""
+        cfg = self.cfg
+        K1, K2 = kf1.camera.K, kf2.camera.K
+        T1, T2 = kf1.T_c_w, kf2.T_c_w
+        par = parallax_ok(
+            uv1,
+            uv2,
+            _inverse_K(kf1.camera),
+            _inverse_K(kf2.camera),
+            np.ascontiguousarray(T1[:3, :3]),
+            np.ascontiguousarray(T2[:3, :3]),
+            cfg.min_parallax_cos,
+        )
+        sel = np.flatnonzero(par)
+        if not sel.size:
+            return None
+        i1, i2, uv1, uv2 = i1[sel], i2[sel], uv1[sel], uv2[sel]
+        xyz = triangulate_points(T1, T2, K1, K2, uv1, uv2)
+        f1, f2 = kf1.features, kf2.features
+        ok = triangulated_ok(
+            xyz,
+            uv1,
+            uv2,
+            np.ascontiguousarray(T1, np.float64),
+            np.ascontiguousarray(T2, np.float64),
+            _pinhole_intrinsics(kf1),
+            _pinhole_intrinsics(kf2),
+            cfg.chi2.mono * f1.level_sigma2()[i1],
+            cfg.chi2.mono * f2.level_sigma2()[i2],
+            np.ascontiguousarray(kf1.center_w, np.float64),
+            np.ascontiguousarray(kf2.center_w, np.float64),
+            f1.level_scale()[i1] / f2.level_scale()[i2],
+            cfg.scale_consistency_factor * f1.scale_factor,
+        )
+        if not ok.any():
+            return None
+        return i1[ok], i2[ok], xyz[ok]
+
     def _add_points(self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64, xyz: F64) -> int:
         """Add the triangulated points whose two features are still unmatched (new map points, VI-C)."""
         store = self.store
         created: list[int] = []
+        feat1: list[int] = []
+        feat2: list[int] = []
         rig = kf1.features.two_cameras or kf2.features.two_cameras
         for m in range(i1.size):
             a, b = int(i1[m]), int(i2[m])
@@ -348,7 +419,17 @@ class LocalMapper:
             store.add_observation(pid, kf1.id, a)
             store.add_observation(pid, kf2.id, b)
             created.append(pid)
-        refresh_points(store, created)
+            feat1.append(a)
+            feat2.append(b)
+        # refresh_points(store, created) without walking the observations: each new point is seen by (kf1, a), (kf2, b)
+        refresh_new_pairs(
+            store,
+            np.array(created, np.int64),
+            store.get_keyframe(kf1.id),
+            np.array(feat1, np.int64),
+            store.get_keyframe(kf2.id),
+            np.array(feat2, np.int64),
+        )
         self.recent_points.extend(created)
         return len(created)
 
@@ -550,6 +631,19 @@ def _triangulate_with_depths(
     return rays | use1 | use2, xyz
 
 
+def _pinhole_one_camera(kf: KeyFrame) -> bool:
+    """Whether ``kf`` is a one-camera keyframe whose pipeline image is a pinhole camera's undistorted image (the
+    compiled triangulation tests project with fx, fy, cx, cy)."""
+    return not kf.features.two_cameras and isinstance(kf.camera, PinholeCamera) and kf.camera.image_undistorted
+
+
+def _pinhole_intrinsics(kf: KeyFrame) -> F64:
+    """(4,) fx, fy, cx, cy of a pinhole keyframe's camera."""
+    cam = kf.camera
+    assert isinstance(cam, PinholeCamera)
+    return np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64)
+
+
 def _median_depth(kf: KeyFrame, store: MapStore) -> float:
     ids = kf.point_ids[kf.point_ids >= 0]
     ids = ids[store.has_points(ids)]
@@ -580,4 +674,22 @@ def _fundamental_21(kf1: KeyFrame, kf2: KeyFrame) -> F64:
     T21 = kf2.T_c_w @ invert_T(kf1.T_c_w)
     R21, t21 = T21[:3, :3], T21[:3, 3]
     E21 = hat(t21) @ R21
-    return np.asarray(np.linalg.inv(kf2.camera.K).T @ E21 @ np.linalg.inv(kf1.camera.K))
+    return np.asarray(_inverse_K(kf2.camera).T @ E21 @ _inverse_K(kf1.camera))
+
+
+#: K^-1 of the cameras seen so far (id -> (camera, K^-1)): np.linalg.inv per keyframe pair costs more than the epipolar
+#: test it feeds; bounded, and an entry serves only the very camera object it was computed for
+_INVERSE_K: dict[int, tuple[object, F64]] = {}
+
+
+def _inverse_K(camera: Camera) -> F64:
+    """(3, 3) np.linalg.inv(camera.K), computed once per camera object (the same numbers)."""
+    entry = _INVERSE_K.get(id(camera))
+    if entry is not None and entry[0] is camera:
+        return entry[1]
+    if len(_INVERSE_K) >= 64:
+        _INVERSE_K.clear()
+    inv = np.asarray(np.linalg.inv(camera.K), np.float64)
+    inv.flags.writeable = False
+    _INVERSE_K[id(camera)] = (camera, inv)
+    return inv

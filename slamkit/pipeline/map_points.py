@@ -28,6 +28,56 @@ I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _normal_and_depth(
+    q: int,
+    s: int,
+    e: int,
+    xyz: F64,
+    center: F64,
+    ref_row: I64,
+    level: I64,
+    scale_factor: F64,
+    n_levels: I64,
+    normal: F64,
+    has_normal: NDArray[np.bool_],
+    d_min: F64,
+    d_max: F64,
+) -> None:  # pragma: no cover - compiled
+    """Point q's normal, has_normal, d_min and d_max (see :func:`_refresh_kernel`) from its observations s:e."""
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    count = 0
+    for a in range(s, e):
+        vx = xyz[q, 0] - center[a, 0]
+        vy = xyz[q, 1] - center[a, 1]
+        vz = xyz[q, 2] - center[a, 2]
+        nv = np.sqrt(vx * vx + vy * vy + vz * vz)
+        if nv > 0.0:
+            sx += vx / nv
+            sy += vy / nv
+            sz += vz / nv
+            count += 1
+    if count:
+        mx, my, mz = sx / count, sy / count, sz / count
+        nm = np.sqrt(mx * mx + my * my + mz * mz)
+        if nm > 0.0:
+            mx, my, mz = mx / nm, my / nm, mz / nm
+        normal[q, 0] = mx
+        normal[q, 1] = my
+        normal[q, 2] = mz
+        has_normal[q] = True
+    r = ref_row[q]
+    if r >= 0:
+        vx = xyz[q, 0] - center[r, 0]
+        vy = xyz[q, 1] - center[r, 1]
+        vz = xyz[q, 2] - center[r, 2]
+        dist = np.sqrt(vx * vx + vy * vy + vz * vz)
+        d_max[q] = dist * scale_factor[q] ** level[r]
+        d_min[q] = d_max[q] / scale_factor[q] ** (n_levels[q] - 1)
+
+
 @numba.njit(cache=True, nogil=True)
 def _refresh_kernel(
     xyz: F64,
@@ -38,6 +88,8 @@ def _refresh_kernel(
     level: I64,
     scale_factor: F64,
     n_levels: I64,
+    normals: bool = True,
+    descriptors: bool = True,
 ) -> tuple[F64, NDArray[np.bool_], F64, F64, I64]:  # pragma: no cover - compiled
     """Per point q (observations ptr[q]:ptr[q+1], in keyframe-id order):
 
@@ -45,6 +97,9 @@ def _refresh_kernel(
        d_min, d_max (P,) m from the reference observation ref_row[q] (NaN when it has none);
        best (P,) the observation row with the least median Hamming distance to the others (first on ties),
        -1 when the point has no observation.
+
+    normals=False leaves normal / has_normal / d_min / d_max at zero / False / NaN (``center`` and ``ref_row`` are
+    not read); descriptors=False leaves best at -1 (``desc64`` is not read): the caller does not use them.
     """
     P = ptr.shape[0] - 1
     normal = np.zeros((P, 3))
@@ -57,37 +112,12 @@ def _refresh_kernel(
     for q in range(P):
         s, e = ptr[q], ptr[q + 1]
         n = e - s
-        sx = 0.0
-        sy = 0.0
-        sz = 0.0
-        count = 0
-        for a in range(s, e):
-            vx = xyz[q, 0] - center[a, 0]
-            vy = xyz[q, 1] - center[a, 1]
-            vz = xyz[q, 2] - center[a, 2]
-            nv = np.sqrt(vx * vx + vy * vy + vz * vz)
-            if nv > 0.0:
-                sx += vx / nv
-                sy += vy / nv
-                sz += vz / nv
-                count += 1
-        if count:
-            mx, my, mz = sx / count, sy / count, sz / count
-            nm = np.sqrt(mx * mx + my * my + mz * mz)
-            if nm > 0.0:
-                mx, my, mz = mx / nm, my / nm, mz / nm
-            normal[q, 0] = mx
-            normal[q, 1] = my
-            normal[q, 2] = mz
-            has_normal[q] = True
-        r = ref_row[q]
-        if r >= 0:
-            vx = xyz[q, 0] - center[r, 0]
-            vy = xyz[q, 1] - center[r, 1]
-            vz = xyz[q, 2] - center[r, 2]
-            dist = np.sqrt(vx * vx + vy * vy + vz * vz)
-            d_max[q] = dist * scale_factor[q] ** level[r]
-            d_min[q] = d_max[q] / scale_factor[q] ** (n_levels[q] - 1)
+        if normals:
+            _normal_and_depth(
+                q, s, e, xyz, center, ref_row, level, scale_factor, n_levels, normal, has_normal, d_min, d_max
+            )
+        if not descriptors:
+            continue
         if n == 1:
             best[q] = s
         elif n > 1:
@@ -164,9 +194,13 @@ class _Gathered:
         keyframes: Mapping[int, KeyFrame],
         flat: tuple[I64, I64, I64],
         all_present: bool = False,
+        normals: bool = True,
+        descriptors: bool = True,
     ) -> None:
         """flat: ``flat_observations(points)``; observers missing from ``keyframes`` are left out (all_present: the
-        caller knows every observer is in ``keyframes``)."""
+        caller knows every observer is in ``keyframes``). normals=False skips what only the normals and depth ranges
+        read (centres, reference rows, pyramids: left at their zero / -1 / one defaults), descriptors=False the
+        descriptors' gather (left zero)."""
         P = len(points)
         counts, kf_all, feat_all = flat
         present = None if all_present else np.isin(kf_all, np.fromiter(keyframes, np.int64, count=len(keyframes)))
@@ -175,13 +209,14 @@ class _Gathered:
         self.n_observations = counts
         self.ptr = np.zeros(P + 1, np.int64)
         np.cumsum(np.bincount(point, minlength=P), out=self.ptr[1:])
-        ref_kf = np.fromiter(map(_REF_KF, points), np.int64, count=P)
-        is_ref = np.flatnonzero(kf_a == ref_kf[point])  # at most one row per point (one observation per keyframe)
         self.ref_row = np.full(P, -1, np.int64)
-        self.ref_row[point[is_ref]] = is_ref
+        if normals:
+            ref_kf = np.fromiter(map(_REF_KF, points), np.int64, count=P)
+            is_ref = np.flatnonzero(kf_a == ref_kf[point])  # at most one row per point (one observation per keyframe)
+            self.ref_row[point[is_ref]] = is_ref
         self.center = np.zeros((E, 3))
         self.level = np.zeros(E, np.int64)
-        self.desc = np.zeros((E, 32), np.uint8)
+        self.desc = np.zeros((E if descriptors else 0, 32), np.uint8)
         self.scale_factor = np.ones(P)
         self.n_levels = np.ones(P, np.int64)
         if E:
@@ -195,19 +230,23 @@ class _Gathered:
             bounds = np.append(starts, E)
             observers = [keyframes[k] for k in ids.tolist()]
             level = np.zeros(E, np.int64)
-            desc = np.zeros((E, observers[0].features.descriptors.shape[1]), np.uint8)
+            desc = np.zeros((E if descriptors else 0, observers[0].features.descriptors.shape[1]), np.uint8)
             for i, kf in enumerate(observers):
                 lo, hi = bounds[i], bounds[i + 1]
                 feats = kf.features
                 sel = feat_by_kf[lo:hi]
-                level[lo:hi] = feats.level[sel]
-                desc[lo:hi] = feats.descriptors[sel]
+                if normals:
+                    level[lo:hi] = feats.level[sel]
+                if descriptors:
+                    desc[lo:hi] = feats.descriptors[sel]
             rank = np.empty(E, np.int64)
             rank[order] = np.arange(E)  # row r of the point-major order is row rank[r] of the keyframe order
-            centers = np.array([kf.center_w for kf in observers], np.float64).reshape(-1, 3)
-            self.center = centers[np.repeat(np.arange(ids.size), np.diff(bounds))[rank]]
-            self.level = level[rank]
-            self.desc = desc[rank]
+            if normals:
+                centers = np.array([kf.center_w for kf in observers], np.float64).reshape(-1, 3)
+                self.center = centers[np.repeat(np.arange(ids.size), np.diff(bounds))[rank]]
+                self.level = level[rank]
+            if descriptors:
+                self.desc = desc[rank]
         has_ref = np.flatnonzero(self.ref_row >= 0)
         if has_ref.size:  # the reference keyframe's pyramid (one per point)
             ref_ids, inverse = np.unique(kf_a[self.ref_row[has_ref]], return_inverse=True)
@@ -219,13 +258,54 @@ class _Gathered:
 _REF_KF = attrgetter("ref_kf_id")
 
 
+class _PairGathered:
+    """:class:`_Gathered`'s arrays for new points each observed by exactly two keyframes, built from the two keyframes'
+    feature arrays without walking the observation dictionaries."""
+
+    def __init__(self, kf1: KeyFrame, feat1: I64, kf2: KeyFrame, feat2: I64) -> None:
+        """Point q is observed by feature feat1[q] of kf1 (its reference keyframe) and feat2[q] of kf2 (P,)."""
+        P = feat1.size
+        first, second = (kf1, kf2) if kf1.id < kf2.id else (kf2, kf1)  # each point's rows in keyframe-id order
+        fa, fb = (feat1, feat2) if first is kf1 else (feat2, feat1)
+        self.n_observations = np.full(P, 2, np.int64)
+        self.ptr = np.arange(0, 2 * P + 1, 2, dtype=np.int64)
+        self.ref_row = self.ptr[:-1] + (0 if first is kf1 else 1)
+        self.center = np.empty((2 * P, 3))
+        self.center[0::2] = first.center_w
+        self.center[1::2] = second.center_w
+        self.level = np.empty(2 * P, np.int64)
+        self.level[0::2] = first.features.level[fa]
+        self.level[1::2] = second.features.level[fb]
+        d1, d2 = first.features.descriptors, second.features.descriptors
+        self.desc = np.empty((2 * P, d1.shape[1]), np.uint8)
+        self.desc[0::2] = d1[fa]
+        self.desc[1::2] = d2[fb]
+        self.scale_factor = np.full(P, float(kf1.features.scale_factor))
+        self.n_levels = np.full(P, int(kf1.features.n_levels), np.int64)
+
+
+def refresh_new_pairs(store: MapStore, point_ids: I64, kf1: KeyFrame, feat1: I64, kf2: KeyFrame, feat2: I64) -> None:
+    """:func:`refresh_points` (normals, depth ranges and descriptors) of points just made from two keyframes: point
+    point_ids[q] (P,) is observed by exactly feature feat1[q] of ``kf1``, its reference keyframe, and feat2[q] of
+    ``kf2`` (local mapping's triangulation, VI-C). The same kernel on the same numbers as ``refresh_points``, without
+    its gather from the observation dictionaries."""
+    ids = np.asarray(point_ids, np.int64)
+    if not ids.size:
+        return
+    _apply_ids(store, ids, _PairGathered(kf1, np.asarray(feat1), kf2, np.asarray(feat2)), True, True)
+
+
 def _apply(store: MapStore, points: list[MapPoint], g: _Gathered, normals: bool, descriptors: bool) -> None:
     """Recompute the points' normals/depth ranges and descriptors and write them to the points' map in bulk
     (store.assign_points)."""
     if not points:
         return
-    ids = np.array([p.id for p in points], np.int64)
-    xyz = store.point_rows(ids, "xyz_w")
+    _apply_ids(store, np.array([p.id for p in points], np.int64), g, normals, descriptors)
+
+
+def _apply_ids(store: MapStore, ids: I64, g: _Gathered | _PairGathered, normals: bool, descriptors: bool) -> None:
+    """:func:`_apply` for the points ``ids`` (P,) in the order of g's rows."""
+    xyz = store.point_rows(ids, "xyz_w") if normals else np.zeros((ids.size, 3))  # read by the normals only
     if g.desc.shape[1] % 8:
         raise ValueError(f"descriptors must have a multiple of 8 bytes, got {g.desc.shape[1]}")
     normal, has_normal, d_min, d_max, best = _refresh_kernel(
@@ -237,6 +317,8 @@ def _apply(store: MapStore, points: list[MapPoint], g: _Gathered, normals: bool,
         g.level,
         g.scale_factor,
         g.n_levels,
+        normals,
+        descriptors,
     )
     observed = g.n_observations > 0
     updates: list[tuple[str, NDArray[np.int64], NDArray[Any]]] = []
@@ -262,7 +344,8 @@ def refresh_points(store: MapStore, point_ids: Iterable[int], normals: bool = Tr
     flat = flat_observations(points)
     observers = np.unique(flat[1]).tolist()
     keyframes = {k: store.get_keyframe(k) for k in observers if store.has_keyframe(k)}
-    _apply(store, points, _Gathered(points, keyframes, flat, len(keyframes) == len(observers)), normals, descriptors)
+    g = _Gathered(points, keyframes, flat, len(keyframes) == len(observers), normals, descriptors)
+    _apply(store, points, g, normals, descriptors)
 
 
 def update_normal_and_depth(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
@@ -271,13 +354,13 @@ def update_normal_and_depth(store: MapStore, point: MapPoint, keyframes: Mapping
     d_max = d_ref * scale^level, d_min = d_max / scale^(n_levels - 1) (ORB-SLAM MapPoint::UpdateNormalAndDepth).
     Observers missing from ``keyframes`` are ignored. ``point`` is a point of ``store``, which records the result.
     """
-    _apply(store, [point], _Gathered([point], keyframes, flat_observations([point])), True, False)
+    _apply(store, [point], _Gathered([point], keyframes, flat_observations([point]), descriptors=False), True, False)
 
 
 def compute_distinctive_descriptor(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
     """Choose as the point's descriptor the observation with the least median Hamming distance to all the
     others (ORB-SLAM MapPoint::ComputeDistinctiveDescriptors). Deterministic: ties go to the lowest keyframe id."""
-    _apply(store, [point], _Gathered([point], keyframes, flat_observations([point])), False, True)
+    _apply(store, [point], _Gathered([point], keyframes, flat_observations([point]), normals=False), False, True)
 
 
 def predict_level(
