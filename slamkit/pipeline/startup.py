@@ -110,13 +110,35 @@ def load_cached_kernels(modules: Iterable[ModuleType] | None = None) -> KernelLo
     return out
 
 
+#: Whether :func:`freeze_startup_heap` froze objects that :func:`thaw_startup_heap` has not given back yet.
+_frozen_here = False
+
+
 def freeze_startup_heap() -> int:
     """Collect the garbage there is, then move every object the cyclic collector tracks into its permanent generation
     (``gc.freeze``), so later collections do not walk the start-up objects again (module docstring). Returns how many
-    objects are frozen. Idempotent (a second call freezes only what was created since)."""
+    objects are frozen. Idempotent (a second call freezes only what was created since). A run that called it calls
+    :func:`thaw_startup_heap` when it ends."""
+    global _frozen_here
     gc.collect()
     gc.freeze()
+    _frozen_here = True
     return gc.get_freeze_count()
 
 
-__all__ = ["KernelLoad", "freeze_startup_heap", "load_cached_kernels"]
+def thaw_startup_heap() -> int:
+    """Give the objects :func:`freeze_startup_heap` froze back to the cyclic collector (``gc.unfreeze``), when a run
+    ends: a process that goes on after the run (an embedding application, a test session running many runs) would
+    otherwise never reclaim a reference cycle among what was alive at each run's start (the previous run's map, if
+    it was still referenced then). Does nothing when nothing was frozen here (a caller's own ``gc.freeze`` stays).
+    Returns how many objects were given back."""
+    global _frozen_here
+    if not _frozen_here:
+        return 0
+    n = gc.get_freeze_count()
+    gc.unfreeze()
+    _frozen_here = False
+    return n
+
+
+__all__ = ["KernelLoad", "freeze_startup_heap", "load_cached_kernels", "thaw_startup_heap"]

@@ -52,6 +52,7 @@ from slamkit.pipeline.local_mapping import LocalMapper
 from slamkit.pipeline.loop_closing import LoopCloser, MapMerge
 from slamkit.pipeline.lost import LostDecision
 from slamkit.pipeline.outcomes import KeyFrameDecision, MappingState, TrackingOutcome, TrackingState
+from slamkit.pipeline.startup import thaw_startup_heap
 from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import KeptFrames, TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
@@ -443,6 +444,7 @@ class ThreadedRunner:
             ended_by = exc
             raise
         finally:
+            thaw_startup_heap()  # the warm-up froze the start-up heap for the run's duration only
             self._run_events.finished(self.log, ended_by)
         return self.log
 
@@ -626,6 +628,7 @@ class ThreadedRunner:
             ended_by = ended_by or exc
             raise
         finally:
+            thaw_startup_heap()  # begin's warm-up froze the start-up heap for the run's duration only
             self._run_events.finished(self.log, ended_by)
         return self.log
 

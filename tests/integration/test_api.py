@@ -5,6 +5,7 @@ and writes the run directory."""
 
 from __future__ import annotations
 
+import gc
 import json
 import re
 import subprocess
@@ -116,8 +117,10 @@ def test_threaded_system_tracks_handed_frames_and_joins_its_threads_on_close(tmp
         if result.tracked:
             assert result.T_w_c is not None and np.allclose(result.T_w_c @ result.T_c_w, np.eye(4), atol=1e-9)
     assert {t.name for t in threading.enumerate()} >= {"local-mapping", "loop-closing"}
+    assert gc.get_freeze_count() > 0  # the warm-up froze the start-up heap for the run
     system.close()
     system.close()  # idempotent
+    assert gc.get_freeze_count() == 0  # and the end gave it back: the embedding process collects it again
     assert not {t.name for t in threading.enumerate()} & {"local-mapping", "loop-closing", "lifecycle-events"}
     assert states[-1] == TrackingState.OK and states.count(TrackingState.OK) >= 30
     gt = system.dataset.ground_truth

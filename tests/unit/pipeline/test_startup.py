@@ -9,7 +9,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from slamkit.pipeline.startup import freeze_startup_heap
+from slamkit.pipeline.startup import freeze_startup_heap, thaw_startup_heap
 
 KERNELS = """
 import numba
@@ -85,5 +85,25 @@ def test_freeze_startup_heap_moves_live_objects_out_of_collections() -> None:
         assert frozen == gc.get_freeze_count() and frozen > 0
         assert id(before) not in tracked  # frozen: full collections no longer walk it
         assert id(after) in tracked  # objects made later are collected as usual
+    finally:
+        gc.unfreeze()
+
+
+def test_thaw_gives_back_what_the_warm_up_froze_and_leaves_a_callers_own_freeze_alone() -> None:
+    class Node:
+        pass
+
+    try:
+        assert thaw_startup_heap() == 0  # nothing frozen here: nothing to give back
+        gc.freeze()  # the caller's own freeze
+        assert thaw_startup_heap() == 0 and gc.get_freeze_count() > 0
+        gc.unfreeze()
+        frozen = Node()
+        assert freeze_startup_heap() > 0
+        assert id(frozen) not in {id(o) for o in gc.get_objects()}
+        assert thaw_startup_heap() > 0
+        assert gc.get_freeze_count() == 0
+        assert id(frozen) in {id(o) for o in gc.get_objects()}  # collected as usual again
+        assert thaw_startup_heap() == 0
     finally:
         gc.unfreeze()
