@@ -119,10 +119,10 @@ class ThreadedRunner:
         local mapping whenever tracking wants a keyframe. wait_for_local_mapping: as fast as possible only; False:
         never wait — a monocular frame that wants a keyframe while local mapping is busy interrupts its local BA and
         makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (needs ``modelled_mapping_ms`` 0).
-        frame_waits_for: as fast as possible with ``wait_for_local_mapping`` and no modelled mapping time, monocular
-        frames only, what a frame waits for once its features are extracted, before it is tracked: "local_mapping" —
-        local mapping is done with every keyframe handed to it (the sequential runner's map, hence its keyframe
-        decisions); "none" — nothing (docs/runtime.md)."""
+        frame_waits_for: as fast as possible with ``wait_for_local_mapping``, monocular frames only, what a frame
+        waits for once its features are extracted, before it is tracked: "local_mapping" — local mapping is done with
+        every keyframe handed to it (the sequential runner's map, hence its keyframe decisions; with the modelled
+        mapping time, the sequential runner's with the same model); "none" — nothing (docs/runtime.md)."""
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
                 f"runner.frame_waits_for = {frame_waits_for!r}: expected one of {', '.join(FRAME_WAITS_FOR)}"
@@ -296,9 +296,10 @@ class ThreadedRunner:
         time (``modelled_mapping_ms``) says a camera's frame would still find it busy: then it is busy, and a
         monocular frame makes no keyframe, as in ORB-SLAM; a frame past the modelled time first waits for the thread
         to finish the keyframes made so far (``_pre_track_wait_ms``), as a camera's frame would find them mapped.
-        Without the model, a monocular frame first waits for what ``frame_waits_for`` says (called by the tracker once
-        the frame's features are extracted: ``_frame_waits``). Without local mapping (localization only) it accepts
-        nothing, as ORB-SLAM's stopped local mapping."""
+        With or without the model, a monocular frame first waits for what ``frame_waits_for`` says (called by the
+        tracker once the frame's features are extracted: ``_frame_waits``): with ``local_mapping`` every frame, inside
+        the modelled time or past it, is tracked on the map local mapping finished, as the sequential runner's frame
+        is. Without local mapping (localization only) it accepts nothing, as ORB-SLAM's stopped local mapping."""
         self._modelled_busy = False
         self._pre_track_wait_ms = 0.0
         if self._mapping is None:
@@ -353,13 +354,14 @@ class ThreadedRunner:
         return out
 
     def _frame_waits(self) -> bool:
-        """Whether the frame being tracked waits for local mapping after its extraction (``frame_waits_for``)."""
+        """Whether the frame being tracked waits for local mapping after its extraction (``frame_waits_for``), with
+        or without the modelled mapping time: the model then decides from the frame's timestamp whether local mapping
+        is busy for the keyframe decision, on the map the thread finished (the sequential runner's model)."""
         return (
             self.frame_waits_for == FRAME_WAITS_FOR_LOCAL_MAPPING
             and self.wait_for_local_mapping
             and not self.realtime
             and not self._depth_frames
-            and not self.modelled_mapping.enabled
         )
 
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:
