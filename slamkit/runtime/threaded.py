@@ -118,7 +118,8 @@ class ThreadedRunner:
         within it of the last keyframe makes no keyframe, as in ORB-SLAM at a camera's rate; 0: the runner waits for
         local mapping whenever tracking wants a keyframe. wait_for_local_mapping: as fast as possible only; False:
         never wait — a monocular frame that wants a keyframe while local mapping is busy interrupts its local BA and
-        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (needs ``modelled_mapping_ms`` 0).
+        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (the modelled mapping time is then not
+        used: the thread's own state decides, as in real time).
         frame_waits_for: as fast as possible with ``wait_for_local_mapping``, monocular frames only, what a frame
         waits for once its features are extracted, before it is tracked: "local_mapping" — local mapping is done with
         every keyframe handed to it (the sequential runner's map, hence its keyframe decisions; with the modelled
@@ -127,11 +128,16 @@ class ThreadedRunner:
             raise ConfigError(
                 f"runner.frame_waits_for = {frame_waits_for!r}: expected one of {', '.join(FRAME_WAITS_FOR)}"
             )
-        if not wait_for_local_mapping and modelled_mapping_ms > 0.0:
-            raise ConfigError(
-                "runner.wait_for_local_mapping=false with runner.modelled_mapping_ms="
-                f"{modelled_mapping_ms:g}: the model's frames past its time wait for local mapping; set one of them"
+        self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
+        if not wait_for_local_mapping and self.modelled_mapping.enabled:
+            # tracking never waits: local mapping's real state decides, as in real time (the model stands in for a
+            # camera's frame period only when frames wait for local mapping)
+            log.info(
+                "runner.wait_for_local_mapping=false: runner.modelled_mapping_ms=%g is not used (the local mapping "
+                "thread's own state decides)",
+                modelled_mapping_ms,
             )
+            self.modelled_mapping = modelled_mapping(0.0, 0.0)
         self.wait_for_local_mapping = wait_for_local_mapping
         self.frame_waits_for = frame_waits_for
         self.tracker = tracker
@@ -148,7 +154,6 @@ class ThreadedRunner:
         self.background_niceness = background_niceness
         self.gil_switch_interval_s = gil_switch_interval_s
         self.bad_frames = check_bad_frames_policy(bad_frames)
-        self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
         self._modelled_busy = False  # the frame being tracked saw local mapping busy by the model, not by the thread
         # how long the frame being tracked waited for local mapping before it was tracked (the model's end of mapping,
         # or frame_waits_for), ms

@@ -169,7 +169,7 @@ def test_as_fast_as_possible_a_frame_is_tracked_once_local_mapping_is_done_with_
     extraction, which runs beside local mapping) only once local mapping is done with every keyframe made before it, so
     it is never tracked, nor decides on a keyframe, with local mapping busy; none: frames are tracked while local
     mapping works (the thread's triangulation slowed to 0.1 s here)."""
-    runner, dataset = _runner(f"runner.frame_waits_for={waits_for}")
+    runner, dataset = _runner(f"runner.frame_waits_for={waits_for}", "runner.modelled_mapping_ms=0")
     tracked_from: dict[float, float] = {}  # frame timestamp -> wall clock when tracking got local mapping's state
     extracted: dict[float, float] = {}  # frame timestamp -> wall clock when its feature extraction began
     mapped_at: dict[int, float] = {}  # keyframe id -> wall clock when local mapping was done with it
@@ -221,11 +221,13 @@ def test_as_fast_as_possible_a_frame_is_tracked_once_local_mapping_is_done_with_
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
 
-def test_not_waiting_for_local_mapping_and_its_modelled_time_conflict_with_a_clear_error() -> None:
-    from slamkit.errors import ConfigError
-
-    with pytest.raises(ConfigError, match=r"wait_for_local_mapping=false with runner\.modelled_mapping_ms=100"):
-        _runner("runner.wait_for_local_mapping=false", "runner.modelled_mapping_ms=100")
+def test_not_waiting_for_local_mapping_leaves_the_modelled_time_unused() -> None:
+    """``runner.wait_for_local_mapping=false``: the local mapping thread's own state decides, as in real time; the
+    modelled mapping time (default 100 ms) stands in for a camera's frame period only when frames wait."""
+    runner, _ = _runner("runner.wait_for_local_mapping=false", "runner.modelled_mapping_ms=100")
+    assert not runner.modelled_mapping.enabled
+    runner, _ = _runner("runner.modelled_mapping_ms=100")
+    assert runner.modelled_mapping.enabled
 
 
 @pytest.mark.parametrize(

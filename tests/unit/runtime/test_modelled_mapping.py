@@ -78,6 +78,16 @@ def test_a_new_maps_keyframes_can_cost_their_own_time() -> None:
     assert not model.state(0.56).idle and model.state(0.58).idle
 
 
+def _stamp(i: int, fps: int, origin: float, stamps: str) -> float:
+    """Frame i's timestamp, s, from a camera at ``fps`` started at ``origin``: an epoch origin written with six
+    decimals (TUM) and parsed as a float; else i / fps as a float sum ("float") or rounded to ns and read back ("ns")."""
+    if origin > 0.0:
+        return float(f"{origin + round(i * 1e6 / fps) / 1e6:.6f}")
+    if stamps == "float":
+        return origin + i / fps
+    return round((origin + i / fps) * 1e9) / 1e9
+
+
 @pytest.mark.parametrize("fps", [10, 15, 20, 25, 30, 60])
 def test_a_frame_exactly_at_the_end_sees_local_mapping_idle_whether_its_stamp_is_a_float_sum_or_integer_ns(
     fps: int,
@@ -93,12 +103,8 @@ def test_a_frame_exactly_at_the_end_sees_local_mapping_idle_whether_its_stamp_is
         for origin in (0.0, 1305031102.175304):
             for stamps in ("float", "ns"):
 
-                def t(i: int) -> float:
-                    if origin > 0.0:  # an epoch stamp written with six decimals (TUM), parsed as a float
-                        return float(f"{origin + round(i * 1e6 / fps) / 1e6:.6f}")
-                    if stamps == "float":
-                        return origin + i / fps
-                    return round((origin + i / fps) * 1e9) / 1e9
+                def t(i: int, origin: float = origin, stamps: str = stamps) -> float:
+                    return _stamp(i, fps, origin, stamps)
 
                 model = ModelledMapping(busy_s=busy_s)
                 model.keyframes_made(t(first), 1)
