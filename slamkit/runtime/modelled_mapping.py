@@ -36,7 +36,13 @@ class ModelledMapping:
 
     busy_s: float = 0.0
     new_map_busy_s: float | None = None
-    busy_until_s: float | None = None  # sequence time local mapping finishes the keyframes made so far, s
+    #: sequence time local mapping finishes the keyframes made so far, integer us (None: idle since the start)
+    busy_until_us: int | None = None
+
+    @property
+    def busy_until_s(self) -> float | None:
+        """Sequence time local mapping finishes the keyframes made so far, s (None: nothing made yet)."""
+        return None if self.busy_until_us is None else self.busy_until_us / 1e6
 
     @property
     def enabled(self) -> bool:
@@ -45,8 +51,12 @@ class ModelledMapping:
 
     def state(self, timestamp_s: float) -> MappingState:
         """Local mapping's state for a frame captured at ``timestamp_s`` (s): busy while the modelled work of the
-        keyframes made so far is not done (``timestamp_s < busy_until_s``)."""
-        busy = self.busy_until_s is not None and timestamp_s < self.busy_until_s
+        keyframes made so far is not done (``timestamp_s < busy_until_s``), compared in integer microseconds, so a
+        frame captured exactly at the end (a 30 Hz camera's third frame after a keyframe with a 100 ms model) sees
+        local mapping idle whether its timestamp came as a float sum (the synthetic room's i/30 s), as integer ns (a
+        ROS bag's header stamp) or as an epoch time in s with six decimals (TUM's, whose float64 spacing near 1.3e9 s
+        is 2.4e-7 s: a float or ns comparison there is decided by rounding)."""
+        busy = self.busy_until_us is not None and _us(timestamp_s) < self.busy_until_us
         return MappingState(idle=not busy, accepting_keyframes=True)
 
     def keyframes_made(self, timestamp_s: float, n: int, new_map: bool = False) -> None:
@@ -56,12 +66,19 @@ class ModelledMapping:
         each = self.new_map_busy_s if new_map and self.new_map_busy_s is not None else self.busy_s
         if n <= 0 or each <= 0.0:
             return
-        start = timestamp_s if self.busy_until_s is None else max(self.busy_until_s, timestamp_s)
-        self.busy_until_s = start + n * each
+        t_us = _us(timestamp_s)
+        start = t_us if self.busy_until_us is None else max(self.busy_until_us, t_us)
+        self.busy_until_us = start + n * _us(each)
 
     def reset(self) -> None:
         """The map was reset or a new map started: local mapping's queue is emptied (ORB-SLAM RequestReset)."""
-        self.busy_until_s = None
+        self.busy_until_us = None
+
+
+def _us(t_s: float) -> int:
+    """A time in s as integer microseconds, rounded to the nearest: TUM's timestamp resolution, coarser than float64's
+    rounding of an epoch time (< 0.25 us up to 2^31 s) and than a ROS stamp's ns."""
+    return round(t_s * 1e6)
 
 
 def modelled_mapping(modelled_mapping_ms: float, modelled_mapping_new_map_ms: float | None) -> ModelledMapping:

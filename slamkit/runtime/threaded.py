@@ -119,20 +119,26 @@ class ThreadedRunner:
         within it of the last keyframe makes no keyframe, as in ORB-SLAM at a camera's rate; 0: the runner waits for
         local mapping whenever tracking wants a keyframe. wait_for_local_mapping: as fast as possible only; False:
         never wait — a monocular frame that wants a keyframe while local mapping is busy interrupts its local BA and
-        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (needs ``modelled_mapping_ms`` 0).
-        frame_waits_for: as fast as possible with ``wait_for_local_mapping`` and no modelled mapping time, monocular
-        frames only, what a frame waits for once its features are extracted, before it is tracked: "local_mapping" —
-        local mapping is done with every keyframe handed to it (the sequential runner's map, hence its keyframe
-        decisions); "none" — nothing (docs/runtime.md)."""
+        makes none, as ORB-SLAM2/3's released code fed as fast as it tracks (the modelled mapping time is then not
+        used: the thread's own state decides, as in real time).
+        frame_waits_for: as fast as possible with ``wait_for_local_mapping``, monocular frames only, what a frame
+        waits for once its features are extracted, before it is tracked: "local_mapping" — local mapping is done with
+        every keyframe handed to it (the sequential runner's map, hence its keyframe decisions; with the modelled
+        mapping time, the sequential runner's with the same model); "none" — nothing (docs/runtime.md)."""
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
                 f"runner.frame_waits_for = {frame_waits_for!r}: expected one of {', '.join(FRAME_WAITS_FOR)}"
             )
-        if not wait_for_local_mapping and modelled_mapping_ms > 0.0:
-            raise ConfigError(
-                "runner.wait_for_local_mapping=false with runner.modelled_mapping_ms="
-                f"{modelled_mapping_ms:g}: the model's frames past its time wait for local mapping; set one of them"
+        self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
+        if not wait_for_local_mapping and self.modelled_mapping.enabled:
+            # tracking never waits: local mapping's real state decides, as in real time (the model stands in for a
+            # camera's frame period only when frames wait for local mapping)
+            log.info(
+                "runner.wait_for_local_mapping=false: runner.modelled_mapping_ms=%g is not used (the local mapping "
+                "thread's own state decides)",
+                modelled_mapping_ms,
             )
+            self.modelled_mapping = modelled_mapping(0.0, 0.0)
         self.wait_for_local_mapping = wait_for_local_mapping
         self.frame_waits_for = frame_waits_for
         self.tracker = tracker
@@ -149,7 +155,6 @@ class ThreadedRunner:
         self.background_niceness = background_niceness
         self.gil_switch_interval_s = gil_switch_interval_s
         self.bad_frames = check_bad_frames_policy(bad_frames)
-        self.modelled_mapping = modelled_mapping(modelled_mapping_ms, modelled_mapping_new_map_ms)
         self._modelled_busy = False  # the frame being tracked saw local mapping busy by the model, not by the thread
         # how long the frame being tracked waited for local mapping before it was tracked (the model's end of mapping,
         # or frame_waits_for), ms
@@ -297,9 +302,10 @@ class ThreadedRunner:
         time (``modelled_mapping_ms``) says a camera's frame would still find it busy: then it is busy, and a
         monocular frame makes no keyframe, as in ORB-SLAM; a frame past the modelled time first waits for the thread
         to finish the keyframes made so far (``_pre_track_wait_ms``), as a camera's frame would find them mapped.
-        Without the model, a monocular frame first waits for what ``frame_waits_for`` says (called by the tracker once
-        the frame's features are extracted: ``_frame_waits``). Without local mapping (localization only) it accepts
-        nothing, as ORB-SLAM's stopped local mapping."""
+        With or without the model, a monocular frame first waits for what ``frame_waits_for`` says (called by the
+        tracker once the frame's features are extracted: ``_frame_waits``): with ``local_mapping`` every frame, inside
+        the modelled time or past it, is tracked on the map local mapping finished, as the sequential runner's frame
+        is. Without local mapping (localization only) it accepts nothing, as ORB-SLAM's stopped local mapping."""
         self._modelled_busy = False
         self._pre_track_wait_ms = 0.0
         if self._mapping is None:
@@ -354,13 +360,14 @@ class ThreadedRunner:
         return out
 
     def _frame_waits(self) -> bool:
-        """Whether the frame being tracked waits for local mapping after its extraction (``frame_waits_for``)."""
+        """Whether the frame being tracked waits for local mapping after its extraction (``frame_waits_for``), with
+        or without the modelled mapping time: the model then decides from the frame's timestamp whether local mapping
+        is busy for the keyframe decision, on the map the thread finished (the sequential runner's model)."""
         return (
             self.frame_waits_for == FRAME_WAITS_FOR_LOCAL_MAPPING
             and self.wait_for_local_mapping
             and not self.realtime
             and not self._depth_frames
-            and not self.modelled_mapping.enabled
         )
 
     def _track(self, data: FrameData, camera: Camera) -> TrackingOutcome:

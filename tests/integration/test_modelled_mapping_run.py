@@ -37,7 +37,13 @@ def _run(overrides: list[str]) -> list[tuple[MappingState, TrackingOutcome]]:
 
 def test_monocular_keyframes_wait_for_the_modelled_local_mapping() -> None:
     busy_s = 0.2
-    seen = _run(["dataset.max_frames=45", f"runner.modelled_mapping_ms={busy_s * 1e3:g}"])
+    seen = _run(
+        [
+            "dataset.max_frames=45",
+            f"runner.modelled_mapping_ms={busy_s * 1e3:g}",
+            "runner.modelled_mapping_new_map_ms=null",
+        ]
+    )
     made = [(m, o) for m, o in seen if o.keyframe_ids]
     assert made[0][1].initialized_map and len(made) >= 3
     # no keyframe from a frame that saw local mapping busy; each one made after the modelled time of the last
@@ -52,7 +58,7 @@ def test_monocular_keyframes_wait_for_the_modelled_local_mapping() -> None:
         last = [p for _, p in made if p.timestamp_s < o.timestamp_s][-1]
         assert o.timestamp_s < last.timestamp_s + len(last.keyframe_ids) * busy_s
     # the model keeps monocular keyframes that c2 alone would make every few frames apart
-    without = _run(["dataset.max_frames=45"])
+    without = _run(["dataset.max_frames=45", "runner.modelled_mapping_ms=0"])
     assert all(m.idle for m, _ in without)
     assert len(made) < sum(bool(o.keyframe_ids) for _, o in without)
 

@@ -64,42 +64,58 @@ def test_threaded_run_tracks_the_room_as_accurately_as_the_sequential_one(
     assert metrics["realtime_factor"] is not None and metrics["realtime_factor"] > 0
 
 
-def test_as_fast_as_possible_the_modelled_mapping_time_keeps_keyframes_apart_in_sequence_time() -> None:
+@pytest.mark.parametrize("waits_for", ["local_mapping", "none"])
+def test_as_fast_as_possible_the_modelled_mapping_time_keeps_keyframes_apart_in_sequence_time(waits_for: str) -> None:
     """``runner.modelled_mapping_ms`` as fast as possible: a monocular frame within the modelled time of the last
     keyframe makes none (ORB-SLAM's monocular NeedNewKeyFrame while local mapping is busy), whatever the local
-    mapping thread is doing; past it a frame waits for the thread to finish the keyframes before it (a camera's frame
-    would find them mapped), keyframes are made and the room is tracked."""
+    mapping thread is doing. With ``frame_waits_for=local_mapping`` (the default) every frame, inside the modelled time
+    or past it, is tracked once local mapping is done with the keyframes before it (the sequential runner's map and
+    model); with ``none`` a frame inside it is tracked at once, and only a frame past it waits for the thread to
+    finish the keyframes before it (a camera's frame would find them mapped). Keyframes are made and the room is
+    tracked either way."""
     busy_s = 0.25
-    runner, dataset = _runner(f"runner.modelled_mapping_ms={busy_s * 1e3:g}", "runner.modelled_mapping_new_map_ms=0")
-    # wall clock when tracking starts each frame and when local mapping is done with each keyframe
-    track_start: dict[float, float] = {}
+    runner, dataset = _runner(
+        f"runner.modelled_mapping_ms={busy_s * 1e3:g}",
+        "runner.modelled_mapping_new_map_ms=0",
+        f"runner.frame_waits_for={waits_for}",
+    )
+    # wall clock when tracking got local mapping's state for each frame and when local mapping was done with each
+    # keyframe
+    state_at: dict[float, float] = {}
     mapped_at: dict[int, float] = {}
-    tracker_step, mapper_step = runner.tracker.step, runner.mapper.step
+    assert runner.mapper is not None
+    mapping_state, mapper_step = runner._mapping_state, runner.mapper.step
 
-    def timed_track(data: Any, *args: Any, **kwargs: Any) -> Any:
-        track_start[data.timestamp_s] = time.perf_counter()
-        return tracker_step(data, *args, **kwargs)
+    def timed_state(timestamp_s: float) -> Any:
+        state = mapping_state(timestamp_s)
+        state_at[timestamp_s] = time.perf_counter()
+        return state
 
     def timed_map(kf: Any, *args: Any, **kwargs: Any) -> Any:
         out = mapper_step(kf, *args, **kwargs)
         mapped_at[kf.id] = time.perf_counter()
         return out
 
-    runner.tracker.step, runner.mapper.step = timed_track, timed_map  # type: ignore[method-assign]
+    runner._mapping_state, runner.mapper.step = timed_state, timed_map  # type: ignore[method-assign]
     log = runner.run(dataset, dataset.camera)
     made = [out.timestamp_s for out in log.tracking if out.keyframe_ids and not out.initialized_map]
     assert len(made) >= 5
     gaps = np.diff(made)
     assert gaps.min() >= busy_s - 1e-9, gaps
-    # frames inside a keyframe's modelled time never wait for the local mapping thread
     inside = [out for out in log.tracking if any(0 < out.timestamp_s - t < busy_s for t in made)]
-    assert inside and all("mapping_wait_ms" not in out.timings_ms for out in inside)
-    # a frame past a keyframe's modelled time is tracked on the map local mapping finished with that keyframe (and
-    # the keyframes before it), as a camera's frame would be if local mapping took the modelled time
+    assert inside
+    if waits_for == "none":
+        # frames inside a keyframe's modelled time never wait for the local mapping thread
+        assert all("mapping_wait_ms" not in out.timings_ms for out in inside)
     for out in log.tracking:
         if out.keyframe_ids and not out.initialized_map:
-            later = [t for t in track_start if t >= out.timestamp_s + busy_s]
-            assert all(track_start[t] >= mapped_at[k] for t in later for k in out.keyframe_ids)
+            # local_mapping: every later frame; none: the frames past the keyframe's modelled time
+            first = out.timestamp_s if waits_for == "local_mapping" else out.timestamp_s + busy_s - 1e-9
+            later = [t for t in state_at if t > first]
+            assert all(state_at[t] >= mapped_at[k] for t in later for k in out.keyframe_ids)
+    if waits_for == "local_mapping":
+        # some frame inside a modelled time waited for the thread: the sequential runner's map, not the thread's
+        assert any("mapping_wait_ms" in out.timings_ms for out in inside)
     metrics = runner_metrics(runner, dataset)
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
@@ -153,7 +169,7 @@ def test_as_fast_as_possible_a_frame_is_tracked_once_local_mapping_is_done_with_
     extraction, which runs beside local mapping) only once local mapping is done with every keyframe made before it, so
     it is never tracked, nor decides on a keyframe, with local mapping busy; none: frames are tracked while local
     mapping works (the thread's triangulation slowed to 0.1 s here)."""
-    runner, dataset = _runner(f"runner.frame_waits_for={waits_for}")
+    runner, dataset = _runner(f"runner.frame_waits_for={waits_for}", "runner.modelled_mapping_ms=0")
     tracked_from: dict[float, float] = {}  # frame timestamp -> wall clock when tracking got local mapping's state
     extracted: dict[float, float] = {}  # frame timestamp -> wall clock when its feature extraction began
     mapped_at: dict[int, float] = {}  # keyframe id -> wall clock when local mapping was done with it
@@ -205,11 +221,13 @@ def test_as_fast_as_possible_a_frame_is_tracked_once_local_mapping_is_done_with_
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
 
-def test_not_waiting_for_local_mapping_and_its_modelled_time_conflict_with_a_clear_error() -> None:
-    from slamkit.errors import ConfigError
-
-    with pytest.raises(ConfigError, match=r"wait_for_local_mapping=false with runner\.modelled_mapping_ms=100"):
-        _runner("runner.wait_for_local_mapping=false", "runner.modelled_mapping_ms=100")
+def test_not_waiting_for_local_mapping_leaves_the_modelled_time_unused() -> None:
+    """``runner.wait_for_local_mapping=false``: the local mapping thread's own state decides, as in real time; the
+    modelled mapping time (default 100 ms) stands in for a camera's frame period only when frames wait."""
+    runner, _ = _runner("runner.wait_for_local_mapping=false", "runner.modelled_mapping_ms=100")
+    assert not runner.modelled_mapping.enabled
+    runner, _ = _runner("runner.modelled_mapping_ms=100")
+    assert runner.modelled_mapping.enabled
 
 
 @pytest.mark.parametrize(

@@ -76,3 +76,40 @@ def test_a_new_maps_keyframes_can_cost_their_own_time() -> None:
     model = ModelledMapping(busy_s=0.2)
     model.keyframes_made(0.17, 2, new_map=True)
     assert not model.state(0.56).idle and model.state(0.58).idle
+
+
+def _stamp(i: int, fps: int, origin: float, stamps: str) -> float:
+    """Frame i's timestamp, s, from a camera at ``fps`` started at ``origin``: an epoch origin written with six
+    decimals (TUM) and parsed as a float; else i / fps as a float sum ("float") or rounded to ns and read back ("ns")."""
+    if origin > 0.0:
+        return float(f"{origin + round(i * 1e6 / fps) / 1e6:.6f}")
+    if stamps == "float":
+        return origin + i / fps
+    return round((origin + i / fps) * 1e9) / 1e9
+
+
+@pytest.mark.parametrize("fps", [10, 15, 20, 25, 30, 60])
+def test_a_frame_exactly_at_the_end_sees_local_mapping_idle_whether_its_stamp_is_a_float_sum_or_integer_ns(
+    fps: int,
+) -> None:
+    """The model compares in integer microseconds: a frame captured exactly when the modelled work ends (a 30 Hz
+    camera's third frame after a keyframe with 100 ms) sees local mapping idle whatever float rounding the
+    timestamps carry — i / fps (the synthetic room), the same rounded to ns and read back (a ROS bag), or an epoch time
+    written with six decimals (TUM's 1.3e9 s stamps, whose float spacing is 2.4e-7 s). The frame before it sees it
+    busy. (An epoch stamp in ns that is not a whole us, read as a float, carries 0.24 us of rounding: not covered.)"""
+    busy_s = 0.1
+    period_ns = round(1e9 / fps)
+    for first in range(0, 40):
+        for origin in (0.0, 1305031102.175304):
+            for stamps in ("float", "ns"):
+
+                def t(i: int, origin: float = origin, stamps: str = stamps) -> float:
+                    return _stamp(i, fps, origin, stamps)
+
+                model = ModelledMapping(busy_s=busy_s)
+                model.keyframes_made(t(first), 1)
+                # the frames of the modelled time: busy; the first at or past its end: idle
+                after = [i for i in range(first + 1, first + 20) if (i - first) * period_ns >= busy_s * 1e9 - 1e3]
+                for i in range(first + 1, after[0]):
+                    assert not model.state(t(i)).idle, (fps, first, origin, stamps, i)
+                assert model.state(t(after[0])).idle, (fps, first, origin, stamps, after[0])
