@@ -27,6 +27,17 @@ def _transfer_sq(H: F64, b: int, x: float, y: float, xt: float, yt: float) -> fl
     return d0 * d0 + d1 * d1
 
 
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _scored_pair(chi_a: float, chi_b: float, T: float, gamma: float) -> tuple[float, bool]:  # pragma: no cover
+    """ORB-SLAM's two-image score of one match: rho(chi) = gamma - chi where chi <= T, else 0 (NaN fails), summed
+    over both images; and whether both pass."""
+    ok_a = chi_a <= T
+    ok_b = chi_b <= T
+    s_a = gamma - chi_a if ok_a else 0.0
+    s_b = gamma - chi_b if ok_b else 0.0
+    return s_a + s_b, ok_a and ok_b
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def homography_contributions(
     H21: F64, H12: F64, uv1: F64, uv2: F64, inv_s2: float, T_H: float, gamma: float
@@ -41,12 +52,7 @@ def homography_contributions(
             x1, y1, x2, y2 = uv1[m, 0], uv1[m, 1], uv2[m, 0], uv2[m, 1]
             chi_cur = _transfer_sq(H21, b, x1, y1, x2, y2) * inv_s2
             chi_ref = _transfer_sq(H12, b, x2, y2, x1, y1) * inv_s2
-            ok_cur = chi_cur <= T_H
-            ok_ref = chi_ref <= T_H
-            s_cur = gamma - chi_cur if ok_cur else 0.0
-            s_ref = gamma - chi_ref if ok_ref else 0.0
-            s[b, m] = s_cur + s_ref
-            ok[b, m] = ok_cur and ok_ref
+            s[b, m], ok[b, m] = _scored_pair(chi_cur, chi_ref, T_H, gamma)
     return s, ok
 
 
@@ -74,10 +80,5 @@ def fundamental_contributions(
             num1 = a1 * u1 + b1 * v1 + c1
             chi2 = num2 * num2 / (a2 * a2 + b2 * b2) * inv_s2
             chi1 = num1 * num1 / (a1 * a1 + b1 * b1) * inv_s2
-            ok2 = chi2 <= T_F
-            ok1 = chi1 <= T_F
-            s1 = gamma - chi1 if ok1 else 0.0
-            s2 = gamma - chi2 if ok2 else 0.0
-            s[b, m] = s1 + s2
-            ok[b, m] = ok1 and ok2
+            s[b, m], ok[b, m] = _scored_pair(chi1, chi2, T_F, gamma)
     return s, ok
