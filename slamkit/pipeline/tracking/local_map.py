@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections import Counter
 from itertools import chain
+from operator import attrgetter
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,6 +26,8 @@ from slamkit.pipeline.tracking.frame_pose import PoseRefiner
 
 I64 = NDArray[np.int64]
 
+_OBSERVATIONS = attrgetter("observations")
+
 
 def local_keyframes(frame: Frame, store: MapStore, cfg: TrackingConfig) -> tuple[list[int], int | None]:
     """V-D as ORB-SLAM2's Tracking::UpdateLocalKeyFrames: K1 = every keyframe sharing points with the frame (most
@@ -37,8 +40,9 @@ def local_keyframes(frame: Frame, store: MapStore, cfg: TrackingConfig) -> tuple
     point). ORB-SLAM2's code also leaves the K1 loop after the first parent it adds (a ``break`` inside the parent
     branch, kept in ORB-SLAM3); slamkit goes on with the next K1 keyframe, as the comment of that loop says
     (docs/pipeline.md)."""
-    matched = [store.get_point(p) for p in frame.point_ids[frame.point_ids >= 0].tolist()]
-    counts = Counter(chain.from_iterable(p.observations for p in matched))
+    # the observing keyframe ids are walked by C iterators (map / chain / Counter), not a Python loop per point
+    matched = map(store.get_point, frame.point_ids[frame.point_ids >= 0].tolist())
+    counts = Counter(chain.from_iterable(map(_OBSERVATIONS, matched)))
     k1 = sorted((k for k in counts if store.has_keyframe(k)), key=lambda k: (-counts[k], k))
     if not k1:
         return [], None

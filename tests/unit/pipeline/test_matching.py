@@ -81,3 +81,33 @@ def test_rotation_consistency_rejects_odd_orientations() -> None:
     bad = np.array([150.0, 250.0, 300.0])
     keep = rotation_consistent(np.concatenate([good, bad]), 30)
     assert keep[:200].mean() > 0.95 and not keep[200:].any()
+
+
+def _numpy_grid(uv: np.ndarray, width: int, height: int, cell_px: float) -> tuple[np.ndarray, ...]:
+    """The grid's arrays as NumPy computes them (the reference the compiled counting sort must equal bit for bit)."""
+    n_cols, n_rows = max(1, int(np.ceil(width / cell_px))), max(1, int(np.ceil(height / cell_px)))
+    with np.errstate(invalid="ignore"):  # +-1e300 // cell_px: out of int64, as in the compiled cast
+        col = np.clip((uv[:, 0] // cell_px).astype(np.int64), 0, n_cols - 1)
+        row = np.clip((uv[:, 1] // cell_px).astype(np.int64), 0, n_rows - 1)
+    cell = row * n_cols + col
+    counts = np.bincount(cell, minlength=n_rows * n_cols)
+    end = np.cumsum(counts)
+    return np.argsort(cell, kind="stable"), end - counts, end
+
+
+def test_feature_grid_cells_and_order_equal_numpys_floor_division_and_stable_sort() -> None:
+    """Cells from float floor division (values on and next to cell borders, outside the image, negative) and the
+    order within a cell by feature index, as ``np.argsort(kind="stable")`` gives."""
+    rng = np.random.default_rng(4)
+    border = np.array([0.0, -0.0, 10.0, np.nextafter(10.0, 0.0), np.nextafter(10.0, 20.0), 0.3 * 100, 29.999999999999996,
+                       np.nextafter(640.0, 0.0), 640.0, 700.0, -5.0, -1e-300, 1e300, -1e300])  # fmt: skip
+    for trial in range(60):
+        n = int(rng.integers(0, 2500))
+        uv = rng.uniform(-20.0, 660.0, (n, 2)) if trial % 2 else rng.choice(border, (n, 2))
+        cell_px = float(rng.choice([10.0, 3.0, 7.3, 0.1 * 3]))
+        grid = FeatureGrid.build(uv, np.zeros(n, np.int32), 640, 480, cell_px)
+        order, start, end = _numpy_grid(uv, 640, 480, cell_px)
+        np.testing.assert_array_equal(grid.order, order)
+        np.testing.assert_array_equal(grid.cell_start, start)
+        np.testing.assert_array_equal(grid.cell_end, end)
+        assert grid.order.dtype == grid.cell_start.dtype == grid.cell_end.dtype == np.int64
