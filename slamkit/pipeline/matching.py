@@ -130,18 +130,20 @@ def _bucket_by_cell(uv: F64, cell_px: float, n_cols: int, n_rows: int) -> tuple[
     n_cells = n_rows * n_cols
     cell = np.empty(uv.shape[0], np.int64)
     for i in range(uv.shape[0]):
-        col = min(max(np.int64(uv[i, 0] // cell_px), 0), n_cols - 1)
-        row = min(max(np.int64(uv[i, 1] // cell_px), 0), n_rows - 1)
+        col = np.int64(uv[i, 0] // cell_px)  # as NumPy's astype(int64) of the floored value
+        row = np.int64(uv[i, 1] // cell_px)
+        col = np.int64(0) if col < 0 else np.int64(n_cols - 1) if col > n_cols - 1 else col
+        row = np.int64(0) if row < 0 else np.int64(n_rows - 1) if row > n_rows - 1 else row
         cell[i] = row * n_cols + col
     end = np.zeros(n_cells, np.int64)
     for c in cell:
         end[c] += 1
     start = np.empty(n_cells, np.int64)
     total = 0
-    for c in range(n_cells):
-        start[c] = total
-        total += end[c]
-        end[c] = total
+    for k in range(n_cells):
+        start[k] = total
+        total += int(end[k])
+        end[k] = total
     fill = start.copy()
     order = np.empty(cell.size, np.int64)
     for i in range(cell.size):

@@ -60,7 +60,7 @@ def test_niceness_is_capped_at_19_and_zero_changes_nothing() -> None:
 def test_a_thread_the_nice_cap_leaves_beside_its_creator_goes_to_the_idle_class() -> None:
     """Under ``nice -n 19`` raising the nice value changes nothing: the background thread must still yield to
     tracking, so it is put in SCHED_IDLE; a thread the cap leaves well below its creator stays SCHED_OTHER."""
-    out: dict[str, object] = {}
+    out: dict[str, int] = {}
 
     def body(niceness_first: int) -> None:
         tid = threading.get_native_id()
