@@ -27,11 +27,6 @@ log = logging.getLogger("slamkit.runner")
 #: Linux's largest nice value.
 MAX_NICE = 19
 
-#: A background thread that the nice cap leaves fewer than this many levels below its creator goes to SCHED_IDLE.
-IDLE_BELOW_NICENESS_GAP = 5
-
-_IDLE_FALLBACK = os.environ.get("SLAMKIT_EXPERIMENT_NO_IDLE") != "1"  # temporary A/B switch
-
 
 def lower_thread_priority(niceness: int) -> bool:
     """Raise the calling thread's nice value by ``niceness`` (capped at 19); True if the OS applied it.
@@ -56,25 +51,13 @@ def lower_process_priority(pid: int, niceness: int) -> bool:
 
 
 def _renice(who: int, niceness: int, label: str) -> bool:
-    """Raise the nice value of thread/process id ``who`` by ``niceness`` (capped at 19); False if refused.
-
-    When the cap leaves the thread less than ``IDLE_BELOW_NICENESS_GAP`` nice levels below the caller (a run under
-    ``nice -n 19``: the whole process is at 19 already, so raising the nice value changes nothing and local mapping
-    competes with tracking as an equal), the thread is put in Linux's SCHED_IDLE class instead: it then runs only
-    on CPU time that the normal-class threads (tracking) leave, with a weight (3) a fifth of nice 19's (15), about
-    the share nice +10 gives below nice 0 (110 against 1024)."""
+    """Raise the nice value of thread/process id ``who`` by ``niceness`` (capped at 19); False if refused."""
     try:
         current = os.getpriority(os.PRIO_PROCESS, who)
-        target = min(MAX_NICE, current + niceness)
-        os.setpriority(os.PRIO_PROCESS, who, target)
+        os.setpriority(os.PRIO_PROCESS, who, min(MAX_NICE, current + niceness))
     except OSError as exc:  # e.g. a seccomp sandbox refusing setpriority: run on at the normal priority
         log.warning("could not lower the priority of %s: %s", label, exc)
         return False
-    if target - current < min(niceness, IDLE_BELOW_NICENESS_GAP) and _IDLE_FALLBACK and hasattr(os, "SCHED_IDLE"):
-        try:
-            os.sched_setscheduler(who, os.SCHED_IDLE, os.sched_param(0))
-        except OSError as exc:
-            log.warning("could not put %s in the idle scheduling class: %s", label, exc)
     return True
 
 
