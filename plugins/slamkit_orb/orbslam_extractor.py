@@ -30,6 +30,7 @@ descriptor call per image, 11 ms (``python benchmarks/extraction_gil.py``).
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -71,6 +72,17 @@ class LevelKeypoints:
     response: NDArray[np.float32]
     angle_deg: NDArray[np.float32]
     descriptors: NDArray[np.uint8]
+
+
+def _surviving_rows(xy: NDArray[np.int32], out_keypoints: Sequence[cv2.KeyPoint]) -> NDArray[np.int64]:
+    """Rows of ``xy`` (n, 2) integer level positions that OpenCV's ``compute`` kept, in its output order (the
+    keypoints it returned, each at its input position: a level's corners are distinct pixels)."""
+    out_xy = np.rint(np.asarray(cv2.KeyPoint.convert(list(out_keypoints)), np.float64).reshape(-1, 2)).astype(np.int64)
+    width = int(max(int(xy[:, 0].max(initial=0)), int(out_xy[:, 0].max(initial=0)))) + 1
+    key = xy[:, 1].astype(np.int64) * width + xy[:, 0]
+    order = np.argsort(key)
+    pos = np.searchsorted(key[order], out_xy[:, 1] * width + out_xy[:, 0])
+    return order[pos].astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -238,20 +250,23 @@ class OrbSlamExtractor:
         of a level come from one binding call and get their angle and index as attributes: every cv2 call (a
         KeyPoint constructor too) releases and re-takes the GIL, which costs up to a switch interval each while
         another thread runs Python. Keypoints lie >= edge_threshold px inside their level, so OpenCV's border
-        filter keeps them all; class_id maps back.
+        filter keeps them all and the descriptors come in the keypoints' order; should it drop some, the survivors are
+        found by position (``_surviving_rows``; a level's FAST corners are distinct pixels).
         """
         keypoints = cv2.KeyPoint.convert(xy.astype(np.float32), float(self.patch_size), 0.0, 0, 0)  # type: ignore[call-overload]  # stubs: no ndarray
-        for i, (keypoint, a) in enumerate(zip(keypoints, angle.tolist(), strict=True)):
+        for keypoint, a in zip(keypoints, angle.tolist(), strict=True):
             keypoint.angle = a
-            keypoint.class_id = i
         out_keypoints, descriptors = self._descriptor().compute(level_image, keypoints)
         if descriptors is None or len(out_keypoints) == 0:
             has = np.zeros(0, np.int64)
             return _LevelResult(level, xy[has], response[has], angle[has], np.zeros((0, _DESCRIPTOR_BYTES), np.uint8))
-        index = np.fromiter((kp.class_id for kp in out_keypoints), dtype=np.int64, count=len(out_keypoints))
-        order = np.argsort(index, kind="stable")
-        has = index[order]
-        return _LevelResult(level, xy[has], response[has], angle[has], np.asarray(descriptors, np.uint8)[order])
+        bits: NDArray[np.uint8] = np.asarray(descriptors, np.uint8)
+        if len(out_keypoints) == len(keypoints):  # OpenCV only filters the keypoints (border, level), never reorders
+            return _LevelResult(level, xy, response, angle, bits)
+        rows = _surviving_rows(xy, out_keypoints)
+        order = np.argsort(rows, kind="stable")  # the input's order, as when nothing is dropped
+        has = rows[order]
+        return _LevelResult(level, xy[has], response[has], angle[has], bits[order])
 
     def _level_group(self, levels: list[int], pyramid: list[NDArray[np.uint8]]) -> list[_LevelResult | None]:
         """The keypoints of some levels in one compiled call (level_kernel.levels_keypoints)."""

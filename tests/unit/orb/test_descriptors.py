@@ -77,3 +77,24 @@ def test_descriptors_of_a_real_image_survive_the_turn(
     i, j = _rotated_pairs(features, rotated, tum_image.shape[1])
     assert i.size > 100
     assert np.percentile(_hamming(features.descriptors[i], rotated.descriptors[j]), 95) <= 2
+
+
+def test_keypoints_opencv_drops_leave_the_others_with_their_own_descriptors(extractor: OrbSlamExtractor) -> None:
+    """A keypoint inside OpenCV's border is dropped by ``compute``: the level result keeps the others, in their
+    input order, each with the descriptor OpenCV gives it alone (the rows are found by position, not class_id)."""
+    image = textured_image(seed=5)
+    h, w = image.shape
+    rng = np.random.default_rng(3)
+    inner = np.stack([rng.choice(np.arange(40, w - 40), 60, replace=False), rng.integers(40, h - 40, 60)], axis=1)
+    edge = np.array([[2, 100], [w - 3, 50], [200, 1]])  # within edge_threshold of the border: dropped
+    xy = np.concatenate([inner[:20], edge[:1], inner[20:45], edge[1:], inner[45:]]).astype(np.int32)
+    response = np.arange(xy.shape[0], dtype=np.float32)
+    angle = rng.uniform(0.0, 360.0, xy.shape[0]).astype(np.float32)
+    out = extractor._described(0, image, xy, response, angle)
+    is_inner = np.ones(xy.shape[0], bool)
+    is_inner[[20, 46, 47]] = False
+    np.testing.assert_array_equal(out.xy, xy[is_inner])
+    np.testing.assert_array_equal(out.response, response[is_inner])
+    for k in range(0, out.xy.shape[0], 9):
+        alone = extractor._described(0, image, out.xy[k : k + 1], out.response[k : k + 1], out.angle_deg[k : k + 1])
+        np.testing.assert_array_equal(alone.descriptors[0], out.descriptors[k])
