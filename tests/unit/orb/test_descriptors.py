@@ -89,7 +89,7 @@ def test_keypoints_opencv_drops_leave_the_others_with_their_own_descriptors(extr
     edge = np.array([[2, 100], [w - 3, 50], [200, 1]])  # within edge_threshold of the border: dropped
     xy = np.concatenate([inner[:20], edge[:1], inner[20:45], edge[1:], inner[45:]]).astype(np.int32)
     response = np.arange(xy.shape[0], dtype=np.float32)
-    angle = rng.uniform(0.0, 360.0, xy.shape[0]).astype(np.float32)
+    angle = np.asarray(rng.uniform(0.0, 360.0, xy.shape[0]), np.float32)
     out = extractor._described(0, image, xy, response, angle)
     is_inner = np.ones(xy.shape[0], bool)
     is_inner[[20, 46, 47]] = False
