@@ -239,13 +239,14 @@ class GtsamOptimizer:
         abort: AbortToken | None,
         params: gtsam.LevenbergMarquardtParams,
         ordering: gtsam.Ordering | None,
-        gauge_fixed: bool,
+        determined: bool,
     ) -> _LmRun:
-        """One BA stage: the Gauss-Newton driver (``_gauss_newton``) when ``ba_gauss_newton`` is on, the gauge is
-        fixed (``gauge_fixed``) and an explicit elimination ``ordering`` is given; GTSAM's LM (``_run``)
-        otherwise, and for whatever iterations remain when the driver gives up (indefinite system or a step
-        that increases the cost)."""
-        if not (self.ba_gauss_newton and gauge_fixed and ordering is not None) or self.ba_predict_convergence:
+        """One BA stage: the Gauss-Newton driver (``_gauss_newton``) when ``ba_gauss_newton`` is on, the stage is
+        ``determined`` (gauge fixed, every free point with 3 residual rows: the undamped normal equations are
+        positive definite) and an explicit elimination ``ordering`` is given; GTSAM's LM (``_run``) otherwise,
+        and for whatever iterations remain when the driver gives up (indefinite system or a step that increases
+        the cost)."""
+        if not (self.ba_gauss_newton and determined and ordering is not None) or self.ba_predict_convergence:
             return self._run(graph, values, iterations, abort, params, self.ba_predict_convergence)
         run = self._gauss_newton(graph, values, iterations, abort, ordering)
         if run.converged or run.aborted or run.iterations >= iterations:
@@ -615,15 +616,24 @@ class GtsamOptimizer:
         # The gauge (7 DoF: rotation, translation, scale) is fixed by two fixed keyframes, or by one with stereo
         # observations (metric depth fixes the scale): the Gauss-Newton driver's undamped systems are then positive
         # definite. A monocular window with one fixed keyframe (fr1_xyz's usual case) leaves the scale to LM.
+        # Every free point also needs 3 residual rows (two monocular observations, or a stereo one): one monocular
+        # observation leaves its depth free.
         n_fixed = int(np.count_nonzero(problem.pose_fixed))
+        rows = np.where(np.isfinite(problem.u_right_px), 3.0, 2.0)
         gauge_fixed = n_fixed >= 2 or (n_fixed >= 1 and bool(np.isfinite(problem.u_right_px).any()))
+
+        def determined(active: B) -> bool:
+            """The gauge is fixed and every free point in the stage has at least 3 residual rows."""
+            per_point = np.bincount(problem.obs_point[active], weights=rows[active], minlength=M)
+            return gauge_fixed and bool((per_point[points_in & ~problem.point_fixed] >= 3.0).all())
+
         run = self._run_ba(
             graph_of(np.ones(E, dtype=bool), problem.robust),
             values,
             problem.iterations_first,
             abort,
             *self._ba_params(points_in, pose_key0, K),
-            gauge_fixed,
+            determined(np.ones(E, dtype=bool)),
         )
         iterations = run.iterations
 
@@ -657,7 +667,6 @@ class GtsamOptimizer:
                 # absorbs its 2 residuals, so it adds nothing to the poses: the stage's poses are those with the
                 # point in it. Afterwards it is placed where LM would take it, on its observation's ray at its
                 # depth in that camera (_place_on_rays): reprojection error zero, as ORB-SLAM2's g2o stage leaves it.
-                rows = np.where(np.isfinite(problem.u_right_px), 3.0, 2.0)
                 per_point = np.bincount(problem.obs_point[active], weights=rows[active], minlength=M)
                 placeable = active & _pinhole_first_camera(problem) & (rows == 2.0)
                 single = (per_point == 2.0) & ~problem.point_fixed & self.ba_drop_undetermined_points
@@ -674,7 +683,7 @@ class GtsamOptimizer:
                     problem.iterations_second,
                     abort,
                     *self._ba_params(points_in, pose_key0, K),
-                    gauge_fixed,
+                    determined(active),
                 )
                 iterations += run.iterations
                 T_c_w, xyz_w = estimate(run.values, xyz_w)
