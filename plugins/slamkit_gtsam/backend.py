@@ -13,7 +13,10 @@
   (measured on recorded real local BAs: docs/BENCHMARKS.md "Optimizer backends"). LM stops at GTSAM's relative
   decrease test or, with ``ba_predict_convergence`` (off by default: fr1_xyz tracked worse with it), one iteration
   earlier when the extrapolated remaining decrease is already below it; the second stage leaves out points with one monocular observation left
-  (``ba_drop_undetermined_points``; docs/BENCHMARKS.md, branch ``gtsam2``).
+  (``ba_drop_undetermined_points``; docs/BENCHMARKS.md, branch ``gtsam2``). A stage whose undamped normal
+  equations are definite (two fixed keyframes, or one with stereo observations; every free point with 3 residual
+  rows) runs a Gauss-Newton driver over GTSAM's linearization and sequential Cholesky instead, whose confirming
+  iteration is a chord step on the previous factor (``ba_gauss_newton``; docs/BENCHMARKS.md, branch ``gtsamba``).
 - Relative Sim3: one vectorised CustomFactor over all matches (slamkit_gtsam.sim3_factor).
 - Essential graph: BetweenFactorSimilarity3 (or BetweenFactorPose3 in the SE3 variant) on the inverse poses, whose
   error is exactly log(S_ij S_jw S_iw^-1).
@@ -269,9 +272,9 @@ class GtsamOptimizer:
         Each iteration: ``linearize`` (A, b at the current values), sequential Cholesky in ``ordering`` (points
         first: the Schur complement g2o forms), back-substitution, retraction, the cost. No damping factors, no
         linearized-error evaluations, no model-fidelity test: LM's damping floor (``ba_lambda_lower_bound``, 1e-5)
-        is negligible against a BA Hessian whose gauge is fixed (diagonal ~1e3-1e5 per pixel-whitened
-        observation), and LM takes every step of such a BA at that floor (no rejected tries on the room's
-        recorded local BAs), so the steps are LM's to rounding.
+        is negligible against a BA Hessian whose gauge is fixed (a point's diagonal grows by (f/z)^2 / sigma^2 per
+        observation, ~1e4 for f ~ 500 px at a few metres), and LM takes every step of such a BA at that floor (no
+        rejected tries on the room's recorded local BAs), so the steps are LM's to rounding.
 
         The last, confirming iteration of LM (the one whose decrease falls below ``relative_error_tol``) is
         replaced by a chord step: with the new linearization's gradient g = -A^T b and the previous iteration's
