@@ -1,14 +1,16 @@
 """GTSAM backend settings against each other on recorded local BAs, round-robin in one process.
 
-Usage: ``python benchmarks/gtsam_variants.py DIR N VARIANT[,VARIANT...] [ROUNDS]`` with DIR holding the
+Usage: ``python benchmarks/gtsam_variants.py DIR N VARIANT[,VARIANT...] [ROUNDS] [cpu]`` with DIR holding the
 ``ba_*.pkl`` of ``benchmarks/capture_ba_problems.py`` (trusted files: pickles), N problems evenly spaced, e.g.
 ``python benchmarks/gtsam_variants.py /tmp/ba_room 20 scipy,main,noskip,gtsam``.
 
 Variants: ``scipy`` (the default backend), ``gtsam`` (this tree's defaults), ``main`` (the GTSAM backend of the
 checkout at $SLAMKIT_MAIN, default /work/main: before/after in one process), ``noskip``
 (``ba_skip_converged_second_stage: false``), ``tol7`` / ``tol10`` (``relative_error_tol`` 1e-7 / 1e-10, the
-default backend's). Per problem: the median time of ROUNDS solves, iterations, outliers, final cost and keyframe
-positions relative to the first variant's; then medians over the problems.
+default backend's), ``lm`` (``ba_gauss_newton: false``: GTSAM's LM for every stage). Per problem: the median time of ROUNDS solves, iterations, outliers, final cost and keyframe
+positions relative to the first variant's; then medians over the problems. ``cpu``: time the process's CPU
+time (``time.process_time``, all threads) instead of the wall clock: on a machine shared with other runs it
+leaves out the time the process waited for a core.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ VARIANTS: dict[str, Callable[[], Any]] = {
     "keep1": _gtsam(ba_drop_undetermined_points=False),
     "predict": _gtsam(ba_predict_convergence=True),
     "mfchol": _gtsam(ba_linear_solver="MULTIFRONTAL_CHOLESKY"),
+    "lm": _gtsam(ba_gauss_newton=False),
 }
 
 
@@ -76,6 +79,7 @@ def main(argv: list[str]) -> int:
     paths = sorted(Path(argv[0]).glob("ba_*.pkl"))
     n, names = int(argv[1]), argv[2].split(",")
     rounds = int(argv[3]) if len(argv) > 3 else 1
+    clock = time.process_time if len(argv) > 4 and argv[4] == "cpu" else time.perf_counter
     paths = paths[:: max(1, len(paths) // n)][:n]
     opts = {k: VARIANTS[k]() for k in names}
     warm = pickle.loads(paths[0].read_bytes())
@@ -91,9 +95,9 @@ def main(argv: list[str]) -> int:
         results: dict[str, Any] = {}
         for _ in range(rounds):
             for k in names:
-                t0 = time.perf_counter()
+                t0 = clock()
                 results[k] = opts[k].bundle_adjust(problem)
-                per[k].append(time.perf_counter() - t0)
+                per[k].append(clock() - t0)
         ref = results[names[0]]
         for k in names:
             r = results[k]

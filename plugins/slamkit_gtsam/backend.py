@@ -13,7 +13,10 @@
   (measured on recorded real local BAs: docs/BENCHMARKS.md "Optimizer backends"). LM stops at GTSAM's relative
   decrease test or, with ``ba_predict_convergence`` (off by default: fr1_xyz tracked worse with it), one iteration
   earlier when the extrapolated remaining decrease is already below it; the second stage leaves out points with one monocular observation left
-  (``ba_drop_undetermined_points``; docs/BENCHMARKS.md, branch ``gtsam2``).
+  (``ba_drop_undetermined_points``; docs/BENCHMARKS.md, branch ``gtsam2``). A stage whose undamped normal
+  equations are definite (two fixed keyframes, or one with stereo observations; every free point with 3 residual
+  rows) runs a Gauss-Newton driver over GTSAM's linearization and sequential Cholesky instead, whose confirming
+  iteration is a chord step on the previous factor (``ba_gauss_newton``; docs/BENCHMARKS.md, branch ``gtsamba``).
 - Relative Sim3: one vectorised CustomFactor over all matches (slamkit_gtsam.sim3_factor).
 - Essential graph: BetweenFactorSimilarity3 (or BetweenFactorPose3 in the SE3 variant) on the inverse poses, whose
   error is exactly log(S_ij S_jw S_iw^-1).
@@ -114,6 +117,8 @@ class GtsamOptimizer:
         ba_skip_converged_second_stage: bool = True,
         ba_drop_undetermined_points: bool = True,
         ba_predict_convergence: bool = False,
+        ba_gauss_newton: bool = True,
+        ba_chord_test_below: float = 1e-3,
     ) -> None:
         for key, value in (
             ("lambda_initial", lambda_initial),
@@ -127,6 +132,7 @@ class GtsamOptimizer:
             ("relative_error_tol", relative_error_tol),
             ("absolute_error_tol", absolute_error_tol),
             ("ba_lambda_lower_bound", ba_lambda_lower_bound),
+            ("ba_chord_test_below", ba_chord_test_below),
         ):
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ConfigError(f"optimizer.{key} = {value!r}: expected a finite number >= 0")
@@ -144,6 +150,7 @@ class GtsamOptimizer:
             ("ba_skip_converged_second_stage", ba_skip_converged_second_stage),
             ("ba_drop_undetermined_points", ba_drop_undetermined_points),
             ("ba_predict_convergence", ba_predict_convergence),
+            ("ba_gauss_newton", ba_gauss_newton),
         ):
             if not isinstance(flag, bool):
                 raise ConfigError(f"optimizer.{key} = {flag!r}: expected true or false")
@@ -163,6 +170,8 @@ class GtsamOptimizer:
         self.ba_skip_converged_second_stage = ba_skip_converged_second_stage
         self.ba_drop_undetermined_points = ba_drop_undetermined_points
         self.ba_predict_convergence = ba_predict_convergence
+        self.ba_gauss_newton = ba_gauss_newton
+        self.ba_chord_test_below = float(ba_chord_test_below)
 
     # ---- LM driver ----------------------------------------------------------------------------------
 
@@ -224,6 +233,94 @@ class GtsamOptimizer:
                 break
             previous, last_decrease = current, decrease
         return _LmRun(opt.values(), done, False, converged)
+
+    def _run_ba(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        iterations: int,
+        abort: AbortToken | None,
+        params: gtsam.LevenbergMarquardtParams,
+        ordering: gtsam.Ordering | None,
+        determined: bool,
+    ) -> _LmRun:
+        """One BA stage: the Gauss-Newton driver (``_gauss_newton``) when ``ba_gauss_newton`` is on, the stage is
+        ``determined`` (gauge fixed, every free point with 3 residual rows: the undamped normal equations are
+        positive definite) and an explicit elimination ``ordering`` is given; GTSAM's LM (``_run``) otherwise,
+        and for whatever iterations remain when the driver gives up (indefinite system or a step that increases
+        the cost)."""
+        if not (self.ba_gauss_newton and determined and ordering is not None) or self.ba_predict_convergence:
+            return self._run(graph, values, iterations, abort, params, self.ba_predict_convergence)
+        run = self._gauss_newton(graph, values, iterations, abort, ordering)
+        if run.converged or run.aborted or run.iterations >= iterations:
+            return run
+        rest = self._run(graph, run.values, iterations - run.iterations, abort, params)
+        return _LmRun(rest.values, run.iterations + rest.iterations, rest.aborted, rest.converged)
+
+    def _gauss_newton(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        iterations: int,
+        abort: AbortToken | None,
+        ordering: gtsam.Ordering,
+    ) -> _LmRun:
+        """Up to ``iterations`` Gauss-Newton iterations of a BA stage whose gauge is fixed, stopping at GTSAM's
+        relative decrease test; returns early, not converged, when a step cannot be taken (the caller's LM goes
+        on from the returned values).
+
+        Each iteration: ``linearize`` (A, b at the current values), sequential Cholesky in ``ordering`` (points
+        first: the Schur complement g2o forms), back-substitution, retraction, the cost. No damping factors, no
+        linearized-error evaluations, no model-fidelity test: LM's damping floor (``ba_lambda_lower_bound``, 1e-5)
+        is negligible against a BA Hessian whose gauge is fixed (a point's diagonal grows by (f/z)^2 / sigma^2 per
+        observation, ~1e4 for f ~ 500 px at a few metres), and LM takes every step of such a BA at that floor (no
+        rejected tries on the room's recorded local BAs), so the steps are LM's to rounding.
+
+        The last, confirming iteration of LM (the one whose decrease falls below ``relative_error_tol``) is
+        replaced by a chord step: with the new linearization's gradient g = -A^T b and the previous iteration's
+        Cholesky factor R (R^T R = H at the previous values), the Gauss-Newton model predicts the decrease
+        0.5 |R^-T g|^2 (exact for an unchanged Hessian). When that is below ``relative_error_tol`` times the cost,
+        the step -R^-1 R^-T g is taken from the old factor (two triangular solves instead of an elimination) and
+        the stage has converged; a step that does not decrease the cost is not taken. The result differs from
+        taking a full last iteration only through the Hessian's change over one converged step (second order).
+        The test (a gradient and two triangular solves: 2-16 ms on the room's local BAs) runs only after a step whose
+        relative decrease was below ``ba_chord_test_below``: after a larger one the next decrease is not yet below
+        the tolerance (on the room: relative decreases ~3e-2, ~2e-4, ~2e-6 in the three iterations).
+        """
+        error = graph.error(values)
+        factor: gtsam.GaussianBayesNet | None = None
+        last_relative = math.inf
+        done = 0
+        while done < iterations:
+            if abort is not None and abort.is_set():
+                return _LmRun(values, done, True)
+            linear = graph.linearize(values)
+            if factor is not None and last_relative < self.ba_chord_test_below:
+                y = factor.backSubstituteTranspose(linear.gradientAtZero())
+                if 0.5 * y.dot(y) < self.relative_error_tol * error:
+                    step = factor.backSubstitute(y)
+                    step.scaleInPlace(-1.0)
+                    chord = values.retract(step)
+                    done += 1
+                    if graph.error(chord) <= error:
+                        values = chord
+                    return _LmRun(values, done, False, True)
+            try:
+                factor = linear.eliminateSequential(ordering)
+            except RuntimeError:  # indeterminant system (a direction nothing constrains): LM's damping takes over
+                return _LmRun(values, done, False)
+            moved = values.retract(factor.optimize())
+            current = graph.error(moved)
+            if not current <= error:  # a step up (or NaN): LM from here
+                return _LmRun(values, done, False)
+            values = moved
+            done += 1
+            decrease = error - current
+            last_relative = decrease / error if error > 0.0 else 0.0
+            error = current
+            if decrease < self.absolute_error_tol or last_relative < self.relative_error_tol:
+                return _LmRun(values, done, False, True)
+        return _LmRun(values, done, False)
 
     # ---- noise models -------------------------------------------------------------------------------
 
@@ -519,13 +616,27 @@ class GtsamOptimizer:
         gates = np.where(np.isfinite(problem.u_right_px), problem.chi2_stereo, problem.chi2_mono)
         points_in = np.ones(M, dtype=bool)
         excluded = np.zeros(E, dtype=bool)
-        run = self._run(
+        # The gauge (7 DoF: rotation, translation, scale) is fixed by two fixed keyframes, or by one with stereo
+        # observations (metric depth fixes the scale): the Gauss-Newton driver's undamped systems are then positive
+        # definite. A monocular window with one fixed keyframe (fr1_xyz's usual case) leaves the scale to LM.
+        # Every free point also needs 3 residual rows (two monocular observations, or a stereo one): one monocular
+        # observation leaves its depth free.
+        n_fixed = int(np.count_nonzero(problem.pose_fixed))
+        rows = np.where(np.isfinite(problem.u_right_px), 3.0, 2.0)
+        gauge_fixed = n_fixed >= 2 or (n_fixed >= 1 and bool(np.isfinite(problem.u_right_px).any()))
+
+        def determined(active: B) -> bool:
+            """The gauge is fixed and every free point in the stage has at least 3 residual rows."""
+            per_point = np.bincount(problem.obs_point[active], weights=rows[active], minlength=M)
+            return gauge_fixed and bool((per_point[points_in & ~problem.point_fixed] >= 3.0).all())
+
+        run = self._run_ba(
             graph_of(np.ones(E, dtype=bool), problem.robust),
             values,
             problem.iterations_first,
             abort,
-            self._ba_params(points_in, pose_key0, K),
-            self.ba_predict_convergence,
+            *self._ba_params(points_in, pose_key0, K),
+            determined(np.ones(E, dtype=bool)),
         )
         iterations = run.iterations
 
@@ -559,7 +670,6 @@ class GtsamOptimizer:
                 # absorbs its 2 residuals, so it adds nothing to the poses: the stage's poses are those with the
                 # point in it. Afterwards it is placed where LM would take it, on its observation's ray at its
                 # depth in that camera (_place_on_rays): reprojection error zero, as ORB-SLAM2's g2o stage leaves it.
-                rows = np.where(np.isfinite(problem.u_right_px), 3.0, 2.0)
                 per_point = np.bincount(problem.obs_point[active], weights=rows[active], minlength=M)
                 placeable = active & _pinhole_first_camera(problem) & (rows == 2.0)
                 single = (per_point == 2.0) & ~problem.point_fixed & self.ba_drop_undetermined_points
@@ -570,13 +680,13 @@ class GtsamOptimizer:
                 for pt in np.flatnonzero(~points_in):
                     stage2.erase(int(pt))
                 active &= observed[problem.obs_point]
-                run = self._run(
+                run = self._run_ba(
                     graph_of(active, problem.robust and self.ba_robust_second_stage),
                     stage2,
                     problem.iterations_second,
                     abort,
-                    self._ba_params(points_in, pose_key0, K),
-                    self.ba_predict_convergence,
+                    *self._ba_params(points_in, pose_key0, K),
+                    determined(active),
                 )
                 iterations += run.iterations
                 T_c_w, xyz_w = estimate(run.values, xyz_w)
@@ -597,22 +707,26 @@ class GtsamOptimizer:
             aborted=run.aborted,
         )
 
-    def _ba_params(self, points_in: B, pose_key0: int, n_poses: int) -> gtsam.LevenbergMarquardtParams:
+    def _ba_params(
+        self, points_in: B, pose_key0: int, n_poses: int
+    ) -> tuple[gtsam.LevenbergMarquardtParams, gtsam.Ordering | None]:
         """LM parameters of a bundle adjustment: ``ba_linear_solver`` and ``ba_ordering``; "SCHUR" eliminates every
         point present (keys where ``points_in``) before the poses (keys pose_key0..pose_key0+n_poses-1): each
         point is eliminated onto the keyframes observing it and the poses are solved last, the reduced camera
-        system g2o's and Ceres' Schur solvers form (ORB-SLAM marks points marginalized in g2o the same way)."""
+        system g2o's and Ceres' Schur solvers form (ORB-SLAM marks points marginalized in g2o the same way).
+        Also returns that ordering when the Gauss-Newton driver can use it (SCHUR with sequential Cholesky, whose
+        Bayes net gives the chord step's triangular solves), else None."""
         params = self._params()
         params.setLinearSolverType(self.ba_linear_solver)
         params.setlambdaLowerBound(self.ba_lambda_lower_bound)
-        if self.ba_ordering == "SCHUR":
-            ordering = gtsam.Ordering()
-            for key in itertools.chain(np.flatnonzero(points_in).tolist(), range(pose_key0, pose_key0 + n_poses)):
-                ordering.push_back(key)
-            params.setOrdering(ordering)
-        else:
+        if self.ba_ordering != "SCHUR":
             params.setOrderingType(self.ba_ordering)
-        return params
+            return params, None
+        ordering = gtsam.Ordering()
+        for key in itertools.chain(np.flatnonzero(points_in).tolist(), range(pose_key0, pose_key0 + n_poses)):
+            ordering.push_back(key)
+        params.setOrdering(ordering)
+        return params, ordering if self.ba_linear_solver == "SEQUENTIAL_CHOLESKY" else None
 
     @staticmethod
     def _extract(values: gtsam.Values) -> tuple[F64, F64]:

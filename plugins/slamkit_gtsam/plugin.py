@@ -48,6 +48,14 @@ def slamkit_components() -> list[ComponentSpec]:
                 # as a geometric tail, is below relative_error_tol (one iteration fewer per local BA on the room,
                 # 0.69x time); off: fr1_xyz's seed-0 ATE went from 1.00 to 3.68 cm with it (docs/BENCHMARKS.md, gtsam2)
                 "ba_predict_convergence": False,
+                # BA stages whose gauge is fixed (two fixed keyframes, or one with stereo observations) run a
+                # Gauss-Newton driver instead of GTSAM's LM (same steps: LM takes them all at its damping floor),
+                # whose last, confirming iteration is a chord step on the previous Cholesky factor when the
+                # predicted decrease is below relative_error_tol (docs/BENCHMARKS.md, branch gtsamba)
+                "ba_gauss_newton": True,
+                # ... that prediction is tested only after a step whose relative decrease was below this (room's
+                # local BAs: ~3e-2, ~2e-4, ~2e-6 in three iterations; the test costs a gradient and two solves)
+                "ba_chord_test_below": 1e-3,
             },
             description="GTSAM 4 (projection/stereo factors, Similarity3 pose graph, Levenberg-Marquardt)",
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import gtsam
@@ -34,6 +35,64 @@ def test_essential_graph_cost_is_orb_slams_edge_error() -> None:
     assert result.cost_initial == pytest.approx(float((r**2).sum()), rel=1e-9)
 
 
+def _count_eliminations(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Count GaussianFactorGraph.eliminateSequential calls (the Gauss-Newton driver's eliminations)."""
+    calls = [0]
+    original = gtsam.GaussianFactorGraph.eliminateSequential
+
+    def counting(self: gtsam.GaussianFactorGraph, *args: Any, **kwargs: Any) -> Any:
+        calls[0] += 1
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(gtsam.GaussianFactorGraph, "eliminateSequential", counting)
+    return calls
+
+
+@pytest.mark.parametrize("outlier_ratio", [0.0, 0.05])
+def test_gauss_newton_stage_lands_where_lm_does(monkeypatch: pytest.MonkeyPatch, outlier_ratio: float) -> None:
+    """Two fixed keyframes fix the gauge: the Gauss-Newton driver takes LM's steps (LM takes them all at its damping
+    floor) and replaces the confirming iteration by a chord step on the previous Cholesky factor. Same outlier
+    flags, poses within 1e-5 m, the same cost to 1e-5, as many iterations as LM, one elimination fewer per stage."""
+    problem, truth = make_bundle_problem(
+        np.random.default_rng(8), n_free=5, n_fixed=2, n_points=400, n_obs=2000, outlier_ratio=outlier_ratio
+    )
+    lm = GtsamOptimizer(ba_gauss_newton=False).bundle_adjust(problem)
+    calls = _count_eliminations(monkeypatch)
+    gn = GtsamOptimizer().bundle_adjust(problem)
+    assert gn.iterations == lm.iterations
+    assert calls[0] < gn.iterations  # LM eliminates once per iteration: a stage ended on a chord step
+    assert np.array_equal(gn.outlier, lm.outlier)
+    assert np.abs(gn.T_c_w[:, :3, 3] - lm.T_c_w[:, :3, 3]).max() < 1e-5
+    assert gn.cost_final == pytest.approx(lm.cost_final, rel=1e-5)
+    assert np.abs(gn.T_c_w[:, :3, 3] - truth.T_c_w[:, :3, 3]).max() < 0.025  # closer than the 30 mm start
+
+
+def test_gauss_newton_only_where_the_normal_equations_are_definite(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A monocular window with one fixed keyframe leaves the scale free, a point with one monocular observation its
+    depth: those stages stay with LM (its damping keeps the system definite); with the chord test off the driver's
+    iterations are LM's, one elimination each."""
+    calls = _count_eliminations(monkeypatch)
+    one_fixed, _ = make_bundle_problem(np.random.default_rng(5), n_free=5, n_fixed=1, n_points=400, n_obs=2000)
+    GtsamOptimizer().bundle_adjust(one_fixed)
+    assert calls[0] == 0
+    problem, _ = make_bundle_problem(np.random.default_rng(8), n_free=5, n_fixed=2, n_points=400, n_obs=2000)
+    lone = int(problem.obs_point[0])
+    keep = (problem.obs_point != lone) | (np.arange(len(problem.obs_point)) == 0)
+    single = dataclasses.replace(
+        problem,
+        obs_pose=problem.obs_pose[keep],
+        obs_point=problem.obs_point[keep],
+        uv_px=problem.uv_px[keep],
+        u_right_px=problem.u_right_px[keep],
+        level=problem.level[keep],
+        iterations_second=0,  # the outlier pass would take the lone point out: stage 1 only
+    )
+    GtsamOptimizer().bundle_adjust(single)
+    assert calls[0] == 0
+    full = GtsamOptimizer(ba_chord_test_below=0.0).bundle_adjust(problem)
+    assert calls[0] == full.iterations
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
@@ -46,6 +105,8 @@ def test_essential_graph_cost_is_orb_slams_edge_error() -> None:
         ({"ba_lambda_lower_bound": -1.0}, r"optimizer\.ba_lambda_lower_bound = -1\.0"),
         ({"ba_drop_undetermined_points": 1}, r"optimizer\.ba_drop_undetermined_points = 1"),
         ({"ba_predict_convergence": "yes"}, r"optimizer\.ba_predict_convergence = 'yes'"),
+        ({"ba_gauss_newton": 1}, r"optimizer\.ba_gauss_newton = 1"),
+        ({"ba_chord_test_below": -1.0}, r"optimizer\.ba_chord_test_below = -1\.0"),
     ],
 )
 def test_bad_config_is_rejected(kwargs: dict[str, Any], message: str) -> None:
@@ -57,7 +118,7 @@ def test_backend_matches_the_bare_script() -> None:
     """The bare script runs GTSAM's own stopping rule and keeps every observed point in the second stage: the
     backend with those two speed rules off does the same iterations to the same result."""
     problem, _ = make_bundle_problem(np.random.default_rng(4), n_free=4, n_fixed=3, n_points=300, n_obs=1500)
-    opt = GtsamOptimizer(ba_predict_convergence=False, ba_drop_undetermined_points=False)
+    opt = GtsamOptimizer(ba_predict_convergence=False, ba_drop_undetermined_points=False, ba_gauss_newton=False)
     ours = opt.bundle_adjust(problem)
     bare = opt.reference_bundle_adjust(problem)
     assert ours.iterations == bare.iterations
