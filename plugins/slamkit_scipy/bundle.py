@@ -28,6 +28,7 @@ from slamkit.interfaces import AbortToken
 from slamkit.problems import CAMERA_KANNALA_BRANDT, BundleProblem, BundleResult
 from slamkit_scipy.kernels import (
     ba_back_substitute,
+    ba_chi2_depth,
     ba_cost,
     ba_linearize,
     ba_reduced_system,
@@ -130,6 +131,20 @@ def observation_chi2(
                 rig.tx,
             )
         return out
+    if obs.kb is None:  # pinhole: one compiled pass, the same arithmetic as the numpy path below
+        pinhole: tuple[F64, F64] = ba_chi2_depth(
+            np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+            np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+            state.xyz_w,
+            obs_pose,
+            obs_point,
+            obs.uvr,
+            obs.stereo,
+            obs.intr,
+            obs.bf,
+            obs.info,
+        )
+        return pinhole
     p_c = _camera_points(state, obs_pose, obs_point)
     with np.errstate(divide="ignore", invalid="ignore"):
         chi2 = chi2_of(residuals(p_c, obs), obs)

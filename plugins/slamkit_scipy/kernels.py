@@ -418,3 +418,43 @@ def kb_jacobians(p_c: F64, cam: F64) -> F64:  # pragma: no cover - compiled
     for e in range(p_c.shape[0]):
         kb_jacobian(p_c[e, 0], p_c[e, 1], p_c[e, 2], cam[e], A[e])
     return A
+
+
+@numba.njit(cache=True, nogil=True)
+def ba_chi2_depth(
+    R: F64,
+    t: F64,
+    X: F64,
+    obs_pose: I64,
+    obs_point: I64,
+    uvr: F64,
+    stereo: B,
+    intr: F64,
+    bf: F64,
+    info: F64,
+) -> tuple[F64, F64]:  # pragma: no cover - compiled
+    """(E,) chi2 and (E,) depth (m, the camera z) of every pinhole observation: the arithmetic of
+    slamkit_scipy.reprojection's residuals / chi2_of on slamkit_scipy.bundle's camera points, term by term in the same
+    order (p_c = R X + t; u = fx x / z + cx, r = (u - u_obs, fy y / z + cy - v_obs, u - bf / z - u_right_obs or 0);
+    chi2 = info |r|^2), without the (E, 4, 4) pose gather and the temporaries. numpy's einsum sums a 3-term product
+    as (p0 + p2) + p1 (its unrolled contiguous loop): the rotations and |r|^2 are summed in that order here, so the
+    results are those of the numpy path to the bit (tests/unit/scipy_backend/test_ba_kernels.py)."""
+    E = obs_pose.shape[0]
+    chi2 = np.empty(E)
+    depth = np.empty(E)
+    for e in range(E):
+        k = obs_pose[e]
+        j = obs_point[e]
+        x = (R[k, 0, 0] * X[j, 0] + R[k, 0, 2] * X[j, 2]) + R[k, 0, 1] * X[j, 1] + t[k, 0]
+        y = (R[k, 1, 0] * X[j, 0] + R[k, 1, 2] * X[j, 2]) + R[k, 1, 1] * X[j, 1] + t[k, 1]
+        z = (R[k, 2, 0] * X[j, 0] + R[k, 2, 2] * X[j, 2]) + R[k, 2, 1] * X[j, 1] + t[k, 2]
+        iz = 1.0 / z
+        u = intr[e, 0] * x * iz + intr[e, 2]
+        r0 = u - uvr[e, 0]
+        r1 = intr[e, 1] * y * iz + intr[e, 3] - uvr[e, 1]
+        r2 = 0.0
+        if stereo[e]:
+            r2 = u - bf[e] * iz - uvr[e, 2]
+        chi2[e] = info[e] * ((r0 * r0 + r2 * r2) + r1 * r1)
+        depth[e] = z
+    return chi2, depth
