@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.geometry.so3 import _angle_coefficients, hat, so3_exp, so3_left_jacobian, so3_log
+from slamkit.geometry.so3 import _angle_coefficients, hat, so3_exp, so3_log
 
 F64 = NDArray[np.float64]
 
