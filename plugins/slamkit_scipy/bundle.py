@@ -163,12 +163,19 @@ class _Stage:
         rig: RigTerms | None = None,
     ) -> None:
         self.robust = robust
-        e = np.flatnonzero(active)
-        self.obs = obs.subset(e)
-        self.rig = None if rig is None else rig.subset(e)
+        # contiguous and writable, as a fancy-indexed copy is (the compiled kernels' signature)
+        self.obs_pose = np.require(problem.obs_pose, np.int64, ["C", "W"])
+        self.obs_point = np.require(problem.obs_point, np.int64, ["C", "W"])
+        if active.all():  # every observation (the first stage): the arrays as they are, no copies (none is written)
+            self.obs = obs
+            self.rig = rig
+        else:
+            e = np.flatnonzero(active)
+            self.obs = obs.subset(e)
+            self.rig = None if rig is None else rig.subset(e)
+            self.obs_pose = self.obs_pose[e]
+            self.obs_point = self.obs_point[e]
         self.cam = self.obs.cam()  # (E, 8) for the fisheye kernels
-        self.obs_pose = np.asarray(problem.obs_pose, dtype=np.int64)[e]
-        self.obs_point = np.asarray(problem.obs_point, dtype=np.int64)[e]
         K = problem.T_c_w.shape[0]
         M = problem.xyz_w.shape[0]
         # Free poses / points that have at least one active observation get consecutive indices.
