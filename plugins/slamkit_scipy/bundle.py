@@ -28,6 +28,7 @@ from slamkit.interfaces import AbortToken
 from slamkit.problems import CAMERA_KANNALA_BRANDT, BundleProblem, BundleResult
 from slamkit_scipy.kernels import (
     ba_back_substitute,
+    ba_chi2_depth,
     ba_cost,
     ba_linearize,
     ba_reduced_system,
@@ -130,6 +131,20 @@ def observation_chi2(
                 rig.tx,
             )
         return out
+    if obs.kb is None:  # pinhole: one compiled pass, the same arithmetic as the numpy path below
+        pinhole: tuple[F64, F64] = ba_chi2_depth(
+            np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+            np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+            state.xyz_w,
+            obs_pose,
+            obs_point,
+            obs.uvr,
+            obs.stereo,
+            obs.intr,
+            obs.bf,
+            obs.info,
+        )
+        return pinhole
     p_c = _camera_points(state, obs_pose, obs_point)
     with np.errstate(divide="ignore", invalid="ignore"):
         chi2 = chi2_of(residuals(p_c, obs), obs)
@@ -148,12 +163,19 @@ class _Stage:
         rig: RigTerms | None = None,
     ) -> None:
         self.robust = robust
-        e = np.flatnonzero(active)
-        self.obs = obs.subset(e)
-        self.rig = None if rig is None else rig.subset(e)
+        # contiguous and writable, as a fancy-indexed copy is (the compiled kernels' signature)
+        self.obs_pose = np.require(problem.obs_pose, np.int64, ["C", "W"])
+        self.obs_point = np.require(problem.obs_point, np.int64, ["C", "W"])
+        if active.all():  # every observation (the first stage): the arrays as they are, no copies (none is written)
+            self.obs = obs
+            self.rig = rig
+        else:
+            e = np.flatnonzero(active)
+            self.obs = obs.subset(e)
+            self.rig = None if rig is None else rig.subset(e)
+            self.obs_pose = self.obs_pose[e]
+            self.obs_point = self.obs_point[e]
         self.cam = self.obs.cam()  # (E, 8) for the fisheye kernels
-        self.obs_pose = np.asarray(problem.obs_pose, dtype=np.int64)[e]
-        self.obs_point = np.asarray(problem.obs_point, dtype=np.int64)[e]
         K = problem.T_c_w.shape[0]
         M = problem.xyz_w.shape[0]
         # Free poses / points that have at least one active observation get consecutive indices.

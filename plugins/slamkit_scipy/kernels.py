@@ -207,6 +207,40 @@ def _subtract_row6(
     S[r, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _subtract_upper6(S: F64, o: int, Y: F64, a: int, b: tuple[float, ...]) -> None:  # pragma: no cover - compiled
+    """The upper triangle of a diagonal 6x6 block of S at rows / columns o..o+5: S[o + i, o + j] -= Y[a, i, 0] b[3 j] +
+    Y[a, i, 1] b[3 j + 1] + Y[a, i, 2] b[3 j + 2] for j >= i (b: a :func:`_block_row`), each sum in that order (the
+    entries :func:`_subtract_row6` would write there, and nothing below the diagonal)."""
+    a0, a1, a2 = Y[a, 0, 0], Y[a, 0, 1], Y[a, 0, 2]
+    S[o, o] -= a0 * b[0] + a1 * b[1] + a2 * b[2]
+    S[o, o + _U1] -= a0 * b[3] + a1 * b[4] + a2 * b[5]
+    S[o, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
+    S[o, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
+    S[o, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
+    S[o, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
+    a0, a1, a2 = Y[a, 1, 0], Y[a, 1, 1], Y[a, 1, 2]
+    S[o + _U1, o + _U1] -= a0 * b[3] + a1 * b[4] + a2 * b[5]
+    S[o + _U1, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
+    S[o + _U1, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
+    S[o + _U1, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
+    S[o + _U1, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
+    a0, a1, a2 = Y[a, 2, 0], Y[a, 2, 1], Y[a, 2, 2]
+    S[o + _U2, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
+    S[o + _U2, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
+    S[o + _U2, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
+    S[o + _U2, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
+    a0, a1, a2 = Y[a, 3, 0], Y[a, 3, 1], Y[a, 3, 2]
+    S[o + _U3, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
+    S[o + _U3, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
+    S[o + _U3, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
+    a0, a1, a2 = Y[a, 4, 0], Y[a, 4, 1], Y[a, 4, 2]
+    S[o + _U4, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
+    S[o + _U4, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
+    a0, a1, a2 = Y[a, 5, 0], Y[a, 5, 1], Y[a, 5, 2]
+    S[o + _U5, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
+
+
 @numba.njit(cache=True, nogil=True)
 def ba_reduced_system(
     U: F64,
@@ -219,8 +253,9 @@ def ba_reduced_system(
     point_ptr: I64,
     point_obs: I64,
 ) -> tuple[F64, F64, F64]:  # pragma: no cover - compiled
-    """Schur complement with damping lam: -> S (6 nc, 6 nc) = U + lam I - W (V + lam I)^-1 W^T (dense, upper
-    triangle and diagonal blocks only: the strictly-lower off-diagonal blocks are left 0),
+    """Schur complement with damping lam: -> S (6 nc, 6 nc) = U + lam I - W (V + lam I)^-1 W^T (dense, its upper
+    triangle only, which is all :func:`cholesky_solve_upper` reads: the strictly-lower off-diagonal blocks are left 0
+    and the lower triangle of a diagonal block holds U + lam I less a rig's second-camera pairs only),
     rhs (6 nc,) = -gc + W (V + lam I)^-1 gp, and Vinv (npt, 3, 3).
 
     point_obs[point_ptr[q]:point_ptr[q + 1]] lists the observations of free point q whose pose is free.
@@ -285,10 +320,8 @@ def ba_reduced_system(
                         _subtract_row6(
                             S, _U6 * cb + np.uint64(jj), _U6 * ca, W[eb, jj, 0], W[eb, jj, 1], W[eb, jj, 2], ya
                         )
-                elif a == b:  # the point's own diagonal block, whole
-                    wb = _block_row(W, es[b])
-                    for i in range(6):
-                        _subtract_row6(S, _U6 * ca + np.uint64(i), _U6 * ca, Y[a, i, 0], Y[a, i, 1], Y[a, i, 2], wb)
+                elif a == b:  # the point's own diagonal block: its upper triangle (the Cholesky kernel reads no other)
+                    _subtract_upper6(S, _U6 * ca, Y, a, _block_row(W, es[b]))
                 else:  # one keyframe observes the point twice (a rig's second camera): both halves of the block
                     eb = es[b]
                     for i in range(6):
@@ -418,3 +451,43 @@ def kb_jacobians(p_c: F64, cam: F64) -> F64:  # pragma: no cover - compiled
     for e in range(p_c.shape[0]):
         kb_jacobian(p_c[e, 0], p_c[e, 1], p_c[e, 2], cam[e], A[e])
     return A
+
+
+@numba.njit(cache=True, nogil=True)
+def ba_chi2_depth(
+    R: F64,
+    t: F64,
+    X: F64,
+    obs_pose: I64,
+    obs_point: I64,
+    uvr: F64,
+    stereo: B,
+    intr: F64,
+    bf: F64,
+    info: F64,
+) -> tuple[F64, F64]:  # pragma: no cover - compiled
+    """(E,) chi2 and (E,) depth (m, the camera z) of every pinhole observation: the arithmetic of
+    slamkit_scipy.reprojection's residuals / chi2_of on slamkit_scipy.bundle's camera points, term by term in the same
+    order (p_c = R X + t; u = fx x / z + cx, r = (u - u_obs, fy y / z + cy - v_obs, u - bf / z - u_right_obs or 0);
+    chi2 = info |r|^2), without the (E, 4, 4) pose gather and the temporaries. numpy's einsum sums a 3-term product
+    as (p0 + p2) + p1 (its unrolled contiguous loop): the rotations and |r|^2 are summed in that order here, so the
+    results are those of the numpy path to the bit (tests/unit/scipy_backend/test_ba_kernels.py)."""
+    E = obs_pose.shape[0]
+    chi2 = np.empty(E)
+    depth = np.empty(E)
+    for e in range(E):
+        k = obs_pose[e]
+        j = obs_point[e]
+        x = (R[k, 0, 0] * X[j, 0] + R[k, 0, 2] * X[j, 2]) + R[k, 0, 1] * X[j, 1] + t[k, 0]
+        y = (R[k, 1, 0] * X[j, 0] + R[k, 1, 2] * X[j, 2]) + R[k, 1, 1] * X[j, 1] + t[k, 1]
+        z = (R[k, 2, 0] * X[j, 0] + R[k, 2, 2] * X[j, 2]) + R[k, 2, 1] * X[j, 1] + t[k, 2]
+        iz = 1.0 / z
+        u = intr[e, 0] * x * iz + intr[e, 2]
+        r0 = u - uvr[e, 0]
+        r1 = intr[e, 1] * y * iz + intr[e, 3] - uvr[e, 1]
+        r2 = 0.0
+        if stereo[e]:
+            r2 = u - bf[e] * iz - uvr[e, 2]
+        chi2[e] = info[e] * ((r0 * r0 + r2 * r2) + r1 * r1)
+        depth[e] = z
+    return chi2, depth

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.geometry.so3 import hat, so3_exp, so3_left_jacobian, so3_log
+from slamkit.geometry.so3 import _angle_coefficients, hat, so3_exp, so3_log
 
 F64 = NDArray[np.float64]
 
@@ -25,10 +25,19 @@ _SERIES_TERMS = 40
 
 
 def se3_exp_batch(xi: F64) -> F64:
-    """xi: (N, 6) [omega (rad), v (m)] -> (N, 4, 4) exp(xi) = [[exp(omega), J_l(omega) v], [0, 1]]."""
+    """xi: (N, 6) [omega (rad), v (m)] -> (N, 4, 4) exp(xi) = [[exp(omega), J_l(omega) v], [0, 1]].
+
+    so3_exp(omega) = I + a W + b W^2 and so3_left_jacobian(omega) = I + b W + c W^2 share the angle, its coefficients,
+    W = hat(omega) and W^2: computed once here (the same numpy calls on the same arrays as those two functions make,
+    so the same bits; the LM's retraction calls this once per damped trial)."""
+    w = np.asarray(xi, np.float64)[:, :3]
+    a, b, c = _angle_coefficients(np.linalg.norm(w, axis=-1))
+    W = hat(w)
+    WW = W @ W
     out = np.zeros((xi.shape[0], 4, 4))
-    out[:, :3, :3] = so3_exp(xi[:, :3])
-    out[:, :3, 3] = np.einsum("nij,nj->ni", so3_left_jacobian(xi[:, :3]), xi[:, 3:])
+    out[:, :3, :3] = np.broadcast_to(np.eye(3), W.shape) + a[..., None, None] * W + b[..., None, None] * WW
+    J = np.eye(3) + b[..., None, None] * W + c[..., None, None] * WW
+    out[:, :3, 3] = np.einsum("nij,nj->ni", J, xi[:, 3:])
     out[:, 3, 3] = 1.0
     return out
 

@@ -9,6 +9,7 @@ The robust cost is g2o's Huber on chi2 (ORB-SLAM's kernel): rho(c) = c for c <= 
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -138,9 +139,58 @@ def pose_cost(problem: PoseOnlyProblem, T_c_w: F64, active: B | None = None) -> 
     return float(rho.sum() if active is None else rho[active].sum())
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pinhole_bundle_chi2(
+    R: F64, t: F64, xyz: F64, obs_pose: I64, obs_point: I64, uv: F64, u_right: F64, den: F64, intr: F64, bf: F64
+) -> F64:  # pragma: no cover - compiled
+    """:func:`_reprojection_chi2` of a one-camera pinhole bundle problem without its per-observation gathers: R (K, 3,
+    3), t (K, 3), intr (K, 4), bf (K,) per pose, xyz (M, 3) per point, den (E,) = scale_factor^(2 level). The same
+    operations in the same order, numpy's einsum summing a 3-term product as (p0 + p2) + p1 (so the same bits)."""
+    E = obs_pose.shape[0]
+    chi2 = np.empty(E)
+    for e in range(E):
+        k = obs_pose[e]
+        j = obs_point[e]
+        x = (R[k, 0, 0] * xyz[j, 0] + R[k, 0, 2] * xyz[j, 2]) + R[k, 0, 1] * xyz[j, 1] + t[k, 0]
+        y = (R[k, 1, 0] * xyz[j, 0] + R[k, 1, 2] * xyz[j, 2]) + R[k, 1, 1] * xyz[j, 1] + t[k, 1]
+        z = (R[k, 2, 0] * xyz[j, 0] + R[k, 2, 2] * xyz[j, 2]) + R[k, 2, 1] * xyz[j, 1] + t[k, 2]
+        if not z > 0.0:
+            chi2[e] = np.inf
+            continue
+        inv_z = 1.0 / z
+        u = intr[k, 0] * x * inv_z + intr[k, 2]
+        v = intr[k, 1] * y * inv_z + intr[k, 3]
+        du = uv[e, 0] - u
+        dv = uv[e, 1] - v
+        e2 = du * du + dv * dv
+        if np.isfinite(u_right[e]):
+            dr = u_right[e] - (u - bf[k] * inv_z)
+            e2 = e2 + dr * dr
+        else:
+            e2 = e2 + 0.0
+        chi2[e] = e2 / den[e]
+    return chi2
+
+
 def bundle_chi2(problem: BundleProblem, T_c_w: F64, xyz_w: F64) -> F64:
     """(E,) chi2 of each observation at poses T_c_w (K, 4, 4) and points xyz_w (M, 3); an observation of a rig's
     second camera (``camera_index`` 1) through the second camera at T_c2_c1[k] @ T_c_w[k]."""
+    if problem.distortion is None and problem.camera_index is None:  # one pinhole camera: one compiled pass
+        T_k = np.asarray(T_c_w, np.float64)
+        return np.asarray(
+            _pinhole_bundle_chi2(
+                np.ascontiguousarray(T_k[:, :3, :3]),
+                np.ascontiguousarray(T_k[:, :3, 3]),
+                np.ascontiguousarray(xyz_w, np.float64),
+                np.asarray(problem.obs_pose, np.int64),
+                np.asarray(problem.obs_point, np.int64),
+                np.ascontiguousarray(problem.uv_px, np.float64),
+                np.ascontiguousarray(problem.u_right_px, np.float64),
+                problem.scale_factor ** (2.0 * problem.level.astype(np.float64)),
+                np.ascontiguousarray(problem.intrinsics, np.float64),
+                np.ascontiguousarray(problem.bf, np.float64),
+            )
+        )
     T = T_c_w[problem.obs_pose]
     chi2 = _reprojection_chi2(
         T[:, :3, :3],

@@ -296,7 +296,7 @@ def commit_bundle(
             store.remove_point(pid)
     moved = [i for i, k in enumerate(snap.kf_ids.tolist()) if not snap.problem.pose_fixed[i] and store.has_keyframe(k)]
     store.set_keyframe_poses(snap.kf_ids[moved].tolist(), result.T_c_w[moved])
-    alive = [j for j, pid in enumerate(snap.point_ids.tolist()) if store.has_point(pid)]
+    alive = np.flatnonzero(store.has_points(snap.point_ids))  # one array lookup, not a call per point
     store.assign_points(snap.point_ids[alive], "xyz_w", result.xyz_w[alive])
     removed = 0
     for e in np.flatnonzero(result.outlier):
