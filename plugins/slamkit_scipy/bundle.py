@@ -112,43 +112,30 @@ def observation_chi2(
     state: BAState, obs_pose: I64, obs_point: I64, obs: Observations, rig: RigTerms | None = None
 ) -> tuple[F64, F64]:
     """(E,) chi2 and (E,) depth (m) of every observation at ``state`` (in the camera that saw it, with a rig)."""
-    if rig is not None:
+    if rig is None and obs.kb is not None:  # one fisheye camera: numpy (the compiled passes are pinhole or rig)
+        p_c = _camera_points(state, obs_pose, obs_point)
         with np.errstate(divide="ignore", invalid="ignore"):
-            out: tuple[F64, F64] = rig_chi2(
-                np.ascontiguousarray(state.T_c_w[:, :3, :3]),
-                np.ascontiguousarray(state.T_c_w[:, :3, 3]),
-                state.xyz_w,
-                obs_pose,
-                obs_point,
-                obs.uvr,
-                obs.stereo,
-                obs.intr,
-                obs.bf,
-                obs.info,
-                rig.cam,
-                rig.fish,
-                rig.Rx,
-                rig.tx,
-            )
-        return out
-    if obs.kb is None:  # pinhole: one compiled pass, the same arithmetic as the numpy path below
-        pinhole: tuple[F64, F64] = ba_chi2_depth(
-            np.ascontiguousarray(state.T_c_w[:, :3, :3]),
-            np.ascontiguousarray(state.T_c_w[:, :3, 3]),
-            state.xyz_w,
-            obs_pose,
-            obs_point,
-            obs.uvr,
-            obs.stereo,
-            obs.intr,
-            obs.bf,
-            obs.info,
-        )
+            chi2 = chi2_of(residuals(p_c, obs), obs)
+        return chi2, p_c[:, 2]
+    # the pose, point and observation arrays both compiled passes read (a rig's pass then its second-camera terms)
+    common = (
+        np.ascontiguousarray(state.T_c_w[:, :3, :3]),
+        np.ascontiguousarray(state.T_c_w[:, :3, 3]),
+        state.xyz_w,
+        obs_pose,
+        obs_point,
+        obs.uvr,
+        obs.stereo,
+        obs.intr,
+        obs.bf,
+        obs.info,
+    )
+    if rig is None:  # one pinhole camera: the same arithmetic as the numpy path above
+        pinhole: tuple[F64, F64] = ba_chi2_depth(*common)
         return pinhole
-    p_c = _camera_points(state, obs_pose, obs_point)
     with np.errstate(divide="ignore", invalid="ignore"):
-        chi2 = chi2_of(residuals(p_c, obs), obs)
-    return chi2, p_c[:, 2]
+        out: tuple[F64, F64] = rig_chi2(*common, rig.cam, rig.fish, rig.Rx, rig.tx)
+    return out
 
 
 class _Stage:
