@@ -82,7 +82,8 @@ def test_freeze_startup_heap_moves_live_objects_out_of_collections() -> None:
         frozen = freeze_startup_heap()
         after = Node()
         tracked = {id(o) for o in gc.get_objects()}
-        assert frozen == gc.get_freeze_count() and frozen > 0
+        # >=: another thread of the test session (a threaded run's warm-up) may freeze more in between
+        assert gc.get_freeze_count() >= frozen > 0
         assert id(before) not in tracked  # frozen: full collections no longer walk it
         assert id(after) in tracked  # objects made later are collected as usual
     finally:
