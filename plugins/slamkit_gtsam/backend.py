@@ -119,6 +119,7 @@ class GtsamOptimizer:
         ba_predict_convergence: bool = False,
         ba_gauss_newton: bool = True,
         ba_chord_test_below: float = 1e-3,
+        ba_fix_scale_gauge: bool = True,
     ) -> None:
         for key, value in (
             ("lambda_initial", lambda_initial),
@@ -151,6 +152,7 @@ class GtsamOptimizer:
             ("ba_drop_undetermined_points", ba_drop_undetermined_points),
             ("ba_predict_convergence", ba_predict_convergence),
             ("ba_gauss_newton", ba_gauss_newton),
+            ("ba_fix_scale_gauge", ba_fix_scale_gauge),
         ):
             if not isinstance(flag, bool):
                 raise ConfigError(f"optimizer.{key} = {flag!r}: expected true or false")
@@ -172,6 +174,7 @@ class GtsamOptimizer:
         self.ba_predict_convergence = ba_predict_convergence
         self.ba_gauss_newton = ba_gauss_newton
         self.ba_chord_test_below = float(ba_chord_test_below)
+        self.ba_fix_scale_gauge = ba_fix_scale_gauge
 
     # ---- LM driver ----------------------------------------------------------------------------------
 
@@ -617,13 +620,18 @@ class GtsamOptimizer:
         points_in = np.ones(M, dtype=bool)
         excluded = np.zeros(E, dtype=bool)
         # The gauge (7 DoF: rotation, translation, scale) is fixed by two fixed keyframes, or by one with stereo
-        # observations (metric depth fixes the scale): the Gauss-Newton driver's undamped systems are then positive
-        # definite. A monocular window with one fixed keyframe (fr1_xyz's usual case) leaves the scale to LM.
+        # observations, a rig's second camera or a fixed point (each fixes the scale): the Gauss-Newton driver's
+        # undamped systems are then positive definite. A monocular window with one fixed keyframe (fr1_xyz's usual
+        # case) leaves the scale free: ``ba_fix_scale_gauge`` holds it with a range factor (_fix_scale_gauge),
+        # otherwise it is left to LM's damping.
         # Every free point also needs 3 residual rows (two monocular observations, or a stereo one): one monocular
         # observation leaves its depth free.
         n_fixed = int(np.count_nonzero(problem.pose_fixed))
         rows = np.where(np.isfinite(problem.u_right_px), 3.0, 2.0)
-        gauge_fixed = n_fixed >= 2 or (n_fixed >= 1 and bool(np.isfinite(problem.u_right_px).any()))
+        metric = bool(np.isfinite(problem.u_right_px).any() or second.any() or problem.point_fixed.any())
+        gauge_fixed = n_fixed >= 2 or (n_fixed >= 1 and metric)
+        if n_fixed == 1 and not metric and K > 1 and self.ba_fix_scale_gauge:
+            gauge_fixed = _fix_scale_gauge(priors, problem.pose_fixed, T_w_c, pose_key0)
 
         def determined(active: B) -> bool:
             """The gauge is fixed and every free point in the stage has at least 3 residual rows."""
@@ -842,6 +850,36 @@ class GtsamOptimizer:
             cost_final=2.0 * between.error(run.values),
             iterations=run.iterations,
         )
+
+
+# The range factor's sigma as a fraction of the distance it holds: the reprojection cost does not change along the
+# scale direction, so any sigma fixes it; this one keeps the factor's Hessian entry (~1/(1e-3 d)^2) in the range of
+# the poses' reprojection terms (~(f/z)^2 per observation), so the Cholesky stays well conditioned.
+_SCALE_GAUGE_RELATIVE_SIGMA = 1e-3
+
+
+def _fix_scale_gauge(priors: gtsam.NonlinearFactorGraph, pose_fixed: B, T_w_c: F64, pose_key0: int) -> bool:
+    """Hold the scale gauge of a monocular BA with one fixed keyframe; returns whether it could.
+
+    With one fixed keyframe (centre c0) and no metric observation (stereo, depth, a rig's extrinsic, a fixed point),
+    scaling every free camera centre and point about c0 by s > 0 leaves every reprojection unchanged: the normal
+    equations are singular along s. LM's damping alone keeps it finite and lets it drift while the points outside
+    the window keep the old scale (fr1_xyz's young map: one GTSAM local BA shrank it to 0.52x and tracking was lost
+    at frame 28; docs/BENCHMARKS.md, session 17). A range factor holds the distance from c0 to the free keyframe
+    farthest from it at its current value: the constrained minimum has the cost of the unconstrained one (it is
+    the same solution up to the gauge), and the undamped system is definite, so the Gauss-Newton driver runs.
+    Returns False (nothing added) when every free centre coincides with c0 (no distance to hold).
+    """
+    fixed = int(np.flatnonzero(pose_fixed)[0])
+    free = np.flatnonzero(~pose_fixed)
+    distance = np.linalg.norm(T_w_c[free, :3, 3] - T_w_c[fixed, :3, 3], axis=1)
+    farthest = int(np.argmax(distance))
+    d = float(distance[farthest])
+    if not (math.isfinite(d) and d > 0.0):
+        return False
+    model = gtsam.noiseModel.Isotropic.Sigma(1, _SCALE_GAUGE_RELATIVE_SIGMA * d)
+    priors.add(gtsam.RangeFactorPose3(pose_key0 + fixed, pose_key0 + int(free[farthest]), d, model))
+    return True
 
 
 def _pinhole_first_camera(problem: BundleProblem) -> B:

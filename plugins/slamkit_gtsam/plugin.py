@@ -56,6 +56,11 @@ def slamkit_components() -> list[ComponentSpec]:
                 # ... that prediction is tested only after a step whose relative decrease was below this (room's
                 # local BAs: ~3e-2, ~2e-4, ~2e-6 in three iterations; the test costs a gradient and two solves)
                 "ba_chord_test_below": 1e-3,
+                # A monocular BA with one fixed keyframe: a range factor holds the distance from it to the farthest
+                # free keyframe (the scale gauge, which reprojection leaves free; LM's damping let it drift to 0.52x
+                # on fr1_xyz's young map and tracking was lost: docs/BENCHMARKS.md, session 17/18). The stage is
+                # then determined and runs the Gauss-Newton driver
+                "ba_fix_scale_gauge": True,
             },
             description="GTSAM 4 (projection/stereo factors, Similarity3 pose graph, Levenberg-Marquardt)",
         )

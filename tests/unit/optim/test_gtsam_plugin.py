@@ -67,13 +67,42 @@ def test_gauss_newton_stage_lands_where_lm_does(monkeypatch: pytest.MonkeyPatch,
     assert np.abs(gn.T_c_w[:, :3, 3] - truth.T_c_w[:, :3, 3]).max() < 0.025  # closer than the 30 mm start
 
 
+def _centres(T_c_w: np.ndarray) -> np.ndarray:
+    """(K, 3) camera centres in the world frame of (K, 4, 4) T_c_w."""
+    return -np.einsum("kji,kj->ki", T_c_w[:, :3, :3], T_c_w[:, :3, 3])
+
+
+def test_one_fixed_keyframe_holds_the_scale_gauge(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A monocular window with one fixed keyframe leaves the scale free (every free centre and point scaled about
+    the fixed centre reprojects the same): the range factor holds the farthest free keyframe's distance, the stage
+    runs the Gauss-Newton driver, and the solution is LM's scaled about the fixed centre (the same minimum: same
+    outliers, same cost, same rotations)."""
+    problem, _ = make_bundle_problem(np.random.default_rng(5), n_free=5, n_fixed=1, n_points=400, n_obs=2000)
+    free = ~problem.pose_fixed
+    c0 = _centres(problem.T_c_w)[problem.pose_fixed][0]
+    d_in = np.linalg.norm(_centres(problem.T_c_w)[free] - c0, axis=1)
+    far = int(np.argmax(d_in))
+    calls = _count_eliminations(monkeypatch)
+    held = GtsamOptimizer().bundle_adjust(problem)
+    assert calls[0] > 0
+    drifting = GtsamOptimizer(ba_fix_scale_gauge=False).bundle_adjust(problem)
+    c_held = _centres(held.T_c_w)[free]
+    c_lm = _centres(drifting.T_c_w)[free]
+    assert np.linalg.norm(c_held[far] - c0) == pytest.approx(d_in[far], rel=1e-6)
+    assert np.array_equal(held.outlier, drifting.outlier)
+    assert held.cost_final == pytest.approx(drifting.cost_final, rel=1e-4)
+    s = np.linalg.norm(c_held[far] - c0) / np.linalg.norm(c_lm[far] - c0)
+    assert np.abs(c0 + s * (c_lm - c0) - c_held).max() < 1e-4
+    assert np.abs(held.T_c_w[:, :3, :3] - drifting.T_c_w[:, :3, :3]).max() < 1e-4
+
+
 def test_gauss_newton_only_where_the_normal_equations_are_definite(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A monocular window with one fixed keyframe leaves the scale free, a point with one monocular observation its
-    depth: those stages stay with LM (its damping keeps the system definite); with the chord test off the driver's
-    iterations are LM's, one elimination each."""
+    """A monocular window with one fixed keyframe and its scale left free (``ba_fix_scale_gauge`` off), a point with
+    one monocular observation its depth: those stages stay with LM (its damping keeps the system definite); with
+    the chord test off the driver's iterations are LM's, one elimination each."""
     calls = _count_eliminations(monkeypatch)
     one_fixed, _ = make_bundle_problem(np.random.default_rng(5), n_free=5, n_fixed=1, n_points=400, n_obs=2000)
-    GtsamOptimizer().bundle_adjust(one_fixed)
+    GtsamOptimizer(ba_fix_scale_gauge=False).bundle_adjust(one_fixed)
     assert calls[0] == 0
     problem, _ = make_bundle_problem(np.random.default_rng(8), n_free=5, n_fixed=2, n_points=400, n_obs=2000)
     lone = int(problem.obs_point[0])
@@ -107,6 +136,7 @@ def test_gauss_newton_only_where_the_normal_equations_are_definite(monkeypatch: 
         ({"ba_predict_convergence": "yes"}, r"optimizer\.ba_predict_convergence = 'yes'"),
         ({"ba_gauss_newton": 1}, r"optimizer\.ba_gauss_newton = 1"),
         ({"ba_chord_test_below": -1.0}, r"optimizer\.ba_chord_test_below = -1\.0"),
+        ({"ba_fix_scale_gauge": "on"}, r"optimizer\.ba_fix_scale_gauge = 'on'"),
     ],
 )
 def test_bad_config_is_rejected(kwargs: dict[str, Any], message: str) -> None:
