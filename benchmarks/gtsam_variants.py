@@ -7,7 +7,8 @@ Usage: ``python benchmarks/gtsam_variants.py DIR N VARIANT[,VARIANT...] [ROUNDS]
 Variants: ``scipy`` (the default backend), ``gtsam`` (this tree's defaults), ``main`` (the GTSAM backend of the
 checkout at $SLAMKIT_MAIN, default /work/main: before/after in one process), ``noskip``
 (``ba_skip_converged_second_stage: false``), ``tol7`` / ``tol10`` (``relative_error_tol`` 1e-7 / 1e-10, the
-default backend's), ``lm`` (``ba_gauss_newton: false``: GTSAM's LM for every stage). Per problem: the median time of ROUNDS solves, iterations, outliers, final cost and keyframe
+default backend's), ``lm`` (``ba_gauss_newton: false``: GTSAM's LM for every stage), ``free`` (``ba_fix_scale_gauge: false``: a
+monocular window with one fixed keyframe leaves its scale to LM's damping). Per problem: the median time of ROUNDS solves, iterations, outliers, final cost and keyframe
 positions relative to the first variant's; then medians over the problems. ``cpu``: time the process's CPU
 time (``time.process_time``, all threads) instead of the wall clock: on a machine shared with other runs it
 leaves out the time the process waited for a core.
@@ -68,6 +69,7 @@ VARIANTS: dict[str, Callable[[], Any]] = {
     "predict": _gtsam(ba_predict_convergence=True),
     "mfchol": _gtsam(ba_linear_solver="MULTIFRONTAL_CHOLESKY"),
     "lm": _gtsam(ba_gauss_newton=False),
+    "free": _gtsam(ba_fix_scale_gauge=False),
 }
 
 
