@@ -386,7 +386,9 @@ class StereoFrontEnd(MonocularFrontEnd):
         # half of the stereo matching in that thread too (idle once the right image is extracted)
         self._match_pool = self._pool if parallel_matching else None
         if pair_opencv_threads is not None and (isinstance(pair_opencv_threads, bool) or int(pair_opencv_threads) < 1):
-            raise ConfigError(f"frontend.pair_opencv_threads must be null or an integer >= 1, got {pair_opencv_threads!r}")
+            raise ConfigError(
+                f"frontend.pair_opencv_threads must be null or an integer >= 1, got {pair_opencv_threads!r}"
+            )
         self.pair_opencv_threads = None if pair_opencv_threads is None else int(pair_opencv_threads)
 
     def bind_dataset(self, dataset: Any) -> None:
