@@ -342,11 +342,11 @@ class StereoFrontEnd(MonocularFrontEnd):
     alone (the extractor's level threads are not used: two threads for the two cores, not four); parallel_matching:
     with ``parallel``, match the odd left keypoints in that thread while the caller's matches the even ones.
     pair_opencv_threads: with ``parallel``, OpenCV's thread count (``cv2.setNumThreads``) while the two extractions
-    run, the previous count restored after them; None leaves OpenCV's setting alone. OpenCV's pool would otherwise
-    take a worker for the resizes and blurs of each extraction, a third and fourth runnable thread on a two-core
-    machine, each extraction waiting for its stripes while the other extraction holds the core (and the pool's
-    workers spin between jobs). None of these changes the result (OpenCV's resizes and blurs give the same pixels
-    with any thread count).
+    run, the previous count restored after them; None (the default) leaves OpenCV's setting alone. With OpenCV's
+    pool on, one extraction's resizes and blurs take a pool worker, a third runnable thread on a two-core machine
+    beside the two extractions; setting 1 removes it, but OpenCV then joins its worker and starts it again at the
+    next parallel call, every frame (no gain measured under load; docs/BENCHMARKS.md, branch stspeed2). None of
+    these changes the result (OpenCV's resizes and blurs give the same pixels with any thread count).
     """
 
     uses_depth: ClassVar[bool] = False
@@ -365,7 +365,7 @@ class StereoFrontEnd(MonocularFrontEnd):
         matching_pyramid: str = "extractor",
         parallel: bool = True,
         parallel_matching: bool = False,
-        pair_opencv_threads: int | None = 1,
+        pair_opencv_threads: int | None = None,
     ) -> None:
         super().__init__(extractor, None)
         del init_extractor  # one-frame initialisation (ORB-SLAM2 builds mpIniORBextractor for monocular only)

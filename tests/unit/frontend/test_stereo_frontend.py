@@ -198,11 +198,11 @@ class _CountingExtractor:
 
 
 def test_pair_opencv_threads_during_the_pair_only() -> None:
-    """``pair_opencv_threads`` (default 1): OpenCV's thread count is that value while the two images are extracted
-    in their two threads and the caller's count again afterwards (also when it was already 1 or is left alone
-    with null); the record is the same with OpenCV's own count."""
-    frontend, dataset = _built("dataset.stereo=true")
+    """``pair_opencv_threads=1``: OpenCV's thread count is 1 while the two images are extracted in their two threads
+    and the caller's count again afterwards; null (the default) leaves it alone; the record is the same."""
+    frontend, dataset = _built("dataset.stereo=true", "frontend.pair_opencv_threads=1")
     assert frontend.pair_opencv_threads == 1
+    assert _built("dataset.stereo=true")[0].pair_opencv_threads is None
     data = dataset[1]  # type: ignore[index]
     camera = dataset.camera  # type: ignore[attr-defined]
     inner = frontend.extractor
