@@ -73,6 +73,61 @@ def core_scaling(n: int = 50_000_000) -> float:
     return serial / parallel
 
 
+def extraction_scaling(seed: int, pairs: int = 10, rounds: int = 3) -> tuple[float, float]:
+    """How many times two ORB extractions in two threads (the stereo front end's schedule: each image alone in its
+    thread, OpenCV's own threads off) go faster than the same two in series, on the room's first ``pairs`` stereo
+    pairs, the two schedules alternating ``rounds`` times (best of each). Near 2: the two vCPUs run this image work
+    (vectorised FAST, resizes, blurs) as two cores; near 1 while the spin check gives ~2: they share one core's
+    vector units (hyperthreads the guest is not told about), and no schedule of the pair beats the work's sum."""
+    import cv2
+
+    cfg = compose_config(["frontend=stereo", "dataset.stereo=true", f"seed={seed}", f"dataset.max_frames={pairs}"])
+    runner, dataset = build_runner(cfg)
+    extractor: Any = getattr(runner.tracker.frontend, "extractor")  # noqa: B009 - FrontEnd does not declare it
+    camera = dataset.camera
+    images = [(d.image, d.image_right) for d in dataset]
+
+    def one(image: Any) -> Any:
+        return extractor.extract_with_pyramid(image, camera, threaded=False)
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    serial, parallel = np.inf, np.inf
+    cpu_serial, cpu_parallel = 0.0, 0.0
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            for left, right in images[:2]:
+                one(left), pool.submit(one, right).result()
+            for _ in range(rounds):
+                t0, c0 = time.perf_counter(), time.process_time()
+                for left, right in images:
+                    one(left)
+                    one(right)
+                serial = min(serial, time.perf_counter() - t0)
+                cpu_serial += time.process_time() - c0
+                t0, c0 = time.perf_counter(), time.process_time()
+                for left, right in images:
+                    future = pool.submit(one, right)
+                    one(left)
+                    future.result()
+                parallel = min(parallel, time.perf_counter() - t0)
+                cpu_parallel += time.process_time() - c0
+    finally:
+        cv2.setNumThreads(threads)
+    return serial / parallel, cpu_parallel / cpu_serial
+
+
+def _cpu_model() -> str:
+    """The first "model name" of /proc/cpuinfo ("?" where there is none)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "?"
+
+
 def _module(name: str, path: Path) -> ModuleType:
     """The Python file at ``path`` loaded as module ``name`` (its own imports resolve to this checkout's packages)."""
     spec = importlib.util.spec_from_file_location(name, path)
@@ -130,11 +185,22 @@ def main() -> None:
     parser.add_argument("--modes", default="mono,stereo,rgbd")
     parser.add_argument("--json", type=Path, default=None, help="write the per-frame timings here")
     parser.add_argument("overrides", nargs="*", help="config overrides given to every run")
-    parser.add_argument("--core-check", action="store_true", help="first time two compute-bound threads against one")
+    parser.add_argument(
+        "--core-check",
+        action="store_true",
+        help="first time two compute-bound threads against one, and two ORB extractions in two threads against in series",
+    )
     parser.add_argument("--base", type=Path, default=None, help="another checkout, for the modes ending in @base")
     args = parser.parse_args()
+    print(f"CPU: {_cpu_model()}, {os.cpu_count()} logical CPUs; 1-minute load {os.getloadavg()[0]:.1f}")
     if args.core_check:
         print(f"two threads against one: {core_scaling():.2f}x faster (2.00: two free cores)")
+        speedup, cpu_inflation = extraction_scaling(args.seed)
+        print(
+            f"two ORB extractions in two threads against in series: {speedup:.2f}x faster, {cpu_inflation:.2f}x the CPU "
+            "time (the stereo pair's schedule; near 1.0x faster and well above 1.0x the CPU with the line above near "
+            "2.0: the two threads slow each other down, e.g. hyperthreads of one core)"
+        )
     modes = args.modes.split(",")
     if "mono" not in modes:
         raise SystemExit("--modes must include mono (the ratios' reference)")

@@ -340,8 +340,13 @@ class StereoFrontEnd(MonocularFrontEnd):
 
     parallel: extract the two images at once, the right one in a second thread, each extraction in its own thread
     alone (the extractor's level threads are not used: two threads for the two cores, not four); parallel_matching:
-    with ``parallel``, match the odd left keypoints in that thread while the caller's matches the even ones. Neither
-    changes the result.
+    with ``parallel``, match the odd left keypoints in that thread while the caller's matches the even ones.
+    pair_opencv_threads: with ``parallel``, OpenCV's thread count (``cv2.setNumThreads``) while the two extractions
+    run, the previous count restored after them; None (the default) leaves OpenCV's setting alone. With OpenCV's
+    pool on, one extraction's resizes and blurs take a pool worker, a third runnable thread on a two-core machine
+    beside the two extractions; setting 1 removes it, but OpenCV then joins its worker and starts it again at the
+    next parallel call, every frame (no gain measured under load; docs/BENCHMARKS.md, branch stspeed2). None of
+    these changes the result (OpenCV's resizes and blurs give the same pixels with any thread count).
     """
 
     uses_depth: ClassVar[bool] = False
@@ -360,6 +365,7 @@ class StereoFrontEnd(MonocularFrontEnd):
         matching_pyramid: str = "extractor",
         parallel: bool = True,
         parallel_matching: bool = False,
+        pair_opencv_threads: int | None = None,
     ) -> None:
         super().__init__(extractor, None)
         del init_extractor  # one-frame initialisation (ORB-SLAM2 builds mpIniORBextractor for monocular only)
@@ -379,6 +385,11 @@ class StereoFrontEnd(MonocularFrontEnd):
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="orb-right") if parallel else None
         # half of the stereo matching in that thread too (idle once the right image is extracted)
         self._match_pool = self._pool if parallel_matching else None
+        if pair_opencv_threads is not None and (isinstance(pair_opencv_threads, bool) or int(pair_opencv_threads) < 1):
+            raise ConfigError(
+                f"frontend.pair_opencv_threads must be null or an integer >= 1, got {pair_opencv_threads!r}"
+            )
+        self.pair_opencv_threads = None if pair_opencv_threads is None else int(pair_opencv_threads)
 
     def bind_dataset(self, dataset: Any) -> None:
         """Take bf = baseline x fx from the dataset's rectified pair (``T_l_r``'s x translation, the left camera's fx).
@@ -437,10 +448,17 @@ class StereoFrontEnd(MonocularFrontEnd):
         # extraction alone in its thread; the left keypoints' monocular record is made while the right image may
         # still be in extraction
         if self._pool is not None:
-            future = self._pool.submit(self._extract_with_pyramid, self.right_extractor, right_image, camera, False)
-            left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera, False)
-            obs = self._monocular_record(left, camera)
-            right, pyr_r = future.result()
+            opencv_threads = cv2.getNumThreads()
+            if self.pair_opencv_threads is not None and self.pair_opencv_threads != opencv_threads:
+                cv2.setNumThreads(self.pair_opencv_threads)
+            try:
+                future = self._pool.submit(self._extract_with_pyramid, self.right_extractor, right_image, camera, False)
+                left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera, False)
+                obs = self._monocular_record(left, camera)
+                right, pyr_r = future.result()
+            finally:
+                if cv2.getNumThreads() != opencv_threads:
+                    cv2.setNumThreads(opencv_threads)
         else:
             left, pyr_l = self._extract_with_pyramid(self.extractor, data.image, camera, True)
             obs = self._monocular_record(left, camera)

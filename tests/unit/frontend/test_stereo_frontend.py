@@ -180,3 +180,47 @@ def test_sad_slide_is_orbslams_window_sum(w: int, slide: int) -> None:
             ur = ur0 - slide + k
             wr = right[vl - w : vl + w + 1, ur - w : ur + w + 1].astype(np.int64) - int(right[vl, ur])
             assert dists[k] == np.abs(wl - wr).sum()
+
+
+class _CountingExtractor:
+    """The front end's extractor, noting OpenCV's thread count at each extraction (``extract_with_pyramid``)."""
+
+    def __init__(self, inner: OrbSlamExtractor) -> None:
+        self.inner = inner
+        self.seen: list[int] = []
+
+    def extract(self, image: np.ndarray, camera: object = None) -> object:
+        return self.inner.extract(image, camera)  # type: ignore[arg-type]
+
+    def extract_with_pyramid(self, image: np.ndarray, camera: object = None, threaded: bool = True) -> object:
+        self.seen.append(cv2.getNumThreads())
+        return self.inner.extract_with_pyramid(image, camera, threaded=threaded)  # type: ignore[arg-type]
+
+
+def test_pair_opencv_threads_during_the_pair_only() -> None:
+    """``pair_opencv_threads=1``: OpenCV's thread count is 1 while the two images are extracted in their two threads
+    and the caller's count again afterwards; null (the default) leaves it alone; the record is the same."""
+    frontend, dataset = _built("dataset.stereo=true", "frontend.pair_opencv_threads=1")
+    assert frontend.pair_opencv_threads == 1
+    assert _built("dataset.stereo=true")[0].pair_opencv_threads is None
+    data = dataset[1]  # type: ignore[index]
+    camera = dataset.camera  # type: ignore[attr-defined]
+    inner = frontend.extractor
+    assert isinstance(inner, OrbSlamExtractor)
+    counting = _CountingExtractor(inner)
+    frontend.extractor = frontend.right_extractor = counting  # type: ignore[assignment]
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(3)
+        ours = frontend.observe(data, camera)
+        assert counting.seen == [1, 1] and cv2.getNumThreads() == 3
+        frontend.pair_opencv_threads = None
+        counting.seen.clear()
+        theirs = frontend.observe(data, camera)
+        assert counting.seen == [3, 3] and cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(before)
+    for a, b in ((ours.u_right_px, theirs.u_right_px), (ours.depth_m, theirs.depth_m), (ours.uv_px, theirs.uv_px)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ConfigError, match="pair_opencv_threads"):
+        StereoFrontEnd(inner, pair_opencv_threads=0)
