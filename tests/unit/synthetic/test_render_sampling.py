@@ -75,7 +75,7 @@ def test_sampled_path_matches_off_the_path_and_at_odd_roi_widths() -> None:
         T[:3, :3] = T[:3, :3] @ (np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K)
         T[:3, 3] += rng.normal(scale=0.4, size=3)
         _assert_same(ds.renderer.render(T, labels=True), legacy.render(T, labels=True))
-        for rp, _, uv in ds.renderer._visible(np.linalg.inv(T)):
+        for _rp, _, uv in ds.renderer._visible(np.linalg.inv(T)):
             widths.add((min(int(np.ceil(uv[:, 0].max())) + 2, 640) - max(int(np.floor(uv[:, 0].min())) - 1, 0)) % 16)
     assert len(widths) >= 8
 
@@ -86,8 +86,9 @@ def test_frames_match_checksums_of_the_renderer_before_the_change(
 ) -> None:
     ds = SyntheticDataset(scene=scene, seed=seed, stereo=stereo)
     f = ds[frame]
-    got = {"image": _sha(f.image), "labels": _sha(ds.render_raw(frame, labels=True).labels)}
-    assert f.depth_m is not None
+    labels = ds.render_raw(frame, labels=True).labels
+    assert f.depth_m is not None and labels is not None
+    got = {"image": _sha(f.image), "labels": _sha(labels)}
     got["depth"] = _sha(f.depth_m)
     if f.image_right is not None:
         got["right"] = _sha(f.image_right)
@@ -100,7 +101,7 @@ def test_colour_frames_keep_the_grey_image_of_the_sampled_path() -> None:
     with_colour = SyntheticDataset(seed=2, color=True, imu=False)
     for i in (10, 400):
         a, b = grey_only[i], with_colour[i]
-        assert b.color is not None
+        assert b.color is not None and a.depth_m is not None and b.depth_m is not None
         assert np.array_equal(a.image, b.image)
         assert np.array_equal(a.depth_m, b.depth_m)
 
