@@ -17,12 +17,15 @@ M2) / fma(M6, c, r M7 + M8), for the last w mod 16 columns (the scalar tail) sx 
 (fma(c, M6, r M7) + M8) (sy likewise), all in float32; the four neighbours (clamped to the texture) are mixed with
 float32 fmas and rounded half to even. Sampling only the kept pixels, once, is what makes a frame cheap; the
 identity with the old images (and so with the sequential runner's trajectories) is tested against the cv2 path,
-which the colour image still uses (``_warp`` + ``_composite``).
+which the colour image still uses (``_warp`` + ``_composite``), and against stored checksums. The grey image is
+now this module's arithmetic on any machine; the cv2 path's depends on OpenCV's version and SIMD dispatch (16
+columns per vector step is AVX2's; an SSE4.1-only or another OpenCV build would give other last bits), so the
+test against it is the one that notices when the two part.
 
 Depth is the exact z of the ray-plane intersection at each pixel centre (OpenCV convention: pixel (0, 0)
 has its centre at (0, 0)), in float32 metres. Anti-aliasing: a texture is mip-mapped (levels 2x smaller
 each) and each pixel takes the level matching its footprint, log2 of sqrt(|det dtexel/dpixel|), which for
-a plane is |det G| z^3; a rectangle spanning several levels is warped once per level band of depth.
+a plane is |det G| z^3; a rectangle spanning several levels samples each pixel in the level of its depth band.
 """
 
 from __future__ import annotations
