@@ -61,8 +61,8 @@ def test_sampled_path_is_byte_identical_to_the_cv2_path(scene: str, seed: int) -
 
 
 def test_sampled_path_matches_off_the_path_and_at_odd_roi_widths() -> None:
-    """Poses off the camera path (close to walls, tilted, the ROI widths then hit every residue mod 16, so both
-    of cv2's column regimes are exercised) render the same by both paths."""
+    """Poses off the camera path (shifted, tilted) render the same by both paths; their bounding-box widths take
+    many residues mod 16, so both of cv2's column regimes (vector body, scalar tail) are exercised."""
     ds = SyntheticDataset(seed=5, imu=False)
     legacy = _legacy(ds)
     rng = np.random.default_rng(3)
