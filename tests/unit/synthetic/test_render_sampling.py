@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 
+import cv2
 import numpy as np
 import pytest
 from numba import njit
@@ -34,6 +35,18 @@ STORED = {
 }
 
 
+# The sampled path reproduces OpenCV 5.0.0's warpPerspective as dispatched on a CPU with AVX2 and FMA3 (its float32
+# FMA arithmetic, render.py); on other CPUs or builds the cv2 path's last bits may differ from it (the stored
+# checksums below do not depend on cv2 and hold everywhere).
+_CV2_AVX2_FMA = (
+    cv2.getHardwareFeatureName(11) == "AVX2" and cv2.checkHardwareSupport(11) and cv2.checkHardwareSupport(12)
+)
+needs_cv2_avx2 = pytest.mark.skipif(
+    not (_CV2_AVX2_FMA and cv2.__version__.startswith("5.0")),
+    reason=f"the cv2 path's arithmetic is reproduced for OpenCV 5.0 with AVX2+FMA3 (here: OpenCV {cv2.__version__})",
+)
+
+
 def _sha(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
 
@@ -50,6 +63,7 @@ def _assert_same(a: RenderOutput, b: RenderOutput) -> None:
     assert np.array_equal(a.labels, b.labels)
 
 
+@needs_cv2_avx2
 @pytest.mark.parametrize(("scene", "seed"), [("room", 0), ("room", 3), ("long_loop", 1)])
 def test_sampled_path_is_byte_identical_to_the_cv2_path(scene: str, seed: int) -> None:
     ds = SyntheticDataset(scene=scene, seed=seed, imu=False)
@@ -60,6 +74,7 @@ def test_sampled_path_is_byte_identical_to_the_cv2_path(scene: str, seed: int) -
         _assert_same(ds.renderer.render(T, labels=True), legacy.render(T, labels=True))
 
 
+@needs_cv2_avx2
 def test_sampled_path_matches_off_the_path_and_at_odd_roi_widths() -> None:
     """Poses off the camera path (shifted, tilted) render the same by both paths; their bounding-box widths take
     many residues mod 16, so both of cv2's column regimes (vector body, scalar tail) are exercised."""
@@ -95,6 +110,7 @@ def test_frames_match_checksums_of_the_renderer_before_the_change(
     assert got == STORED[(scene, seed, frame, stereo)]
 
 
+@needs_cv2_avx2
 def test_colour_frames_keep_the_grey_image_of_the_sampled_path() -> None:
     """With colour on, the renderer draws by the cv2 path; its grey image is the grey-only render's."""
     grey_only = SyntheticDataset(seed=2, imu=False)
