@@ -32,9 +32,9 @@ from slamkit_scipy.kernels import (
     ba_cost,
     ba_linearize,
     ba_reduced_system,
+    ba_retract,
     cholesky_solve_upper,
 )
-from slamkit_scipy.lie import se3_exp_batch
 from slamkit_scipy.lm import LMSettings, levenberg_marquardt
 from slamkit_scipy.reprojection import (
     Observations,
@@ -325,13 +325,10 @@ class BundleSolver:
         return np.concatenate([dc, dp.ravel()])
 
     def retract(self, state: BAState, h: F64) -> BAState:
+        """Left perturbation of the free poses, T <- exp(xi) T, and X <- X + dp for the free points (one compiled
+        pass, kernels.ba_retract)."""
         st = self.st
-        T = state.T_c_w.copy()
-        if st.nc:
-            T[st.free_poses] = se3_exp_batch(h[: 6 * st.nc].reshape(st.nc, 6)) @ T[st.free_poses]
-        X = state.xyz_w.copy()
-        if st.np_:
-            X[st.free_points] += h[6 * st.nc :].reshape(st.np_, 3)
+        T, X = ba_retract(state.T_c_w, state.xyz_w, st.free_poses, st.free_points, np.ascontiguousarray(h))
         return BAState(T, X)
 
 

@@ -15,6 +15,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.geometry.so3 import _SMALL_ANGLE
 from slamkit.optim.kannala_brandt import kb_jacobian, kb_project
 
 F64 = NDArray[np.float64]
@@ -41,7 +42,7 @@ def _accumulate_block(J: F64, r: F64, rows: int, w: float, g: F64, H: F64) -> No
             H[i, jj] += w * s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath={"contract"})
 def ba_linearize(
     R: F64,
     t: F64,
@@ -63,7 +64,9 @@ def ba_linearize(
     fisheye: bool,
 ) -> tuple[F64, F64, F64, F64, F64, float]:  # pragma: no cover - compiled
     """-> U (nc, 6, 6), V (npt, 3, 3), W (E, 6, 3) (zero unless both ends free), gc (nc, 6), gp (npt, 3),
-    robust cost. Blocks are J^T w J and J^T w r with w = info * rho'(chi2) (IRLS Huber when ``robust``)."""
+    robust cost. Blocks are J^T w J and J^T w r with w = info * rho'(chi2) (IRLS Huber when ``robust``).
+    Compiled with contraction (fastmath "contract": a multiply and the add it feeds may become one fused multiply-add,
+    one rounding instead of two; 0.93x the kernel's time on captured fr1 local BAs, U within ~5e-12 relative)."""
     E = obs_pose.shape[0]
     U = np.zeros((nc, 6, 6))
     V = np.zeros((npt, 3, 3))
@@ -182,8 +185,15 @@ def _inv3(M: F64, out: F64) -> None:  # pragma: no cover - compiled
 #: float64 in numba) spares that test in the innermost loops and lets LLVM vectorize a row update.
 _U1, _U2, _U3, _U4, _U5, _U6 = (np.uint64(k) for k in range(1, 7))
 
+#: LLVM fast-math flags of the reduced camera system (issue 15, branch lmsolve): reassociation and contraction let each
+#: entry's update S -= a0 b0 + a1 b1 + a2 b2 compile to three fused negative multiply-adds (0.80-0.89x the kernel's time
+#: on captured fr1 local BAs; the steps move by ~1e-10 relative, the order in which an entry's products are summed is
+#: then the compiler's); "nsz" ignores the sign of zero. No "nnan" / "ninf": a singular V + lam I must still give
+#: non-finite entries, which the Cholesky kernel rejects (the LM then raises the damping).
+_SCHUR_FASTMATH = {"reassoc", "contract", "nsz"}
 
-@numba.njit(cache=True, nogil=True, inline="always")
+
+@numba.njit(cache=True, nogil=True, inline="always", fastmath=_SCHUR_FASTMATH)
 def _block_row(b: F64, e: int) -> tuple[float, ...]:  # pragma: no cover - compiled
     """The 18 entries of the (6, 3) block b[e] in row-major order, read into registers (a UniTuple)."""
     return (
@@ -193,12 +203,13 @@ def _block_row(b: F64, e: int) -> tuple[float, ...]:  # pragma: no cover - compi
     )  # fmt: skip
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always", fastmath=_SCHUR_FASTMATH)
 def _subtract_row6(
     S: F64, r: int, o: int, a0: float, a1: float, a2: float, b: tuple[float, ...]
 ) -> None:  # pragma: no cover - compiled
-    """S[r, o + j] -= a0 b[3 j] + a1 b[3 j + 1] + a2 b[3 j + 2] for j = 0..5 (b: a :func:`_block_row`), each sum
-    in that order: one row of a pair's 6x6 block of the reduced camera system."""
+    """S[r, o + j] -= a0 b[3 j] + a1 b[3 j + 1] + a2 b[3 j + 2] for j = 0..5 (b: a :func:`_block_row`), fused
+    multiply-adds in the compiler's order (_SCHUR_FASTMATH): one row of a pair's 6x6 block of the reduced camera
+    system."""
     S[r, o] -= a0 * b[0] + a1 * b[1] + a2 * b[2]
     S[r, o + _U1] -= a0 * b[3] + a1 * b[4] + a2 * b[5]
     S[r, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
@@ -207,11 +218,11 @@ def _subtract_row6(
     S[r, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always", fastmath=_SCHUR_FASTMATH)
 def _subtract_upper6(S: F64, o: int, Y: F64, a: int, b: tuple[float, ...]) -> None:  # pragma: no cover - compiled
     """The upper triangle of a diagonal 6x6 block of S at rows / columns o..o+5: S[o + i, o + j] -= Y[a, i, 0] b[3 j] +
-    Y[a, i, 1] b[3 j + 1] + Y[a, i, 2] b[3 j + 2] for j >= i (b: a :func:`_block_row`), each sum in that order (the
-    entries :func:`_subtract_row6` would write there, and nothing below the diagonal)."""
+    Y[a, i, 1] b[3 j + 1] + Y[a, i, 2] b[3 j + 2] for j >= i (b: a :func:`_block_row`) (the entries
+    :func:`_subtract_row6` would write there, and nothing below the diagonal)."""
     a0, a1, a2 = Y[a, 0, 0], Y[a, 0, 1], Y[a, 0, 2]
     S[o, o] -= a0 * b[0] + a1 * b[1] + a2 * b[2]
     S[o, o + _U1] -= a0 * b[3] + a1 * b[4] + a2 * b[5]
@@ -241,7 +252,7 @@ def _subtract_upper6(S: F64, o: int, Y: F64, a: int, b: tuple[float, ...]) -> No
     S[o + _U5, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_SCHUR_FASTMATH)
 def ba_reduced_system(
     U: F64,
     V: F64,
@@ -303,7 +314,7 @@ def ba_reduced_system(
                 rhs[6 * ca + i] += Y[a, i, 0] * gp[q, 0] + Y[a, i, 1] * gp[q, 1] + Y[a, i, 2] * gp[q, 2]
         # Each pair (a <= b) once: the block Y_a W_b^T goes to the upper triangle (its transpose when ca > cb; the
         # Cholesky kernel reads no other), diagonal blocks are kept whole. Every entry of S receives the products
-        # Y_a[i, k] W_b[jj, k] summed over k = 0, 1, 2 in that order, one point after the other, whichever branch
+        # Y_a[i, k] W_b[jj, k] over k = 0, 1, 2 (fused, _SCHUR_FASTMATH), one point after the other, whichever branch
         # writes it: the operand of the other observation is read once per pair into registers (_block_row).
         for a in range(n):
             ca = cs[a]
@@ -395,6 +406,58 @@ def ba_back_substitute(
         for i in range(3):
             dp[q, i] = Vinv[q, i, 0] * t[0] + Vinv[q, i, 1] * t[1] + Vinv[q, i, 2] * t[2]
     return dp
+
+
+@numba.njit(cache=True, nogil=True)
+def ba_retract(T: F64, X: F64, free_poses: I64, free_points: I64, h: F64) -> tuple[F64, F64]:  # pragma: no cover
+    """The LM's retraction in one compiled pass (slamkit_scipy.bundle's BundleSolver.retract):
+    T (K, 4, 4) poses T_c_w, X (M, 3) points (m), h = [xi_0, .., xi_(nc-1), dp_0, .., dp_(np-1)] with xi = [omega
+    (rad), v (m)] per free pose (left perturbation T <- exp(xi) T) and dp (m) per free point (X <- X + dp).
+    -> new (K, 4, 4) and (M, 3) arrays. exp(xi) = [[I + a W + b W^2, (I + b W + c W^2) v], [0, 1]] with W = hat(omega),
+    a = sin t / t, b = (1 - cos t) / t^2, c = (t - sin t) / t^3 (their series below slamkit.geometry.so3's small
+    angle): slamkit_scipy.lie.se3_exp_batch's formulas (tests compare the two), without its (N, 4, 4) temporaries."""
+    Tn = T.copy()
+    Xn = X.copy()
+    E = np.empty((3, 3))
+    J = np.empty((3, 3))
+    for q in range(free_poses.shape[0]):
+        k = free_poses[q]
+        w0 = h[6 * q]
+        w1 = h[6 * q + 1]
+        w2 = h[6 * q + 2]
+        t2 = w0 * w0 + w1 * w1 + w2 * w2
+        th = np.sqrt(t2)
+        if th < _SMALL_ANGLE:
+            a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+            b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+            c = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
+        else:
+            st = np.sin(th)
+            a = st / th
+            b = (1.0 - np.cos(th)) / (th * th)
+            c = (th - st) / (th * th * th)
+        # W = hat(w) = [[0, -w2, w1], [w2, 0, -w0], [-w1, w0, 0]]; W^2 = w w^T - |w|^2 I
+        Wm = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+        for i in range(3):
+            for j in range(3):
+                ww = Wm[i][0] * Wm[0][j] + Wm[i][1] * Wm[1][j] + Wm[i][2] * Wm[2][j]
+                eye = 1.0 if i == j else 0.0
+                E[i, j] = eye + a * Wm[i][j] + b * ww
+                J[i, j] = eye + b * Wm[i][j] + c * ww
+        v0 = h[6 * q + 3]
+        v1 = h[6 * q + 4]
+        v2 = h[6 * q + 5]
+        for i in range(3):
+            ti = J[i, 0] * v0 + J[i, 1] * v1 + J[i, 2] * v2
+            for j in range(4):
+                Tn[k, i, j] = E[i, 0] * T[k, 0, j] + E[i, 1] * T[k, 1, j] + E[i, 2] * T[k, 2, j]
+            Tn[k, i, 3] += ti
+    base = 6 * free_poses.shape[0]
+    for q in range(free_points.shape[0]):
+        j = free_points[q]
+        for i in range(3):
+            Xn[j, i] = X[j, i] + h[base + 3 * q + i]
+    return Tn, Xn
 
 
 @numba.njit(cache=True, nogil=True)

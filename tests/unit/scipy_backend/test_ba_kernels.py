@@ -1,12 +1,13 @@
 """The bundle adjustment's reduced camera system and Cholesky kernels (slamkit_scipy.kernels) against straightforward
-per-entry Python references: the same floating-point operations in the same order, so equal to the bit (the local BA's
-trajectory depends on it), and against dense linear algebra."""
+per-entry Python references (the Cholesky: the same floating-point operations in the same order, so equal to the bit;
+the reduced system, compiled with fast-math contraction: to rounding), and against dense linear algebra."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from slamkit_scipy.kernels import ba_reduced_system, cholesky_solve_upper
+from slamkit_scipy.kernels import ba_reduced_system, ba_retract, cholesky_solve_upper
+from slamkit_scipy.lie import se3_exp_batch
 
 F64 = np.ndarray
 
@@ -103,19 +104,22 @@ def random_problem(seed: int, nc: int, npt: int, twice: bool) -> tuple:
 
 
 @pytest.mark.parametrize(("seed", "twice"), [(0, False), (1, False), (2, True), (3, True)])
-def test_reduced_system_is_the_reference_to_the_bit(seed: int, twice: bool) -> None:
-    """S's upper triangle (all the Cholesky kernel reads), rhs and V^-1 equal the reference to the bit; the blocks
-    strictly below the diagonal blocks are left 0."""
+def test_reduced_system_is_the_reference(seed: int, twice: bool) -> None:
+    """S's upper triangle (all the Cholesky kernel reads) and rhs equal the reference to rounding (the kernel's
+    fast-math flags let the compiler fuse and reorder each entry's three products: 1e-12 relative to the entry's
+    scale, where a wrong pair or a missed transposition would be off by O(1)), V^-1 likewise; the blocks strictly
+    below the diagonal blocks are left 0."""
     args = random_problem(seed, nc=7, npt=60, twice=twice)
     got, want = ba_reduced_system(*args), reduced_system_reference(*args)
     upper = np.triu(np.ones(want[0].shape, bool))
     assert got[0].shape == want[0].shape
-    assert np.array_equal(got[0][upper].view(np.int64), want[0][upper].view(np.int64))
+    scale = np.abs(want[0][upper]).max()
+    np.testing.assert_allclose(got[0][upper], want[0][upper], rtol=0.0, atol=1e-12 * scale)
     block_lower = np.tril(np.ones(want[0].shape, bool), -1) & ~np.kron(np.eye(7, dtype=bool), np.ones((6, 6), bool))
     assert not got[0][block_lower].any()
-    for g, w in zip(got[1:], want[1:], strict=True):
-        assert g.shape == w.shape
-        assert np.array_equal(g.view(np.int64), w.view(np.int64))
+    assert got[1].shape == want[1].shape
+    np.testing.assert_allclose(got[1], want[1], rtol=0.0, atol=1e-12 * np.abs(want[1]).max())
+    np.testing.assert_allclose(got[2], want[2], rtol=0.0, atol=1e-12 * np.abs(want[2]).max())
 
 
 def test_reduced_system_is_the_schur_complement() -> None:
@@ -185,3 +189,28 @@ def test_cholesky_is_the_reference_to_the_bit(seed: int) -> None:
     assert np.all(np.isfinite(got))
     assert np.array_equal(got.view(np.int64), cholesky_reference(S, rhs).view(np.int64))
     np.testing.assert_allclose(got, np.linalg.solve(np.triu(S) + np.triu(S, 1).T, rhs), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("scale", [1e-9, 1e-5, 1e-3, 0.1, 1.0, 3.0])
+def test_retract_is_the_batched_exponential(scale: float) -> None:
+    """ba_retract: the free poses become exp(xi) T (slamkit_scipy.lie.se3_exp_batch, both sides of the small-angle
+    series switch) to rounding, the free points X + dp exactly; the fixed poses and points are untouched and the
+    inputs are not written."""
+    rng = np.random.default_rng(int(scale * 1e9) % 2**32)
+    K, M = 9, 20
+    T = se3_exp_batch(rng.normal(size=(K, 6)))
+    X = rng.normal(size=(M, 3))
+    T0, X0 = T.copy(), X.copy()
+    free_poses = np.array([1, 3, 4, 8], np.int64)
+    free_points = np.array([0, 5, 7], np.int64)
+    h = rng.normal(size=6 * free_poses.size + 3 * free_points.size) * scale
+    Tn, Xn = ba_retract(T, X, free_poses, free_points, h)
+    want = T.copy()
+    want[free_poses] = se3_exp_batch(h[:24].reshape(4, 6)) @ T[free_poses]
+    np.testing.assert_allclose(Tn, want, rtol=0.0, atol=4e-15)
+    fixed = np.setdiff1d(np.arange(K), free_poses)
+    assert np.array_equal(Tn[fixed], T[fixed])
+    wantX = X.copy()
+    wantX[free_points] += h[24:].reshape(3, 3)
+    assert np.array_equal(Xn, wantX)
+    assert np.array_equal(T, T0) and np.array_equal(X, X0)
