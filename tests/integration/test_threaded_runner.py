@@ -64,7 +64,8 @@ def test_threaded_run_tracks_the_room_as_accurately_as_the_sequential_one(
     assert metrics["realtime_factor"] is not None and metrics["realtime_factor"] > 0
 
 
-@pytest.mark.parametrize("waits_for", ["local_mapping", "none"])
+# frame_waits_for=none is not the default policy: its variant is slow (the default one runs in the default suite)
+@pytest.mark.parametrize("waits_for", ["local_mapping", pytest.param("none", marks=pytest.mark.slow)])
 def test_as_fast_as_possible_the_modelled_mapping_time_keeps_keyframes_apart_in_sequence_time(waits_for: str) -> None:
     """``runner.modelled_mapping_ms`` as fast as possible: a monocular frame within the modelled time of the last
     keyframe makes none (ORB-SLAM's monocular NeedNewKeyFrame while local mapping is busy), whatever the local
@@ -120,6 +121,7 @@ def test_as_fast_as_possible_the_modelled_mapping_time_keeps_keyframes_apart_in_
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
 
+@pytest.mark.slow  # runner.wait_for_local_mapping=false is not the default policy
 def test_as_fast_as_possible_without_waiting_a_busy_local_mapping_gets_no_keyframe_and_tracking_never_waits() -> None:
     """``runner.wait_for_local_mapping=false``: ORB-SLAM2/3 fed as fast as they track. Tracking never waits for local
     mapping; a monocular frame that wants a keyframe while it is busy interrupts its local BA and makes none, so each
@@ -161,7 +163,8 @@ def test_as_fast_as_possible_without_waiting_a_busy_local_mapping_gets_no_keyfra
     assert len(log.mapping) <= 2 * (1 + log.resets) + wall_s / 0.2 + 1
 
 
-@pytest.mark.parametrize("waits_for", ["local_mapping", "none"])
+# frame_waits_for=none is not the default policy: its variant is slow (the default one runs in the default suite)
+@pytest.mark.parametrize("waits_for", ["local_mapping", pytest.param("none", marks=pytest.mark.slow)])
 def test_as_fast_as_possible_a_frame_is_tracked_once_local_mapping_is_done_with_the_keyframes_before_it(
     waits_for: str,
 ) -> None:

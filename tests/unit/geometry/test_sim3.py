@@ -35,7 +35,7 @@ def generator(xi: F64) -> F64:
 sims = sim3_twists().map(Sim3.exp)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(xi=sim3_twists())
 def test_exp_is_the_matrix_exponential_and_log_inverts_it(xi: F64) -> None:
     S = Sim3.exp(xi)

@@ -15,7 +15,10 @@ from slamkit.io.synthetic.textures import build_mipmaps, generate_texture
 FRAMES_PER_SCENE = 8
 
 
-@pytest.mark.parametrize("scene", sorted(SCENES))
+# the default scene in the default suite, every other scene (each ~5-10 s of texture generation) with -m slow
+@pytest.mark.parametrize(
+    "scene", [s if s == "room" else pytest.param(s, marks=pytest.mark.slow) for s in sorted(SCENES)]
+)
 def test_orb_finds_1000_well_spread_features_on_every_sampled_frame(
     synthetic: Callable[..., SyntheticDataset], scene: str
 ) -> None:
