@@ -243,6 +243,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             modelled_mapping_new_map_ms=None if new_map_ms is None else float(new_map_ms),
             wait_for_local_mapping=bool(cfg.runner.get("wait_for_local_mapping", True)),
             frame_waits_for=str(cfg.runner.get("frame_waits_for", "local_mapping")),
+            extract_ahead=_int_setting(cfg.runner, "extract_ahead", 0, 64, 0),
         )
     else:
         runner = SequentialRunner(

@@ -104,7 +104,9 @@ class FrameSource(threading.Thread):
     when the source ends, so a capture device is released by the thread that reads it). realtime: one-slot
     mailbox, newest frame wins. paced: in real time, release each frame at its timestamp (False: as soon as it is
     read, for a live device that delivers frames at its own rate). speed: playback rate factor for paced real time
-    (2.0 plays twice as fast). on_fault: called if reading raises.
+    (2.0 plays twice as fast). on_fault: called if reading raises. prepare: as fast as possible only, called in this
+    thread on each frame read, before it is queued (the threaded runner's feature extraction ahead:
+    slamkit/runtime/extract_ahead.py). ahead: as fast as possible, the frames queued ahead of tracking.
     """
 
     def __init__(
@@ -114,10 +116,16 @@ class FrameSource(threading.Thread):
         on_fault: Callable[[ThreadFault], None],
         speed: float = 1.0,
         paced: bool = True,
+        prepare: Callable[[FrameData], None] | None = None,
+        ahead: int = PREFETCH_FRAMES,
     ) -> None:
         super().__init__(name="frame-source", daemon=True)
         if speed <= 0:
             raise ValueError(f"playback speed must be > 0, got {speed}")
+        if ahead < 1:
+            raise ValueError(f"frames read ahead must be >= 1, got {ahead}")
+        self._prepare = None if realtime else prepare
+        self.ahead = ahead
         self._frames = frames
         self.realtime = realtime
         self.paced = paced
@@ -175,7 +183,7 @@ class FrameSource(threading.Thread):
                         self.frames_dropped += 1
                         self.dropped.append((old.index, old.timestamp_s))
             else:
-                self._cond.wait_for(lambda: len(self._slots) < PREFETCH_FRAMES or self._stop_requested)
+                self._cond.wait_for(lambda: len(self._slots) < self.ahead or self._stop_requested)
             if self._stop_requested:
                 return False
             self._slots.append(item)
@@ -206,6 +214,8 @@ class FrameSource(threading.Thread):
                         return
                 self.last_timestamp_s = data.timestamp_s
                 self.frames_read += 1
+                if self._prepare is not None:
+                    self._prepare(data)
                 if not self._put(data):
                     return
             self._put(END)

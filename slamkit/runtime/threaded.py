@@ -56,10 +56,19 @@ from slamkit.pipeline.startup import thaw_startup_heap
 from slamkit.pipeline.tracking import Tracker
 from slamkit.pipeline.trajectory import KeptFrames, TrajectoryRecorder
 from slamkit.runtime.events import EventDispatcher, RunEvents
+from slamkit.runtime.extract_ahead import ExtractedAhead
 from slamkit.runtime.log import RunLog, log_tracking_outcome, map_frames
 from slamkit.runtime.modelled_mapping import modelled_mapping
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
-from slamkit.runtime.source import END, FrameSource, check_bad_frames_policy, frame_count, is_live, readable_frames
+from slamkit.runtime.source import (
+    END,
+    PREFETCH_FRAMES,
+    FrameSource,
+    check_bad_frames_policy,
+    frame_count,
+    is_live,
+    readable_frames,
+)
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault, raised_by_ctrl_c
 from slamkit.sensors import FrameData, FrameRecords
 
@@ -110,6 +119,7 @@ class ThreadedRunner:
         modelled_mapping_new_map_ms: float | None = None,
         wait_for_local_mapping: bool = True,
         frame_waits_for: str = FRAME_WAITS_FOR_LOCAL_MAPPING,
+        extract_ahead: int = 0,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -124,7 +134,14 @@ class ThreadedRunner:
         frame_waits_for: as fast as possible with ``wait_for_local_mapping``, monocular frames only, what a frame
         waits for once its features are extracted, before it is tracked: "local_mapping" — local mapping is done with
         every keyframe handed to it (the sequential runner's map, hence its keyframe decisions; with the modelled
-        mapping time, the sequential runner's with the same model); "none" — nothing (docs/runtime.md)."""
+        mapping time, the sequential runner's with the same model); "none" — nothing (docs/runtime.md).
+        extract_ahead: as fast as possible only, the frames the frame source reads and extracts features of ahead of
+        tracking (slamkit/runtime/extract_ahead.py: the same records, made on the core local mapping leaves idle);
+        0: tracking extracts each frame itself."""
+        if extract_ahead < 0:
+            raise ConfigError(f"runner.extract_ahead = {extract_ahead}: expected a number of frames >= 0 (0: off)")
+        self.extract_ahead = int(extract_ahead)
+        self._ahead: ExtractedAhead | None = None
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
                 f"runner.frame_waits_for = {frame_waits_for!r}: expected one of {', '.join(FRAME_WAITS_FOR)}"
@@ -359,6 +376,18 @@ class ThreadedRunner:
             out.timings_ms["track_ms"] += waited_ms
         return out
 
+    def _count_extraction_ahead(self, out: TrackingOutcome, data: FrameData) -> None:
+        """A frame whose features were extracted ahead (in the frame source's thread): its ``extract_ms`` is that
+        extraction's time, and ``track_ms`` counts it in place of the look-up tracking timed, so that the tracking
+        time per frame stays the frame's whole cost, extraction included, as with tracking's own extraction."""
+        served_ms = None if self._ahead is None else self._ahead.served_ms(data.index)
+        if served_ms is None:
+            return
+        looked_up_ms = out.timings_ms.get("extract_ms", 0.0)
+        out.timings_ms["extract_ms"] = served_ms
+        if "track_ms" in out.timings_ms:
+            out.timings_ms["track_ms"] += served_ms - looked_up_ms
+
     def _frame_waits(self) -> bool:
         """Whether the frame being tracked waits for local mapping after its extraction (``frame_waits_for``), with
         or without the modelled mapping time: the model then decides from the frame's timestamp whether local mapping
@@ -383,6 +412,7 @@ class ThreadedRunner:
                 out.timings_ms["track_ms"] += self._pre_track_wait_ms
         if self._pre_track_wait_ms > 0.0:
             out.timings_ms["mapping_wait_ms"] = self._pre_track_wait_ms
+        self._count_extraction_ahead(out, data)
         frame = self.tracker.current_frame
         if frame is not None and frame.index == out.frame_index:
             self._depth_frames = frame.features.bf > 0.0
@@ -463,23 +493,46 @@ class ThreadedRunner:
         start = time.perf_counter()
         # a live device paces itself: read continuously (a file played as a stream is paced at its timestamps)
         paced = not live or bool(getattr(dataset, "paced", False))
-        self._source = FrameSource(frames, self.realtime, self._on_fault, self.speed, paced=paced)
+        self._ahead = None
+        if self.extract_ahead > 0 and not self.realtime:
+            self._ahead = ExtractedAhead(self.tracker.frontend, camera, self.tracker.uses_tracking_extractor)
+        self._source = FrameSource(
+            frames,
+            self.realtime,
+            self._on_fault,
+            self.speed,
+            paced=paced,
+            prepare=None if self._ahead is None else self._ahead.prepare,
+            ahead=self.extract_ahead if self._ahead is not None else PREFETCH_FRAMES,
+        )
         workers = self._make_workers()
         bar = tqdm(total=frame_count(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
         for thread in (self._source, *workers):
             thread.start()
         finished = False
+        frontend = self.tracker.frontend
         try:
+            if self._ahead is not None:
+                self.tracker.frontend = self._ahead  # a FrontEnd by delegation (__getattr__)
             with gil_switch_interval(self.gil_switch_interval_s), self._ctrl_c_ends_stream(live):
                 self._track_frames(camera, bar, on_frame)
             if self._fault is None:
                 self._drain(workers)
             finished = True
         finally:
+            self.tracker.frontend = frontend
             bar.close()
             if not finished or self._fault is not None:
                 self._stop_all(workers)
             self._source.stop()
+            if self._ahead is not None:
+                log.info(
+                    "features of %d frames extracted ahead of tracking, %d of them used (runner.extract_ahead=%d)",
+                    self._ahead.extracted,
+                    self._ahead.served,
+                    self.extract_ahead,
+                )
+                self._ahead = None
             if live:  # the source thread releases the device
                 self._source.join(timeout=SOURCE_JOIN_TIMEOUT_S)
                 self.log.source_end = self.log.source_end or getattr(dataset, "end_reason", None)

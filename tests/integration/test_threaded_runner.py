@@ -224,6 +224,36 @@ def test_as_fast_as_possible_a_frame_is_tracked_once_local_mapping_is_done_with_
     assert metrics["frames_tracked"] >= 150 - 12 and metrics["ate_rmse_pct_of_path"] < 1.0
 
 
+def test_features_extracted_ahead_leave_the_sequential_runners_trajectory_bit_for_bit(tmp_path: Path) -> None:
+    """``runner.extract_ahead`` (default 8): the frame source extracts the features of the frames it reads ahead, on
+    the core local mapping leaves idle. Tracking takes those records for the frames after the map's initialisation
+    (its frames get the initialisation extractor from tracking itself), and the run as fast as possible is still the
+    sequential runner's, bit for bit (frame_waits_for=local_mapping with the modelled mapping time)."""
+    frames = "dataset.max_frames=70"
+    sequential, dataset = build_runner(compose_config(["runner=sequential", "runner.progress=false", frames]))
+    sequential.run(dataset, dataset.camera, run_dir=tmp_path / "sequential", config={"seed": 0})
+    runner, dataset = _runner(frames)
+    assert runner.extract_ahead == 8
+    served: list[int] = []
+    count = runner._count_extraction_ahead
+
+    def noted(out: Any, data: Any) -> None:
+        if runner._ahead is not None and data.index in runner._ahead._served_ms:
+            served.append(data.index)
+        count(out, data)
+
+    runner._count_extraction_ahead = noted  # type: ignore[method-assign]
+    log = runner.run(dataset, dataset.camera, run_dir=tmp_path / "threaded", config={"seed": 0})
+    first = next(out.frame_index for out in log.tracking if out.initialized_map)
+    # every frame past the initialisation extractor's window (ORB-SLAM3: 30 frames after the map's first) is served
+    window = runner.tracker.max_frames
+    assert served and set(range(first + window + 1, 70)) <= set(served) and min(served) > first
+    assert (tmp_path / "threaded" / "trajectory.tum").read_bytes() == (
+        tmp_path / "sequential" / "trajectory.tum"
+    ).read_bytes()
+    assert all(out.timings_ms["extract_ms"] > 1.0 for out in log.tracking if out.frame_index in served)
+
+
 def test_not_waiting_for_local_mapping_leaves_the_modelled_time_unused() -> None:
     """``runner.wait_for_local_mapping=false``: the local mapping thread's own state decides, as in real time; the
     modelled mapping time (default 100 ms) stands in for a camera's frame period only when frames wait."""

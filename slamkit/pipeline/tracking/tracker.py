@@ -269,6 +269,13 @@ class Tracker:
         self.current_frame = frame
         return frame
 
+    def uses_tracking_extractor(self, data: FrameData) -> bool:
+        """Whether the frame of ``data``, were it tracked now, would get the tracking extractor (not a monocular
+        initialisation's, nor the frames after it that ORB-SLAM3 gives that extractor too). A hint for extraction
+        ahead of tracking (slamkit/runtime/extract_ahead.py), read from another thread: the state may change before
+        the frame is tracked, which costs that extraction only."""
+        return self.state != TrackingState.NOT_INITIALIZED and not self._in_init_extractor_window(data.index)
+
     def _in_init_extractor_window(self, frame_index: int) -> bool:
         """Whether a frame of a tracked map still gets the initialisation extractor: with
         ``init_extractor_after_init``, the mMaxFrames frames after the initialising one (ORB-SLAM3

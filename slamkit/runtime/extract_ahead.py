@@ -1,0 +1,93 @@
+"""Feature extraction ahead of tracking, in the frame-source thread (threaded runner, as fast as possible).
+
+Played as fast as possible, the threaded runner's tracking thread waits for local mapping at every keyframe
+(``runner.frame_waits_for``; docs/runtime.md): on fr1_xyz about 190 ms per keyframe, one keyframe every ~4 frames.
+Before this module the frame's own ORB extraction (~9-12 ms, plus the image's decoding in the frame source) was the
+only work that overlapped that wait. Here the frame-source thread, which already reads a few frames ahead, also
+extracts their features (``FrontEnd.observe``, with the tracking extractor), so the tracking thread finds each frame's
+observation record ready and the extraction runs on the core local mapping leaves idle.
+
+Nothing the pipeline computes changes: a frame's record is what ``observe`` gives for it whichever thread runs it
+(the extraction depends on the image and the extractor only), and a record is used only when tracking asks for the
+tracking extractor's (``initializing`` False); a frame of a monocular initialisation (ORB-SLAM's bigger initialisation
+extractor) is extracted again by tracking, as before. The front end is called by one thread at a time (a lock): an
+extractor need not be thread-safe.
+
+Not used in real time, where a frame's extraction is part of the latency the clock judges, nor for frames handed in
+by a caller (``ThreadedRunner.step``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from slamkit.features import Observations
+from slamkit.interfaces import Camera, FrontEnd
+from slamkit.sensors import FrameData
+
+log = logging.getLogger("slamkit.runtime")
+
+
+class ExtractedAhead:
+    """Wraps a front end: ``prepare(data)`` (frame-source thread) extracts a frame's record ahead; ``observe``
+    (tracking thread) returns it once, or extracts as the wrapped front end does when there is none for the frame or
+    tracking asks for the initialisation extractor's. Every other attribute is the wrapped front end's.
+
+    wanted: whether a frame read now is worth extracting ahead (the tracker's hint: not while it initialises a map,
+    whose frames get the initialisation extractor; a wrong hint costs time only, never a different record).
+    """
+
+    def __init__(self, frontend: FrontEnd, camera: Camera, wanted: Callable[[FrameData], bool] | None = None) -> None:
+        self.frontend = frontend
+        self.camera = camera
+        self._wanted = wanted
+        self._lock = threading.Lock()  # one extraction at a time: the front end's extractors are not shared
+        self._ready: dict[int, tuple[FrameData, Observations, float]] = {}  # frame index -> (packet, record, ms)
+        self._served_ms: dict[int, float] = {}  # frames whose record came from ahead -> its extraction's ms
+        self.extracted = 0  # records made ahead
+        self.served = 0  # records tracking took from ahead
+
+    def prepare(self, data: FrameData) -> None:
+        """Extract ``data``'s record now (frame-source thread). A failure is left to tracking, which extracts the
+        frame itself and meets the error where a frame's failure belongs (its frame number, the run's outputs)."""
+        if self._wanted is not None and not self._wanted(data):
+            return
+        try:
+            with self._lock:
+                t0 = time.perf_counter()
+                record = self.frontend.observe(data, self.camera, False)
+                ms = (time.perf_counter() - t0) * 1e3
+        except Exception as exc:  # tracking extracts this frame itself and reports the error there
+            log.debug("frame %d: extraction ahead failed (%s); tracking extracts it", data.index, exc)
+            return
+        with self._lock:
+            self._ready[data.index] = (data, record, ms)
+            self.extracted += 1
+
+    def observe(self, data: FrameData, camera: Camera, initializing: bool = False) -> Observations:
+        """The record of ``data``: the one extracted ahead (taken once) when it is the tracking extractor's for this
+        packet and camera, else the wrapped front end's ``observe``."""
+        with self._lock:
+            ready = self._ready.pop(data.index, None)
+            # frames tracking has passed (skipped, or asked with the initialisation extractor) are never asked again
+            for index in [i for i in self._ready if i < data.index]:
+                del self._ready[index]
+        if ready is not None and ready[0] is data and camera is self.camera and not initializing:
+            self._served_ms[data.index] = ready[2]
+            self.served += 1
+            return ready[1]
+        with self._lock:
+            return self.frontend.observe(data, camera, initializing)
+
+    def served_ms(self, frame_index: int) -> float | None:
+        """The extraction time (ms, in the frame-source thread) of the record ``observe`` served ahead for this frame,
+        once; None when tracking extracted the frame itself."""
+        return self._served_ms.pop(frame_index, None)
+
+    def __getattr__(self, name: str) -> Any:
+        # n_levels, scale_factor, warm_up, uses_depth, bind_dataset, extractor, ...: the wrapped front end's
+        return getattr(self.frontend, name)

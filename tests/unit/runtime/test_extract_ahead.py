@@ -1,0 +1,91 @@
+"""Extraction ahead of tracking (slamkit/runtime/extract_ahead.py) with the room's real front end and ORB extractors:
+a record made ahead is the one tracking would make, served once, never for a monocular initialisation's frames, and a
+frame the front end cannot take fails where tracking extracts it."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from typing import Any
+
+import numpy as np
+import pytest
+
+from slamkit.app import build_runner
+from slamkit.config import compose_config
+from slamkit.features import Observations
+from slamkit.runtime.extract_ahead import ExtractedAhead
+
+
+@pytest.fixture(scope="module")
+def room() -> tuple[Any, Any]:
+    runner, dataset = build_runner(
+        compose_config(["runner=sequential", "runner.progress=false", "dataset.max_frames=6", "dataset.depth=false"])
+    )
+    return runner.tracker.frontend, dataset
+
+
+def _same_record(a: Observations, b: Observations) -> None:
+    for field in dataclasses.fields(a):
+        x, y = getattr(a, field.name), getattr(b, field.name)
+        if isinstance(x, np.ndarray):
+            np.testing.assert_array_equal(x, y, err_msg=field.name)
+        elif dataclasses.is_dataclass(x):
+            _same_record(x, y)  # type: ignore[arg-type]
+        else:
+            assert x == y or (x != x and y != y), field.name  # NaN scalars compare equal here
+
+
+def test_a_record_made_ahead_is_trackings_own_and_is_served_once(room: tuple[Any, Any]) -> None:
+    frontend, dataset = room
+    ahead = ExtractedAhead(frontend, dataset.camera)
+    data = dataset[2]
+    worker = threading.Thread(target=ahead.prepare, args=(data,))  # the frame source's thread
+    worker.start()
+    worker.join()
+    assert ahead.extracted == 1
+    served = ahead.observe(data, dataset.camera)
+    assert ahead.served == 1 and len(served) > 500
+    _same_record(served, frontend.observe(data, dataset.camera, False))
+    ms = ahead.served_ms(2)
+    assert ms is not None and ms > 0.0 and ahead.served_ms(2) is None  # reported once
+    # taken once: the next request extracts again (a new, equal record)
+    again = ahead.observe(data, dataset.camera)
+    assert again is not served and ahead.served == 1
+    _same_record(again, served)
+
+
+def test_initialisation_frames_and_other_packets_are_extracted_by_tracking(room: tuple[Any, Any]) -> None:
+    frontend, dataset = room
+    ahead = ExtractedAhead(frontend, dataset.camera)
+    data = dataset[3]
+    ahead.prepare(data)
+    init = ahead.observe(data, dataset.camera, initializing=True)  # ORB-SLAM's initialisation extractor: more features
+    assert ahead.served == 0 and ahead.served_ms(3) is None
+    _same_record(init, frontend.observe(data, dataset.camera, True))
+    assert len(init) > len(frontend.observe(data, dataset.camera, False))
+    # a record is for the packet it was made from: another packet with the same number is extracted anew
+    ahead.prepare(data)
+    other = dataclasses.replace(data, image=np.ascontiguousarray(data.image[::-1]))
+    flipped = ahead.observe(other, dataset.camera)
+    assert ahead.served == 0
+    _same_record(flipped, frontend.observe(other, dataset.camera, False))
+    # records of frames tracking has passed are let go
+    ahead.prepare(dataset[4])
+    ahead.observe(dataset[5], dataset.camera)
+    assert ahead.observe(dataset[4], dataset.camera) is not None and ahead.served == 0
+
+
+def test_the_trackers_hint_and_a_failing_frame(room: tuple[Any, Any]) -> None:
+    frontend, dataset = room
+    ahead = ExtractedAhead(frontend, dataset.camera, wanted=lambda d: d.index != 1)
+    ahead.prepare(dataset[1])
+    assert ahead.extracted == 0  # not wanted (tracking would use the initialisation extractor): not extracted
+    bad = dataclasses.replace(dataset[1], image=np.zeros((7, 7), np.float32))
+    ahead = ExtractedAhead(frontend, dataset.camera)
+    ahead.prepare(bad)  # the frame source's thread does not fail
+    assert ahead.extracted == 0
+    with pytest.raises(Exception) as direct:
+        frontend.observe(bad, dataset.camera, False)
+    with pytest.raises(type(direct.value)):  # tracking meets the front end's own error for the frame
+        ahead.observe(bad, dataset.camera)
