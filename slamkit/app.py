@@ -244,6 +244,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             wait_for_local_mapping=bool(cfg.runner.get("wait_for_local_mapping", True)),
             frame_waits_for=str(cfg.runner.get("frame_waits_for", "local_mapping")),
             extract_ahead=_int_setting(cfg.runner, "extract_ahead", 0, 64, 0),
+            realtime_extract_ahead=bool(cfg.runner.get("realtime_extract_ahead", False)),
         )
     else:
         runner = SequentialRunner(

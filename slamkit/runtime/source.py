@@ -104,8 +104,8 @@ class FrameSource(threading.Thread):
     when the source ends, so a capture device is released by the thread that reads it). realtime: one-slot
     mailbox, newest frame wins. paced: in real time, release each frame at its timestamp (False: as soon as it is
     read, for a live device that delivers frames at its own rate). speed: playback rate factor for paced real time
-    (2.0 plays twice as fast). on_fault: called if reading raises. prepare: as fast as possible only, called in this
-    thread on each frame read, before it is queued (the threaded runner's feature extraction ahead:
+    (2.0 plays twice as fast). on_fault: called if reading raises. prepare: called in this thread on each frame read
+    (in real time: released), before it is queued (the threaded runner's feature extraction ahead:
     slamkit/runtime/extract_ahead.py). ahead: as fast as possible, the frames queued ahead of tracking.
     """
 
@@ -124,7 +124,7 @@ class FrameSource(threading.Thread):
             raise ValueError(f"playback speed must be > 0, got {speed}")
         if ahead < 1:
             raise ValueError(f"frames read ahead must be >= 1, got {ahead}")
-        self._prepare = None if realtime else prepare
+        self._prepare = prepare
         self.ahead = ahead
         self._frames = frames
         self.realtime = realtime

@@ -120,6 +120,7 @@ class ThreadedRunner:
         wait_for_local_mapping: bool = True,
         frame_waits_for: str = FRAME_WAITS_FOR_LOCAL_MAPPING,
         extract_ahead: int = 0,
+        realtime_extract_ahead: bool = False,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -137,10 +138,12 @@ class ThreadedRunner:
         mapping time, the sequential runner's with the same model); "none" — nothing (docs/runtime.md).
         extract_ahead: as fast as possible only, the frames the frame source reads and extracts features of ahead of
         tracking (slamkit/runtime/extract_ahead.py: the same records, made on the core local mapping leaves idle);
-        0: tracking extracts each frame itself."""
+        0: tracking extracts each frame itself. realtime_extract_ahead: in real time, the frame source extracts each
+        frame's features as it releases it (while tracking works on the one before), before the mailbox."""
         if extract_ahead < 0:
             raise ConfigError(f"runner.extract_ahead = {extract_ahead}: expected a number of frames >= 0 (0: off)")
         self.extract_ahead = int(extract_ahead)
+        self.realtime_extract_ahead = bool(realtime_extract_ahead)
         self._ahead: ExtractedAhead | None = None
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
@@ -494,7 +497,7 @@ class ThreadedRunner:
         # a live device paces itself: read continuously (a file played as a stream is paced at its timestamps)
         paced = not live or bool(getattr(dataset, "paced", False))
         self._ahead = None
-        if self.extract_ahead > 0 and not self.realtime:
+        if (self.extract_ahead > 0 and not self.realtime) or (self.realtime and self.realtime_extract_ahead):
             self._ahead = ExtractedAhead(self.tracker.frontend, camera, self.tracker.uses_tracking_extractor)
         self._source = FrameSource(
             frames,
@@ -503,7 +506,7 @@ class ThreadedRunner:
             self.speed,
             paced=paced,
             prepare=None if self._ahead is None else self._ahead.prepare,
-            ahead=self.extract_ahead if self._ahead is not None else PREFETCH_FRAMES,
+            ahead=self.extract_ahead if self._ahead is not None and not self.realtime else PREFETCH_FRAMES,
         )
         workers = self._make_workers()
         bar = tqdm(total=frame_count(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)
@@ -527,10 +530,10 @@ class ThreadedRunner:
             self._source.stop()
             if self._ahead is not None:
                 log.info(
-                    "features of %d frames extracted ahead of tracking, %d of them used (runner.extract_ahead=%d)",
+                    "features of %d frames extracted ahead of tracking, %d of them used (%s)",
                     self._ahead.extracted,
                     self._ahead.served,
-                    self.extract_ahead,
+                    "runner.realtime_extract_ahead" if self.realtime else f"runner.extract_ahead={self.extract_ahead}",
                 )
                 self._ahead = None
             if live:  # the source thread releases the device
