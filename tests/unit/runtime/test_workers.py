@@ -117,6 +117,31 @@ def test_realtime_source_drops_frames_a_busy_consumer_misses() -> None:
     assert 50 <= src.frames_dropped <= 95
 
 
+@pytest.mark.parametrize("realtime", [False, True])
+def test_the_source_prepares_each_frame_in_its_thread_before_delivering_it(realtime: bool) -> None:
+    """``prepare`` (the threaded runner's extraction ahead) runs in the source thread on every frame read, before the
+    frame is queued (as fast as possible: at most ``ahead`` queued; real time: before the mailbox)."""
+    prepared: dict[int, str] = {}
+    queued: list[int] = []
+
+    def prepare(data: FrameData) -> None:
+        prepared[data.index] = threading.current_thread().name
+
+    src = FrameSource(_frames(30, 300.0), realtime=realtime, on_fault=lambda f: None, prepare=prepare, ahead=6)
+    src.start()
+    while True:
+        item = src.get(timeout_s=5)
+        if item is END:
+            break
+        assert isinstance(item, FrameData) and item.index in prepared  # prepared before it was delivered
+        queued.append(len(src._slots))
+        time.sleep(0.005)
+    assert set(prepared) == set(range(30)) and set(prepared.values()) == {"frame-source"}
+    assert max(queued) <= (1 if realtime else 6)
+    with pytest.raises(ValueError, match="ahead"):
+        FrameSource(_frames(1, 30.0), realtime=False, on_fault=lambda f: None, ahead=0)
+
+
 def test_live_source_is_read_continuously_newest_frame_wins_and_is_closed_at_the_end() -> None:
     """A live device paces itself (paced=False): frames go into the mailbox as they are read, a consumer slower
     than the device gets the newest, the dropped ones are listed with their timestamps, and the source (a
