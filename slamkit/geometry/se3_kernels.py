@@ -4,6 +4,9 @@
 update poses inside compiled code: tracking's motion-only bundle adjustment (slamkit.pipeline.pose_optimization)
 and the scipy backend's bundle adjustment (slamkit_scipy.kernels.ba_retract). The vectorised NumPy maps of the
 same exponential are slamkit.geometry.se3.SE3.exp and slamkit_scipy.lie.se3_exp_batch (the tests compare them).
+numba compiles se3_exp_times into its callers' caches, and a caller's cache is invalidated only by its own file
+(numba's documented limitation, numba/numba#1833): after changing this file, touch or clear the caches of
+slamkit/pipeline/pose_optimization.py and plugins/slamkit_scipy/kernels.py.
 """
 
 from __future__ import annotations
