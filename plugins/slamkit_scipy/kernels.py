@@ -15,7 +15,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from slamkit.geometry.so3 import _SMALL_ANGLE
+from slamkit.geometry.se3_kernels import se3_exp_times
 from slamkit.optim.kannala_brandt import kb_jacobian, kb_project
 
 F64 = NDArray[np.float64]
@@ -412,46 +412,15 @@ def ba_back_substitute(
 def ba_retract(T: F64, X: F64, free_poses: I64, free_points: I64, h: F64) -> tuple[F64, F64]:  # pragma: no cover
     """The LM's retraction in one compiled pass (slamkit_scipy.bundle's BundleSolver.retract):
     T (K, 4, 4) poses T_c_w, X (M, 3) points (m), h = [xi_0, .., xi_(nc-1), dp_0, .., dp_(np-1)] with xi = [omega
-    (rad), v (m)] per free pose (left perturbation T <- exp(xi) T) and dp (m) per free point (X <- X + dp).
-    -> new (K, 4, 4) and (M, 3) arrays. exp(xi) = [[I + a W + b W^2, (I + b W + c W^2) v], [0, 1]] with W = hat(omega),
-    a = sin t / t, b = (1 - cos t) / t^2, c = (t - sin t) / t^3 (their series below slamkit.geometry.so3's small
-    angle): slamkit_scipy.lie.se3_exp_batch's formulas (tests compare the two), without its (N, 4, 4) temporaries."""
+    (rad), v (m)] per free pose (left perturbation T <- exp(xi) T: slamkit.geometry.se3_kernels.se3_exp_times, the
+    kernel tracking's pose optimization retracts with; its docstring has the formula and the small-angle series)
+    and dp (m) per free point (X <- X + dp). -> new (K, 4, 4) and (M, 3) arrays; the last row of the poses and
+    the fixed poses and points are copied, the inputs are not written."""
     Tn = T.copy()
     Xn = X.copy()
-    E = np.empty((3, 3))
-    J = np.empty((3, 3))
     for q in range(free_poses.shape[0]):
         k = free_poses[q]
-        w0 = h[6 * q]
-        w1 = h[6 * q + 1]
-        w2 = h[6 * q + 2]
-        t2 = w0 * w0 + w1 * w1 + w2 * w2
-        th = np.sqrt(t2)
-        if th < _SMALL_ANGLE:
-            a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
-            b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
-            c = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
-        else:
-            st = np.sin(th)
-            a = st / th
-            b = (1.0 - np.cos(th)) / (th * th)
-            c = (th - st) / (th * th * th)
-        # W = hat(w) = [[0, -w2, w1], [w2, 0, -w0], [-w1, w0, 0]]; W^2 = w w^T - |w|^2 I
-        Wm = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
-        for i in range(3):
-            for j in range(3):
-                ww = Wm[i][0] * Wm[0][j] + Wm[i][1] * Wm[1][j] + Wm[i][2] * Wm[2][j]
-                eye = 1.0 if i == j else 0.0
-                E[i, j] = eye + a * Wm[i][j] + b * ww
-                J[i, j] = eye + b * Wm[i][j] + c * ww
-        v0 = h[6 * q + 3]
-        v1 = h[6 * q + 4]
-        v2 = h[6 * q + 5]
-        for i in range(3):
-            ti = J[i, 0] * v0 + J[i, 1] * v1 + J[i, 2] * v2
-            for j in range(4):
-                Tn[k, i, j] = E[i, 0] * T[k, 0, j] + E[i, 1] * T[k, 1, j] + E[i, 2] * T[k, 2, j]
-            Tn[k, i, 3] += ti
+        Tn[k, :3, :] = se3_exp_times(h[6 * q : 6 * q + 6], T[k])[:3, :]
     base = 6 * free_poses.shape[0]
     for q in range(free_points.shape[0]):
         j = free_points[q]

@@ -29,8 +29,9 @@ def se3_exp_batch(xi: F64) -> F64:
 
     so3_exp(omega) = I + a W + b W^2 and so3_left_jacobian(omega) = I + b W + c W^2 share the angle, its coefficients,
     W = hat(omega) and W^2: computed once here (the same numpy calls on the same arrays as those two functions make,
-    so the same bits; the pose-only solver's retraction calls it; the bundle adjustment's has its own compiled pass,
-    slamkit_scipy.kernels.ba_retract, with these formulas)."""
+    so the same bits; the pose-only solver's retraction calls it). The compiled retractions (the bundle adjustment's
+    slamkit_scipy.kernels.ba_retract, tracking's pose optimization) use slamkit.geometry.se3_kernels.se3_exp_times,
+    the same formulas in another evaluation order (equal to rounding; the tests compare them)."""
     w = np.asarray(xi, np.float64)[:, :3]
     a, b, c = _angle_coefficients(np.linalg.norm(w, axis=-1))
     W = hat(w)

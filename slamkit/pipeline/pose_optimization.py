@@ -14,7 +14,8 @@ numba kernel that releases the GIL, so local mapping can run beside tracking:
 
 The LM step is g2o's (and slamkit_scipy.lm's): initial damping tau * max diag(H), Nielsen's update, up to ten
 damped solves per iteration until one lowers the cost. Residual r = projection - observation (px), information
-1 / scale_factor^(2 level), left perturbation T <- exp(xi) T with xi = [omega, v].
+1 / scale_factor^(2 level), left perturbation T <- exp(xi) T with xi = [omega, v]
+(slamkit.geometry.se3_kernels.se3_exp_times, shared with the scipy backend's bundle adjustment).
 ``optimize_pose`` takes and returns the optimizer interface's PoseOnlyProblem / PoseOnlyResult, so it can stand
 in for ``Optimizer.optimize_pose``. Camera models: the pinhole of the undistorted image and Kannala-Brandt (raw
 fisheye pixels, ``problem.distortion`` = k1..k4). Stereo/RGB-D observations (finite ``u_right_px``, pinhole only)
@@ -32,6 +33,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.geometry.se3_kernels import se3_exp_times
 from slamkit.optim.kannala_brandt import kb_jacobian, kb_project
 from slamkit.problems import CAMERA_KANNALA_BRANDT, CAMERA_PINHOLE, PoseOnlyProblem, PoseOnlyResult
 
@@ -41,38 +43,6 @@ F64 = NDArray[np.float64]
 LM_TAU = 1e-5
 LM_MAX_TRIALS = 10
 LM_REL_TOL = 1e-10
-#: Below this rotation angle (rad) exp uses the Taylor series of its coefficients (slamkit.geometry.so3).
-_SMALL_ANGLE = 1e-4
-
-
-@numba.njit(cache=True, nogil=True)
-def _exp_times(h: F64, T: F64) -> F64:  # pragma: no cover - numba
-    """exp(h) @ T for h = [omega, v] (6,) and T (4, 4)."""
-    wx, wy, wz = h[0], h[1], h[2]
-    t2 = wx * wx + wy * wy + wz * wz
-    theta = np.sqrt(t2)
-    if theta < _SMALL_ANGLE:
-        a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
-        b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
-        c = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
-    else:
-        a = np.sin(theta) / theta
-        b = (1.0 - np.cos(theta)) / t2
-        c = (theta - np.sin(theta)) / (t2 * theta)
-    W = np.zeros((3, 3))
-    W[0, 1], W[0, 2] = -wz, wy
-    W[1, 0], W[1, 2] = wz, -wx
-    W[2, 0], W[2, 1] = -wy, wx
-    W2 = W @ W
-    E = np.eye(4)
-    for i in range(3):
-        for j in range(3):
-            E[i, j] += a * W[i, j] + b * W2[i, j]
-        s = h[3 + i]
-        for j in range(3):
-            s += (b * W[i, j] + c * W2[i, j]) * h[3 + j]
-        E[i, 3] = s
-    return E @ T
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -349,7 +319,7 @@ def _levenberg_marquardt(
                 predicted += h[a] * (lam * h[a] - g[a])
             if predicted <= rel_tol * f:
                 break  # the model promises less than the tolerance: converged
-            T_new = _exp_times(h, T)
+            T_new = se3_exp_times(h, T)
             f_new = _cost(
                 T_new, X, uv, info, delta, use, cam, fisheye, robust, stereo, ur, bf, which, T21, cam2, fisheye2
             )
