@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from contextlib import AbstractContextManager
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
@@ -206,6 +206,66 @@ class InMemoryMapStore:
         replace_fields(point, observations=MappingProxyType(obs))
         self._observations[pid] = obs
         self._points[pid] = point
+
+    def add_points(self, points: Sequence[MapPoint]) -> None:
+        points = list(points)
+        if not points:
+            return
+        ids = np.array([p.id for p in points], np.int64)
+        # add_point's checks for every point before any is added
+        if np.unique(ids).size != ids.size:
+            raise ValueError("add_points: two of the points share an id")
+        for point in points:
+            pid = point.id
+            if pid in self._points:
+                raise ValueError(f"map point {pid} is already in the map or was erased from it (ids are not reused)")
+            if not self._ids.issued_point(pid):
+                raise ValueError(f"map point {pid}: its id was not issued by this map's id allocator")
+            if point.observations:
+                raise ValueError(f"map point {pid} comes with observations: add them with add_observation")
+        erased = np.flatnonzero(self._table.state(ids) != 0)
+        if erased.size:
+            pid = int(ids[erased[0]])
+            raise ValueError(f"map point {pid} is already in the map or was erased from it (ids are not reused)")
+        rows: dict[str, NDArray[Any]] = {
+            name: np.array([getattr(p, name) for p in points]) for name, _, _ in SYNCED_ATTRIBUTES
+        }
+        rows["n_visible"] = np.ones(ids.size, np.int64)
+        rows["n_found"] = np.ones(ids.size, np.int64)
+        rows["n_observations"] = np.zeros(ids.size, np.int64)
+        rows["n_observations_orbslam"] = np.zeros(ids.size, np.int64)
+        self._table.put_many(ids, rows)  # raises for a descriptor width unlike the map's, before the dicts change
+        for point in points:
+            obs: dict[int, int] = {}
+            replace_fields(point, observations=MappingProxyType(obs))
+            self._observations[point.id] = obs
+            self._points[point.id] = point
+
+    def add_observations(self, point_ids: I64, keyframe_id: int, feature_indices: I64) -> None:
+        ids = np.asarray(point_ids, np.int64).reshape(-1)
+        feats = np.asarray(feature_indices, np.int64).reshape(-1)
+        if ids.size != feats.size:
+            raise ValueError(f"add_observations: {ids.size} points but {feats.size} feature indices")
+        if not ids.size:
+            return
+        observations = self._observations
+        targets = [observations[pid] for pid in ids.tolist()]  # KeyError for a point not in the map, as add_observation
+        own = self._kf_point_ids[keyframe_id]
+        distinct = np.unique(ids).size == ids.size and np.unique(feats).size == feats.size
+        if not distinct or any(keyframe_id in obs for obs in targets):
+            for pid, feat in zip(ids.tolist(), feats.tolist(), strict=True):  # the general rule, one at a time
+                self.add_observation(pid, keyframe_id, feat)
+            return
+        kf = self._keyframes.get(keyframe_id)
+        if kf is None or kf.features.bf <= 0.0:
+            weights: NDArray[np.int64] | int = 1
+        else:
+            weights = np.array([observation_weight(kf.features, f) for f in feats.tolist()], np.int64)
+        self._table.add(ids, "n_observations", 1)
+        self._table.add(ids, "n_observations_orbslam", weights)
+        for obs, feat in zip(targets, feats.tolist(), strict=True):
+            obs[keyframe_id] = feat
+        own[feats] = ids
 
     def _observation_weight(self, keyframe_id: int, feature_index: int) -> int:
         """ORB-SLAM's MapPoint::AddObservation weight of keypoint ``feature_index`` of a keyframe of this map: 2 when

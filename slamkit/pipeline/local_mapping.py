@@ -401,37 +401,30 @@ class LocalMapper:
         return i1[ok], i2[ok], xyz[ok]
 
     def _add_points(self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64, xyz: F64) -> int:
-        """Add the triangulated points whose two features are still unmatched (new map points, VI-C)."""
+        """Add the triangulated points whose two features are still unmatched (new map points, VI-C).
+
+        The pairs are taken in order, each only while its two features (and, for two-camera keyframes, their stereo
+        partners) are free of a point, those of the pairs taken before included; the points are then written at once
+        (MapStore.add_points / add_observations)."""
         store = self.store
-        created: list[int] = []
-        feat1: list[int] = []
-        feat2: list[int] = []
-        rig = kf1.features.two_cameras or kf2.features.two_cameras
-        for m in range(i1.size):
-            a, b = int(i1[m]), int(i2[m])
-            if kf1.point_ids[a] >= 0 or kf2.point_ids[b] >= 0:
-                continue
-            if rig and (_partner_has_point(kf1, a) or _partner_has_point(kf2, b)):
-                continue
-            pid = store.new_point_id()
-            point = MapPoint(pid, xyz[m].copy(), kf1.features.descriptors[a].copy(), kf1.id, kf1.id)
-            store.add_point(point)
-            store.add_observation(pid, kf1.id, a)
-            store.add_observation(pid, kf2.id, b)
-            created.append(pid)
-            feat1.append(a)
-            feat2.append(b)
-        # refresh_points(store, created) without walking the observations: each new point is seen by (kf1, a), (kf2, b)
-        refresh_new_pairs(
-            store,
-            np.array(created, np.int64),
-            store.get_keyframe(kf1.id),
-            np.array(feat1, np.int64),
-            store.get_keyframe(kf2.id),
-            np.array(feat2, np.int64),
+        sel = _free_pairs(kf1, kf2, i1, i2)
+        if not sel.size:
+            return 0
+        feat1, feat2 = i1[sel], i2[sel]
+        created = np.array([store.new_point_id() for _ in range(sel.size)], np.int64)
+        desc1 = kf1.features.descriptors
+        store.add_points(
+            [
+                MapPoint(pid, xyz[m], desc1[a], kf1.id, kf1.id)
+                for pid, m, a in zip(created.tolist(), sel.tolist(), feat1.tolist(), strict=True)
+            ]
         )
-        self.recent_points.extend(created)
-        return len(created)
+        store.add_observations(created, kf1.id, feat1)
+        store.add_observations(created, kf2.id, feat2)
+        # refresh_points(store, created) without walking the observations: each new point is seen by (kf1, a), (kf2, b)
+        refresh_new_pairs(store, created, store.get_keyframe(kf1.id), feat1, store.get_keyframe(kf2.id), feat2)
+        self.recent_points.extend(created.tolist())
+        return int(created.size)
 
     # ---- VI-D (fusion) -------------------------------------------------------------------------------
 
@@ -591,13 +584,37 @@ def _camera_free(kf: KeyFrame, camera: int) -> NDArray[np.bool_]:
     return out
 
 
-def _partner_has_point(kf: KeyFrame, idx: int) -> bool:
-    """Whether keypoint ``idx`` of a two-camera keyframe has a stereo partner observing a point (the point stands for
-    both keypoints)."""
+def _free_pairs(kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64) -> I64:
+    """(S,) the rows of the candidate pairs (i1[m], i2[m]) (M,) that get a new point, in order: pair m is taken when
+    neither feature (nor, in a two-camera keyframe, its stereo partner) observes a point or belongs to a pair taken
+    before it (local mapping adds the pairs one after the other: a feature gets one point)."""
+    free1 = np.asarray(kf1.point_ids)[i1] < 0
+    free2 = np.asarray(kf2.point_ids)[i2] < 0
+    rig = kf1.features.two_cameras or kf2.features.two_cameras
+    if not rig and np.unique(i1).size == i1.size and np.unique(i2).size == i2.size:
+        return np.flatnonzero(free1 & free2)  # distinct features: taking one pair frees or takes no other's feature
+    taken1: set[int] = set()
+    taken2: set[int] = set()
+    keep: list[int] = []
+    for m, (a, b) in enumerate(zip(i1.tolist(), i2.tolist(), strict=True)):
+        if not (free1[m] and free2[m]) or a in taken1 or b in taken2:
+            continue
+        if rig and (_partner_taken(kf1, a, taken1) or _partner_taken(kf2, b, taken2)):
+            continue
+        taken1.add(a)
+        taken2.add(b)
+        keep.append(m)
+    return np.array(keep, np.int64)
+
+
+def _partner_taken(kf: KeyFrame, idx: int, taken: set[int]) -> bool:
+    """Whether keypoint ``idx`` of a two-camera keyframe has a stereo partner observing a point or in ``taken`` (a
+    pair taken before it: the point stands for both keypoints)."""
     sm = kf.features.stereo_match
     if sm is None or sm[idx] < 0:
         return False
-    return bool(kf.point_ids[int(sm[idx])] >= 0)
+    partner = int(sm[idx])
+    return bool(kf.point_ids[partner] >= 0) or partner in taken
 
 
 def _triangulate_with_depths(
