@@ -17,7 +17,7 @@ visible/found counters: tracking increases them under the read lock, so ``increa
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
@@ -187,16 +187,6 @@ class MapStore(Protocol):
         """Insert a map point (id from ``ids``, no observations yet: add them with add_observation); its counters
         start at n_visible = n_found = 1. ValueError for an id already used or a descriptor width unlike the
         map's."""
-        ...
-
-    def add_points(self, points: Sequence[MapPoint]) -> None:
-        """``add_point`` of each point, in order, at once (local mapping's new points); ValueError, with none of them
-        added, where ``add_point`` would raise for one of them or two share an id."""
-        ...
-
-    def add_observations(self, point_ids: I64, keyframe_id: int, feature_indices: I64) -> None:
-        """``add_observation(point_ids[q], keyframe_id, feature_indices[q])`` for q in order (P,): the same map
-        afterwards, with fewer Python steps where the points are distinct and do not observe the keyframe yet."""
         ...
 
     def remove_point(self, point_id: int) -> None:

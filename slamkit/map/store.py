@@ -348,7 +348,7 @@ class InMemoryMapStore:
                 self.add_observation(new_id, kf_id, feat)
         with self._counter_lock:
             for name in ("n_visible", "n_found"):
-                self._table.add(np.array([new_id]), name, self._table.rows(np.array([old_id]), name))
+                self._table.increment(new_id, name, self._table.value(old_id, name))
         self._forget_point(old_id)
 
     def set_keyframe_pose(self, keyframe_id: int, T_c_w: NDArray[np.float64]) -> None:
@@ -379,8 +379,19 @@ class InMemoryMapStore:
             targets = [points[pid].__dict__ for pid in ids.tolist()]
         except KeyError as exc:
             raise ValueError(f"assign_points: map point {exc.args[0]} is not in this map") from None
+        # the points whose value changes, bit for bit (the table mirrors every point: a point whose row holds the new
+        # bits already holds the new value; -0.0 and 0.0 or two NaNs of other bits are a change): the others keep
+        # theirs (equal in every bit), a Python step saved per point (refreshes rewrite many unchanged descriptors)
+        new = own
+        stored = self._table.rows(ids, attribute)
+        if stored.shape == own.shape and stored.dtype == own.dtype:
+            changed = np.flatnonzero(~_same_bits(stored, own))
+            if changed.size < ids.size:
+                targets = [targets[i] for i in changed.tolist()]
+                new = own[changed]
+                new.setflags(write=False)
         # a scalar attribute as a Python float (tolist: what .item() gives per row), an array attribute as a row view
-        for fields, value in zip(targets, own.tolist() if own.ndim == 1 else list(own), strict=True):
+        for fields, value in zip(targets, new.tolist() if new.ndim == 1 else list(new), strict=True):
             fields[attribute] = value
         self._table.assign(ids, attribute, own)
 
@@ -469,6 +480,13 @@ class InMemoryMapStore:
             self._table.put_many(np.array([p.id for p in pts], np.int64), rows)
         for a, b, w in contents.covisibility.tolist():
             self._covisibility.set_edge(a, b, w)
+
+
+def _same_bits(a: NDArray[Any], b: NDArray[Any]) -> NDArray[np.bool_]:
+    """(P,) bool: row p of ``a`` and of ``b`` (same shape and dtype, (P,) or (P, ...)) hold the same bytes."""
+    a2 = np.ascontiguousarray(a).reshape(a.shape[0], -1).view(np.uint8)
+    b2 = np.ascontiguousarray(b).reshape(b.shape[0], -1).view(np.uint8)
+    return np.asarray(np.all(a2 == b2, axis=1))
 
 
 if TYPE_CHECKING:  # mypy checks that the class implements the protocol

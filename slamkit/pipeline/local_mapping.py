@@ -28,6 +28,8 @@ from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.map_points import (
+    add_observations,
+    add_points,
     create_depth_points,
     flat_observations,
     orbslam_observation_counts,
@@ -405,7 +407,7 @@ class LocalMapper:
 
         The pairs are taken in order, each only while its two features (and, for two-camera keyframes, their stereo
         partners) are free of a point, those of the pairs taken before included; the points are then written at once
-        (MapStore.add_points / add_observations)."""
+        (map_points.add_points / add_observations)."""
         store = self.store
         sel = _free_pairs(kf1, kf2, i1, i2)
         if not sel.size:
@@ -413,14 +415,15 @@ class LocalMapper:
         feat1, feat2 = i1[sel], i2[sel]
         created = np.array([store.new_point_id() for _ in range(sel.size)], np.int64)
         desc1 = kf1.features.descriptors
-        store.add_points(
+        add_points(
+            store,
             [
                 MapPoint(pid, xyz[m], desc1[a], kf1.id, kf1.id)
                 for pid, m, a in zip(created.tolist(), sel.tolist(), feat1.tolist(), strict=True)
-            ]
+            ],
         )
-        store.add_observations(created, kf1.id, feat1)
-        store.add_observations(created, kf2.id, feat2)
+        add_observations(store, created, kf1.id, feat1)
+        add_observations(store, created, kf2.id, feat2)
         # refresh_points(store, created) without walking the observations: each new point is seen by (kf1, a), (kf2, b)
         refresh_new_pairs(store, created, store.get_keyframe(kf1.id), feat1, store.get_keyframe(kf2.id), feat2)
         self.recent_points.extend(created.tolist())

@@ -460,6 +460,28 @@ def create_depth_points(store: MapStore, kf: KeyFrame, min_points: int) -> list[
     return created
 
 
+def add_points(store: MapStore, points: Sequence[MapPoint]) -> None:
+    """``store.add_point`` of each point in order: at once through the store's ``add_points`` where it has one
+    (InMemoryMapStore; the MapStore protocol asks for the one-point form only), else one at a time."""
+    batch = getattr(store, "add_points", None)
+    if batch is not None:
+        batch(points)
+        return
+    for point in points:
+        store.add_point(point)
+
+
+def add_observations(store: MapStore, point_ids: I64, keyframe_id: int, feature_indices: I64) -> None:
+    """``store.add_observation(point_ids[q], keyframe_id, feature_indices[q])`` for q in order (P,): at once through
+    the store's ``add_observations`` where it has one (InMemoryMapStore), else one at a time."""
+    batch = getattr(store, "add_observations", None)
+    if batch is not None:
+        batch(point_ids, keyframe_id, feature_indices)
+        return
+    for pid, feat in zip(np.asarray(point_ids).tolist(), np.asarray(feature_indices).tolist(), strict=True):
+        store.add_observation(pid, keyframe_id, feat)
+
+
 def orbslam_observation_counts(store: MapStore, point_ids: Iterable[int]) -> I64:
     """(P,) ORB-SLAM's MapPoint::Observations() of each point (all in the map): its observations, a stereo/RGB-D one
     (the keypoint has a right coordinate) counting twice (MapPoint::AddObservation: nObs += 2 when mvuRight[idx] >= 0).

@@ -1,5 +1,5 @@
-"""The store's batched writes (add_points, add_observations) leave the very map the one-at-a-time writes leave, and
-local mapping's choice of the triangulated pairs that get a point (``_free_pairs``) is the one-after-the-other rule."""
+"""The store's batched writes (add_points, add_observations, and map_points' forms of them for a store without) leave
+the very map the one-at-a-time writes leave, and local mapping's choice of the triangulated pairs that get a point (``_free_pairs``) is the one-after-the-other rule."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from slamkit.geometry.camera import PinholeCamera
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.point_table import COUNTERS, SYNCED_ATTRIBUTES
 from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline import map_points
 from slamkit.pipeline.local_mapping import _free_pairs
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0)
@@ -78,15 +79,30 @@ def _state(store: InMemoryMapStore) -> dict[str, Any]:
     return out
 
 
+class _OneAtATime:
+    """A store without the batched methods (as the MapStore protocol allows): map_points' helpers fall back."""
+
+    def __init__(self, store: InMemoryMapStore) -> None:
+        self.add_point = store.add_point
+        self.add_observation = store.add_observation
+
+
 @pytest.mark.parametrize("stereo", [False, True])
-def test_batched_writes_leave_the_map_of_the_one_at_a_time_writes(stereo: bool) -> None:
+@pytest.mark.parametrize("helpers", [False, True])
+def test_batched_writes_leave_the_map_of_the_one_at_a_time_writes(stereo: bool, helpers: bool) -> None:
+    """helpers: through map_points.add_points / add_observations, for one store with and one without the batches."""
     one, batch = _store(0, stereo), _store(0, stereo)
     rng = np.random.default_rng(1)
     f0, f1 = rng.permutation(N)[:12], rng.permutation(N)[:12]
     for store, batched in ((one, False), (batch, True)):
         points = _points(store, 0, 12)
         pids = np.array([p.id for p in points], np.int64)
-        if batched:
+        if helpers:
+            target: Any = store if batched else _OneAtATime(store)
+            map_points.add_points(target, points)
+            map_points.add_observations(target, pids, 0, f0)
+            map_points.add_observations(target, pids, 1, f1)
+        elif batched:
             store.add_points(points)
             store.add_observations(pids, 0, f0)
             store.add_observations(pids, 1, f1)
@@ -186,3 +202,36 @@ def test_free_pairs_is_the_one_after_the_other_rule(seed: int, rig: bool) -> Non
     got = _free_pairs(kf1, kf2, i1, i2).tolist()
     assert got == _reference_free_pairs(kf1, kf2, i1, i2)
     assert got and len(got) < i1.size  # some pairs taken, some refused
+
+
+def test_assign_points_writes_the_changed_rows_and_every_point_holds_its_row() -> None:
+    """Points whose value is unchanged bit for bit keep theirs; the others (a value changed, -0.0 for 0.0) get the
+    new one; every point's attribute equals its table row afterwards, and the counters of a replaced point add up."""
+    store = _store(4, False)
+    points = _points(store, 4, 5)
+    store.add_points(points)
+    pids = np.array([p.id for p in points], np.int64)
+    normals = np.zeros((5, 3))
+    normals[:, 2] = 1.0
+    store.assign_points(pids, "normal_w", normals)
+    kept = store.get_point(int(pids[0])).normal_w
+    update = normals.copy()
+    update[1, 2] = 0.5
+    update[2, 0] = -0.0  # the same number, another bit pattern: written
+    store.assign_points(pids, "normal_w", update)
+    assert store.get_point(int(pids[0])).normal_w is kept
+    for pid, row in zip(pids.tolist(), update, strict=True):
+        value = store.get_point(pid).normal_w
+        assert value.tobytes() == row.tobytes() and not value.flags.writeable
+    assert np.signbit(store.get_point(int(pids[2])).normal_w[0])
+    store.assign_points(pids, "d_max_m", np.array([1.0, 2.0, 3.0, 4.0, 5.0]))
+    store.assign_points(pids, "d_max_m", np.array([1.0, 2.5, 3.0, np.nan, 5.0]))
+    d_max = [store.get_point(pid).d_max_m for pid in pids.tolist()]
+    assert d_max[:3] == [1.0, 2.5, 3.0] and np.isnan(d_max[3]) and type(d_max[0]) is float
+    np.testing.assert_array_equal(store.point_rows(pids, "d_max_m"), np.array(d_max))
+    store.increase_visible(pids[:2], 3)
+    store.increase_found(pids[:1], 2)
+    store.replace_point(int(pids[0]), int(pids[1]))
+    assert store.point_rows(pids[1:2], "n_visible").tolist() == [8] and store.point_rows(
+        pids[1:2], "n_found"
+    ).tolist() == [4]
