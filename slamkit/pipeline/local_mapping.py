@@ -19,7 +19,7 @@ from slamkit.geometry.so3 import hat
 from slamkit.geometry.twoview import triangulate_points
 from slamkit.interfaces import AbortToken, Camera, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
-from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.frame import keyframe_cameras, keyframe_view
@@ -32,8 +32,8 @@ from slamkit.pipeline.map_points import (
     add_points,
     create_depth_points,
     flat_observations,
+    new_pair_points,
     orbslam_observation_counts,
-    refresh_new_pairs,
     refresh_points,
 )
 from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
@@ -414,18 +414,10 @@ class LocalMapper:
             return 0
         feat1, feat2 = i1[sel], i2[sel]
         created = np.array([store.new_point_id() for _ in range(sel.size)], np.int64)
-        desc1 = kf1.features.descriptors
-        add_points(
-            store,
-            [
-                MapPoint(pid, xyz[m], desc1[a], kf1.id, kf1.id)
-                for pid, m, a in zip(created.tolist(), sel.tolist(), feat1.tolist(), strict=True)
-            ],
-        )
+        # refresh_points(store, created) folded into the points' making: each is seen by (kf1, a) and (kf2, b) only
+        add_points(store, new_pair_points(created, xyz[sel], kf1, feat1, store.get_keyframe(kf2.id), feat2))
         add_observations(store, created, kf1.id, feat1)
         add_observations(store, created, kf2.id, feat2)
-        # refresh_points(store, created) without walking the observations: each new point is seen by (kf1, a), (kf2, b)
-        refresh_new_pairs(store, created, store.get_keyframe(kf1.id), feat1, store.get_keyframe(kf2.id), feat2)
         self.recent_points.extend(created.tolist())
         return int(created.size)
 

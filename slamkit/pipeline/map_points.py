@@ -295,6 +295,37 @@ def refresh_new_pairs(store: MapStore, point_ids: I64, kf1: KeyFrame, feat1: I64
     _apply_ids(store, ids, _PairGathered(kf1, np.asarray(feat1), kf2, np.asarray(feat2)), True, True)
 
 
+def new_pair_points(point_ids: I64, xyz_w: F64, kf1: KeyFrame, feat1: I64, kf2: KeyFrame, feat2: I64) -> list[MapPoint]:
+    """The new map points point_ids[q] at xyz_w[q] (P, 3) m, each to be observed by feature feat1[q] of ``kf1`` (its
+    reference and first keyframe) and feat2[q] of ``kf2`` (local mapping's triangulation, VI-C), made with the normal,
+    depth range and descriptor ``refresh_new_pairs`` would write once their observations are added: the same kernel
+    on the same numbers, without writing four attributes of every point to the map a second time. Not yet in any
+    map (MapStore.add_point, then the two observations)."""
+    ids = np.asarray(point_ids, np.int64)
+    if not ids.size:
+        return []
+    xyz = np.ascontiguousarray(xyz_w, np.float64)
+    g = _PairGathered(kf1, np.asarray(feat1), kf2, np.asarray(feat2))
+    normal, has_normal, d_min, d_max, best = _refresh_kernel(
+        xyz,
+        g.ptr,
+        g.center,
+        np.ascontiguousarray(g.desc).view(np.uint64),
+        g.ref_row,
+        g.level,
+        g.scale_factor,
+        g.n_levels,
+        True,
+        True,
+    )
+    desc = g.desc[best]  # each point has two observations: best >= 0
+    kf_id = kf1.id
+    return [
+        MapPoint(pid, xyz[q], desc[q], kf_id, kf_id, normal[q] if has_normal[q] else None, lo, hi)
+        for q, (pid, lo, hi) in enumerate(zip(ids.tolist(), d_min.tolist(), d_max.tolist(), strict=True))
+    ]
+
+
 def _apply(
     store: MapStore, points: list[MapPoint], g: _Gathered | _FewGathered, normals: bool, descriptors: bool
 ) -> None:
