@@ -58,7 +58,7 @@ def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool =
 def fuse_points(
     store: MapStore,
     kf: KeyFrame,
-    point_ids: list[int],
+    point_ids: list[int] | I64,
     radius_px: float,
     incoming_wins: bool = False,
     *,
@@ -107,7 +107,7 @@ def _fuse_view(
     kf: KeyFrame,
     view: KeyFrame,
     taken: NDArray[np.bool_] | None,
-    point_ids: list[int],
+    point_ids: list[int] | I64,
     radius_px: float,
     incoming_wins: bool,
     max_distance: int,

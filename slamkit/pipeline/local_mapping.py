@@ -35,6 +35,7 @@ from slamkit.pipeline.map_points import (
     new_pair_points,
     orbslam_observation_counts,
     refresh_points,
+    unique_point_ids,
 )
 from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.outcomes import CulledKeyFrame, MappingOutcome
@@ -457,11 +458,11 @@ class LocalMapper:
         with store.write():
             alive = [t for t in targets if store.has_keyframe(t)]
             if alive:
-                ids = np.unique(np.concatenate([store.get_keyframe(t).point_ids for t in alive]))
+                ids = unique_point_ids([store.get_keyframe(t).point_ids for t in alive])
                 fused += fuse_points(
                     store,
                     kf,
-                    ids[ids >= 0].tolist(),
+                    ids,
                     cfg.fuse_search_radius_px,
                     max_distance=cfg.matcher.th_low,
                     chi2_gate=cfg.chi2.fuse_mono,

@@ -154,6 +154,21 @@ _OBSERVATIONS = attrgetter("observations")
 _VALUES = methodcaller("values")
 
 
+def unique_point_ids(point_ids: Sequence[I64]) -> I64:
+    """The distinct non-negative ids of the arrays ``point_ids`` (keyframes' point_ids, -1 for no point), sorted:
+    ``np.unique(np.concatenate(point_ids))`` without its negative entries, by a mark per id up to the largest (no
+    sort of the ~25 neighbours' thousands of entries)."""
+    if not point_ids:
+        return np.zeros(0, np.int64)
+    ids = np.concatenate(point_ids).astype(np.int64, copy=False)
+    ids = ids[ids >= 0]
+    if not ids.size:
+        return np.zeros(0, np.int64)
+    mark = np.zeros(int(ids.max()) + 1, bool)
+    mark[ids] = True
+    return np.flatnonzero(mark).astype(np.int64, copy=False)
+
+
 def flat_observations(points: Sequence[MapPoint]) -> tuple[I64, I64, I64]:
     """Every observation of ``points`` as flat arrays, in each point's observation order (no sorting):
     -> (counts (P,) observations per point, kf (E,) observing keyframe ids, feat (E,) feature indices), the
