@@ -186,12 +186,16 @@ class InMemoryMapStore:
         self._covisibility.add_node(kf_id)
         if self._origin is not None and kf_id < self._origin:
             self._origin = kf_id
-        for idx in np.flatnonzero(own >= 0).tolist():
-            obs = self._observations.get(int(own[idx]))
-            if obs is None or kf_id in obs:  # gone, or two features of this keyframe matched the same point
-                own[idx] = -1
-            else:
-                self.add_observation(int(own[idx]), kf_id, idx)
+        # each feature naming a point in the map observes it, the first of two features naming the same point only
+        # (the others, and those naming a point gone, become -1): the per-feature rule, written at once
+        idx = np.flatnonzero(own >= 0)
+        pids = own[idx]
+        keep = self._table.state(pids) == PRESENT
+        first = np.zeros(idx.size, bool)
+        first[np.unique(pids, return_index=True)[1]] = True
+        keep &= first
+        own[idx[~keep]] = -1
+        self.add_observations(pids[keep], kf_id, idx[keep])
 
     def add_point(self, point: MapPoint) -> None:
         pid = point.id

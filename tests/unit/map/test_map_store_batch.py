@@ -235,3 +235,33 @@ def test_assign_points_writes_the_changed_rows_and_every_point_holds_its_row() -
     assert store.point_rows(pids[1:2], "n_visible").tolist() == [8] and store.point_rows(
         pids[1:2], "n_found"
     ).tolist() == [4]
+
+
+@pytest.mark.parametrize("stereo", [False, True])
+def test_add_keyframe_observes_each_named_point_once(stereo: bool) -> None:
+    """A new keyframe's point ids: a point in the map is observed by the first feature naming it; a second feature
+    naming it, a point erased and an id never used become -1 (the per-feature rule of add_keyframe)."""
+    store = _store(5, stereo)
+    points = _points(store, 5, 6)
+    store.add_points(points)
+    pids = [p.id for p in points]
+    for pid in pids:
+        store.add_observation(pid, 0, pid % N)
+    store.remove_point(pids[5])
+    own = np.full(N, -1, np.int64)
+    own[[3, 4, 9, 10, 11, 20, 30]] = [pids[0], pids[1], pids[0], pids[5], 99_999, pids[2], pids[1]]
+    rng = np.random.default_rng(6)
+    kf_id = store.new_keyframe_id()
+    store.add_keyframe(KeyFrame(kf_id, kf_id, 0.0, np.eye(4), CAMERA, _features(rng, stereo), own))
+    got = store.get_keyframe(kf_id).point_ids
+    expected = np.full(N, -1, np.int64)
+    expected[[3, 4, 20]] = [pids[0], pids[1], pids[2]]
+    np.testing.assert_array_equal(got, expected)
+    feats = store.get_keyframe(kf_id).features
+    for feat, pid in ((3, pids[0]), (4, pids[1]), (20, pids[2])):
+        assert list(store.get_point(pid).observations.items())[-1] == (kf_id, feat)
+        weight = 2 if stereo and np.isfinite(feats.u_right_px[feat]) else 1
+        first = 2 if stereo and np.isfinite(store.get_keyframe(0).features.u_right_px[pid % N]) else 1
+        assert store.point_rows(np.array([pid]), "n_observations").tolist() == [2]
+        assert store.point_rows(np.array([pid]), "n_observations_orbslam").tolist() == [first + weight]
+    assert store.point_rows(np.array([pids[3]]), "n_observations").tolist() == [1]
