@@ -496,12 +496,14 @@ def create_depth_points(store: MapStore, kf: KeyFrame, min_points: int) -> list[
         return []
     sel = np.array(create, np.int64)
     xyz = feats.unproject_stereo(sel, invert_T(kf.T_c_w), kf.camera.K)
-    created: list[int] = []
-    for m, i in enumerate(create):
-        pid = store.new_point_id()
-        store.add_point(MapPoint(pid, xyz[m].copy(), feats.descriptors[i].copy(), kf.id, kf.id))
-        store.add_observation(pid, kf.id, i)
-        created.append(pid)
+    created = [store.new_point_id() for _ in create]
+    # the points and their one observation each written at once (the keypoints in ``create`` are distinct)
+    desc = feats.descriptors
+    add_points(
+        store,
+        [MapPoint(pid, xyz[m], desc[i], kf.id, kf.id) for m, (pid, i) in enumerate(zip(created, create, strict=True))],
+    )
+    add_observations(store, np.array(created, np.int64), kf.id, sel)
     refresh_points(store, created)
     return created
 
