@@ -128,6 +128,11 @@ class PointTable:
         """counter[point_id] += delta for one point already in the table."""
         self._arrays[name][point_id] += delta
 
+    def value(self, point_id: int, name: str) -> Any:
+        """Attribute or counter ``name`` of one point already in the table (a numpy scalar, or a row copy)."""
+        value = self._arrays[name][point_id]
+        return value.copy() if isinstance(value, np.ndarray) else value
+
     def add(self, point_ids: NDArray[np.int64], name: str, amounts: NDArray[np.int64] | int) -> None:
         """counter[point_ids] += amounts, an id listed twice counted twice (points already in the table)."""
         np.add.at(self._arrays[name], point_ids, amounts)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from contextlib import AbstractContextManager
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
@@ -186,12 +186,16 @@ class InMemoryMapStore:
         self._covisibility.add_node(kf_id)
         if self._origin is not None and kf_id < self._origin:
             self._origin = kf_id
-        for idx in np.flatnonzero(own >= 0).tolist():
-            obs = self._observations.get(int(own[idx]))
-            if obs is None or kf_id in obs:  # gone, or two features of this keyframe matched the same point
-                own[idx] = -1
-            else:
-                self.add_observation(int(own[idx]), kf_id, idx)
+        # each feature naming a point in the map observes it, the first of two features naming the same point only
+        # (the others, and those naming a point gone, become -1): the per-feature rule, written at once
+        idx = np.flatnonzero(own >= 0)
+        pids = own[idx]
+        keep = self._table.state(pids) == PRESENT
+        first = np.zeros(idx.size, bool)
+        first[np.unique(pids, return_index=True)[1]] = True
+        keep &= first
+        own[idx[~keep]] = -1
+        self.add_observations(pids[keep], kf_id, idx[keep])
 
     def add_point(self, point: MapPoint) -> None:
         pid = point.id
@@ -206,6 +210,66 @@ class InMemoryMapStore:
         replace_fields(point, observations=MappingProxyType(obs))
         self._observations[pid] = obs
         self._points[pid] = point
+
+    def add_points(self, points: Sequence[MapPoint]) -> None:
+        points = list(points)
+        if not points:
+            return
+        ids = np.array([p.id for p in points], np.int64)
+        # add_point's checks for every point before any is added
+        if np.unique(ids).size != ids.size:
+            raise ValueError("add_points: two of the points share an id")
+        for point in points:
+            pid = point.id
+            if pid in self._points:
+                raise ValueError(f"map point {pid} is already in the map or was erased from it (ids are not reused)")
+            if not self._ids.issued_point(pid):
+                raise ValueError(f"map point {pid}: its id was not issued by this map's id allocator")
+            if point.observations:
+                raise ValueError(f"map point {pid} comes with observations: add them with add_observation")
+        erased = np.flatnonzero(self._table.state(ids) != 0)
+        if erased.size:
+            pid = int(ids[erased[0]])
+            raise ValueError(f"map point {pid} is already in the map or was erased from it (ids are not reused)")
+        rows: dict[str, NDArray[Any]] = {
+            name: np.array([getattr(p, name) for p in points]) for name, _, _ in SYNCED_ATTRIBUTES
+        }
+        rows["n_visible"] = np.ones(ids.size, np.int64)
+        rows["n_found"] = np.ones(ids.size, np.int64)
+        rows["n_observations"] = np.zeros(ids.size, np.int64)
+        rows["n_observations_orbslam"] = np.zeros(ids.size, np.int64)
+        self._table.put_many(ids, rows)  # raises for a descriptor width unlike the map's, before the dicts change
+        for point in points:
+            obs: dict[int, int] = {}
+            replace_fields(point, observations=MappingProxyType(obs))
+            self._observations[point.id] = obs
+            self._points[point.id] = point
+
+    def add_observations(self, point_ids: I64, keyframe_id: int, feature_indices: I64) -> None:
+        ids = np.asarray(point_ids, np.int64).reshape(-1)
+        feats = np.asarray(feature_indices, np.int64).reshape(-1)
+        if ids.size != feats.size:
+            raise ValueError(f"add_observations: {ids.size} points but {feats.size} feature indices")
+        if not ids.size:
+            return
+        observations = self._observations
+        targets = [observations[pid] for pid in ids.tolist()]  # KeyError for a point not in the map, as add_observation
+        own = self._kf_point_ids[keyframe_id]
+        distinct = np.unique(ids).size == ids.size and np.unique(feats).size == feats.size
+        if not distinct or any(keyframe_id in obs for obs in targets):
+            for pid, feat in zip(ids.tolist(), feats.tolist(), strict=True):  # the general rule, one at a time
+                self.add_observation(pid, keyframe_id, feat)
+            return
+        kf = self._keyframes.get(keyframe_id)
+        if kf is None or kf.features.bf <= 0.0:
+            weights: NDArray[np.int64] | int = 1
+        else:
+            weights = np.array([observation_weight(kf.features, f) for f in feats.tolist()], np.int64)
+        self._table.add(ids, "n_observations", 1)
+        self._table.add(ids, "n_observations_orbslam", weights)
+        for obs, feat in zip(targets, feats.tolist(), strict=True):
+            obs[keyframe_id] = feat
+        own[feats] = ids
 
     def _observation_weight(self, keyframe_id: int, feature_index: int) -> int:
         """ORB-SLAM's MapPoint::AddObservation weight of keypoint ``feature_index`` of a keyframe of this map: 2 when
@@ -288,7 +352,7 @@ class InMemoryMapStore:
                 self.add_observation(new_id, kf_id, feat)
         with self._counter_lock:
             for name in ("n_visible", "n_found"):
-                self._table.add(np.array([new_id]), name, self._table.rows(np.array([old_id]), name))
+                self._table.increment(new_id, name, self._table.value(old_id, name))
         self._forget_point(old_id)
 
     def set_keyframe_pose(self, keyframe_id: int, T_c_w: NDArray[np.float64]) -> None:
@@ -319,8 +383,19 @@ class InMemoryMapStore:
             targets = [points[pid].__dict__ for pid in ids.tolist()]
         except KeyError as exc:
             raise ValueError(f"assign_points: map point {exc.args[0]} is not in this map") from None
+        # the points whose value changes, bit for bit (the table mirrors every point: a point whose row holds the new
+        # bits already holds the new value; -0.0 and 0.0 or two NaNs of other bits are a change): the others keep
+        # theirs (equal in every bit), a Python step saved per point (refreshes rewrite many unchanged descriptors)
+        new = own
+        stored = self._table.rows(ids, attribute)
+        if stored.shape == own.shape and stored.dtype == own.dtype:
+            changed = np.flatnonzero(~_same_bits(stored, own))
+            if changed.size < ids.size:
+                targets = [targets[i] for i in changed.tolist()]
+                new = own[changed]
+                new.setflags(write=False)
         # a scalar attribute as a Python float (tolist: what .item() gives per row), an array attribute as a row view
-        for fields, value in zip(targets, own.tolist() if own.ndim == 1 else list(own), strict=True):
+        for fields, value in zip(targets, new.tolist() if new.ndim == 1 else list(new), strict=True):
             fields[attribute] = value
         self._table.assign(ids, attribute, own)
 
@@ -409,6 +484,13 @@ class InMemoryMapStore:
             self._table.put_many(np.array([p.id for p in pts], np.int64), rows)
         for a, b, w in contents.covisibility.tolist():
             self._covisibility.set_edge(a, b, w)
+
+
+def _same_bits(a: NDArray[Any], b: NDArray[Any]) -> NDArray[np.bool_]:
+    """(P,) bool: row p of ``a`` and of ``b`` (same shape and dtype, (P,) or (P, ...)) hold the same bytes."""
+    a2 = np.ascontiguousarray(a).reshape(a.shape[0], -1).view(np.uint8)
+    b2 = np.ascontiguousarray(b).reshape(b.shape[0], -1).view(np.uint8)
+    return np.asarray(np.all(a2 == b2, axis=1))
 
 
 if TYPE_CHECKING:  # mypy checks that the class implements the protocol

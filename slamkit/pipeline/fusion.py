@@ -3,6 +3,7 @@ the keyframe; a match either adds an observation or merges two points that are t
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -16,6 +17,32 @@ from slamkit.pipeline.projection import (
     match_projected,
     predicted_u_right,
 )
+
+I64 = NDArray[np.int64]
+
+
+@numba.njit(cache=True, nogil=True)
+def absent_from(ids: I64, own: I64) -> NDArray[np.bool_]:  # pragma: no cover - compiled
+    """(Q,) bool: ids[q] is none of the point ids ``own`` (N,) (-1: no point), i.e. ``~np.isin(ids, own[own >= 0])``
+    in one compiled pass over a lookup table of own's id range (fusion asks it once per fused keyframe pair)."""
+    lo = np.iinfo(np.int64).max
+    hi = -1
+    for v in own:
+        if v >= 0:
+            lo = min(lo, v)
+            hi = max(hi, v)
+    out = np.ones(ids.shape[0], np.bool_)
+    if hi < 0:
+        return out
+    mark = np.zeros(hi - lo + 1, np.bool_)
+    for v in own:
+        if v >= 0:
+            mark[v - lo] = True
+    for q in range(ids.shape[0]):
+        v = ids[q]
+        if lo <= v <= hi and mark[v - lo]:
+            out[q] = False
+    return out
 
 
 def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
@@ -31,7 +58,7 @@ def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool =
 def fuse_points(
     store: MapStore,
     kf: KeyFrame,
-    point_ids: list[int],
+    point_ids: list[int] | I64,
     radius_px: float,
     incoming_wins: bool = False,
     *,
@@ -80,7 +107,7 @@ def _fuse_view(
     kf: KeyFrame,
     view: KeyFrame,
     taken: NDArray[np.bool_] | None,
-    point_ids: list[int],
+    point_ids: list[int] | I64,
     radius_px: float,
     incoming_wins: bool,
     max_distance: int,
@@ -94,8 +121,7 @@ def _fuse_view(
     ids = ids[store.has_points(ids)]
     # leave out the points kf observes already: an observation is recorded in both directions (MapStore.add_observation:
     # point.observations[kf] = f and kf.point_ids[f] = point), so they are the candidates among kf's point_ids
-    own = kf.point_ids
-    ids = ids[~np.isin(ids, own[own >= 0], kind="table")]  # a lookup table over the id range: no sort
+    ids = ids[absent_from(ids, kf.point_ids)]
     if not ids.size or len(kf.features) == 0:
         return 0
     feats = kf.features

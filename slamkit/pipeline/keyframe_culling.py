@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.interfaces import MapStore
-from slamkit.pipeline.map_points import flat_observations
+from slamkit.pipeline.map_points import flat_observations, unique_point_ids
 
 I64 = NDArray[np.int64]
 
@@ -50,9 +50,7 @@ class ObservationTable:
 
     def __init__(self, store: MapStore, kf_ids: Sequence[int]) -> None:
         self.store = store
-        parts = [store.get_keyframe(k).point_ids for k in kf_ids]
-        ids = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
-        ids = ids[ids >= 0]
+        ids = unique_point_ids([store.get_keyframe(k).point_ids for k in kf_ids])
         self.point_ids = ids[store.has_points(ids)].astype(np.int64)
         counts, self.obs_kf, feat = flat_observations(store.get_points(self.point_ids.tolist()))
         self.ptr = np.zeros(counts.size + 1, np.int64)

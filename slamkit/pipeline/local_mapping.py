@@ -19,7 +19,7 @@ from slamkit.geometry.so3 import hat
 from slamkit.geometry.twoview import triangulate_points
 from slamkit.interfaces import AbortToken, Camera, MapStore, Optimizer, PlaceRecognizer
 from slamkit.map.atlas import Atlas
-from slamkit.map.entities import KeyFrame, MapPoint
+from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.frame import keyframe_cameras, keyframe_view
@@ -28,11 +28,14 @@ from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.map_points import (
+    add_observations,
+    add_points,
     create_depth_points,
     flat_observations,
+    new_pair_points,
     orbslam_observation_counts,
-    refresh_new_pairs,
     refresh_points,
+    unique_point_ids,
 )
 from slamkit.pipeline.matching import close_pairs, resolve_one_to_one, rotation_consistent
 from slamkit.pipeline.outcomes import CulledKeyFrame, MappingOutcome
@@ -401,37 +404,23 @@ class LocalMapper:
         return i1[ok], i2[ok], xyz[ok]
 
     def _add_points(self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64, xyz: F64) -> int:
-        """Add the triangulated points whose two features are still unmatched (new map points, VI-C)."""
+        """Add the triangulated points whose two features are still unmatched (new map points, VI-C).
+
+        The pairs are taken in order, each only while its two features (and, for two-camera keyframes, their stereo
+        partners) are free of a point, those of the pairs taken before included; the points are then written at once
+        (map_points.add_points / add_observations)."""
         store = self.store
-        created: list[int] = []
-        feat1: list[int] = []
-        feat2: list[int] = []
-        rig = kf1.features.two_cameras or kf2.features.two_cameras
-        for m in range(i1.size):
-            a, b = int(i1[m]), int(i2[m])
-            if kf1.point_ids[a] >= 0 or kf2.point_ids[b] >= 0:
-                continue
-            if rig and (_partner_has_point(kf1, a) or _partner_has_point(kf2, b)):
-                continue
-            pid = store.new_point_id()
-            point = MapPoint(pid, xyz[m].copy(), kf1.features.descriptors[a].copy(), kf1.id, kf1.id)
-            store.add_point(point)
-            store.add_observation(pid, kf1.id, a)
-            store.add_observation(pid, kf2.id, b)
-            created.append(pid)
-            feat1.append(a)
-            feat2.append(b)
-        # refresh_points(store, created) without walking the observations: each new point is seen by (kf1, a), (kf2, b)
-        refresh_new_pairs(
-            store,
-            np.array(created, np.int64),
-            store.get_keyframe(kf1.id),
-            np.array(feat1, np.int64),
-            store.get_keyframe(kf2.id),
-            np.array(feat2, np.int64),
-        )
-        self.recent_points.extend(created)
-        return len(created)
+        sel = _free_pairs(kf1, kf2, i1, i2)
+        if not sel.size:
+            return 0
+        feat1, feat2 = i1[sel], i2[sel]
+        created = np.array([store.new_point_id() for _ in range(sel.size)], np.int64)
+        # refresh_points(store, created) folded into the points' making: each is seen by (kf1, a) and (kf2, b) only
+        add_points(store, new_pair_points(created, xyz[sel], kf1, feat1, store.get_keyframe(kf2.id), feat2))
+        add_observations(store, created, kf1.id, feat1)
+        add_observations(store, created, kf2.id, feat2)
+        self.recent_points.extend(created.tolist())
+        return int(created.size)
 
     # ---- VI-D (fusion) -------------------------------------------------------------------------------
 
@@ -469,11 +458,11 @@ class LocalMapper:
         with store.write():
             alive = [t for t in targets if store.has_keyframe(t)]
             if alive:
-                ids = np.unique(np.concatenate([store.get_keyframe(t).point_ids for t in alive]))
+                ids = unique_point_ids([store.get_keyframe(t).point_ids for t in alive])
                 fused += fuse_points(
                     store,
                     kf,
-                    ids[ids >= 0].tolist(),
+                    ids,
                     cfg.fuse_search_radius_px,
                     max_distance=cfg.matcher.th_low,
                     chi2_gate=cfg.chi2.fuse_mono,
@@ -591,13 +580,37 @@ def _camera_free(kf: KeyFrame, camera: int) -> NDArray[np.bool_]:
     return out
 
 
-def _partner_has_point(kf: KeyFrame, idx: int) -> bool:
-    """Whether keypoint ``idx`` of a two-camera keyframe has a stereo partner observing a point (the point stands for
-    both keypoints)."""
+def _free_pairs(kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64) -> I64:
+    """(S,) the rows of the candidate pairs (i1[m], i2[m]) (M,) that get a new point, in order: pair m is taken when
+    neither feature (nor, in a two-camera keyframe, its stereo partner) observes a point or belongs to a pair taken
+    before it (local mapping adds the pairs one after the other: a feature gets one point)."""
+    free1 = np.asarray(kf1.point_ids)[i1] < 0
+    free2 = np.asarray(kf2.point_ids)[i2] < 0
+    rig = kf1.features.two_cameras or kf2.features.two_cameras
+    if not rig and np.unique(i1).size == i1.size and np.unique(i2).size == i2.size:
+        return np.flatnonzero(free1 & free2)  # distinct features: taking one pair frees or takes no other's feature
+    taken1: set[int] = set()
+    taken2: set[int] = set()
+    keep: list[int] = []
+    for m, (a, b) in enumerate(zip(i1.tolist(), i2.tolist(), strict=True)):
+        if not (free1[m] and free2[m]) or a in taken1 or b in taken2:
+            continue
+        if rig and (_partner_taken(kf1, a, taken1) or _partner_taken(kf2, b, taken2)):
+            continue
+        taken1.add(a)
+        taken2.add(b)
+        keep.append(m)
+    return np.array(keep, np.int64)
+
+
+def _partner_taken(kf: KeyFrame, idx: int, taken: set[int]) -> bool:
+    """Whether keypoint ``idx`` of a two-camera keyframe has a stereo partner observing a point or in ``taken`` (a
+    pair taken before it: the point stands for both keypoints)."""
     sm = kf.features.stereo_match
     if sm is None or sm[idx] < 0:
         return False
-    return bool(kf.point_ids[int(sm[idx])] >= 0)
+    partner = int(sm[idx])
+    return bool(kf.point_ids[partner] >= 0) or partner in taken
 
 
 def _triangulate_with_depths(

@@ -154,6 +154,21 @@ _OBSERVATIONS = attrgetter("observations")
 _VALUES = methodcaller("values")
 
 
+def unique_point_ids(point_ids: Sequence[I64]) -> I64:
+    """The distinct non-negative ids of the arrays ``point_ids`` (keyframes' point_ids, -1 for no point), sorted:
+    ``np.unique(np.concatenate(point_ids))`` without its negative entries, by a mark per id up to the largest (no
+    sort of the ~25 neighbours' thousands of entries)."""
+    if not point_ids:
+        return np.zeros(0, np.int64)
+    ids = np.concatenate(point_ids).astype(np.int64, copy=False)
+    ids = ids[ids >= 0]
+    if not ids.size:
+        return np.zeros(0, np.int64)
+    mark = np.zeros(int(ids.max()) + 1, bool)
+    mark[ids] = True
+    return np.flatnonzero(mark).astype(np.int64, copy=False)
+
+
 def flat_observations(points: Sequence[MapPoint]) -> tuple[I64, I64, I64]:
     """Every observation of ``points`` as flat arrays, in each point's observation order (no sorting):
     -> (counts (P,) observations per point, kf (E,) observing keyframe ids, feat (E,) feature indices), the
@@ -295,7 +310,40 @@ def refresh_new_pairs(store: MapStore, point_ids: I64, kf1: KeyFrame, feat1: I64
     _apply_ids(store, ids, _PairGathered(kf1, np.asarray(feat1), kf2, np.asarray(feat2)), True, True)
 
 
-def _apply(store: MapStore, points: list[MapPoint], g: _Gathered, normals: bool, descriptors: bool) -> None:
+def new_pair_points(point_ids: I64, xyz_w: F64, kf1: KeyFrame, feat1: I64, kf2: KeyFrame, feat2: I64) -> list[MapPoint]:
+    """The new map points point_ids[q] at xyz_w[q] (P, 3) m, each to be observed by feature feat1[q] of ``kf1`` (its
+    reference and first keyframe) and feat2[q] of ``kf2`` (local mapping's triangulation, VI-C), made with the normal,
+    depth range and descriptor ``refresh_new_pairs`` would write once their observations are added: the same kernel
+    on the same numbers, without writing four attributes of every point to the map a second time. Not yet in any
+    map (MapStore.add_point, then the two observations)."""
+    ids = np.asarray(point_ids, np.int64)
+    if not ids.size:
+        return []
+    xyz = np.ascontiguousarray(xyz_w, np.float64)
+    g = _PairGathered(kf1, np.asarray(feat1), kf2, np.asarray(feat2))
+    normal, has_normal, d_min, d_max, best = _refresh_kernel(
+        xyz,
+        g.ptr,
+        g.center,
+        np.ascontiguousarray(g.desc).view(np.uint64),
+        g.ref_row,
+        g.level,
+        g.scale_factor,
+        g.n_levels,
+        True,
+        True,
+    )
+    desc = g.desc[best]  # each point has two observations: best >= 0
+    kf_id = kf1.id
+    return [
+        MapPoint(pid, xyz[q], desc[q], kf_id, kf_id, normal[q] if has_normal[q] else None, lo, hi)
+        for q, (pid, lo, hi) in enumerate(zip(ids.tolist(), d_min.tolist(), d_max.tolist(), strict=True))
+    ]
+
+
+def _apply(
+    store: MapStore, points: list[MapPoint], g: _Gathered | _FewGathered, normals: bool, descriptors: bool
+) -> None:
     """Recompute the points' normals/depth ranges and descriptors and write them to the points' map in bulk
     (store.assign_points)."""
     if not points:
@@ -303,7 +351,9 @@ def _apply(store: MapStore, points: list[MapPoint], g: _Gathered, normals: bool,
     _apply_ids(store, np.array([p.id for p in points], np.int64), g, normals, descriptors)
 
 
-def _apply_ids(store: MapStore, ids: I64, g: _Gathered | _PairGathered, normals: bool, descriptors: bool) -> None:
+def _apply_ids(
+    store: MapStore, ids: I64, g: _Gathered | _PairGathered | _FewGathered, normals: bool, descriptors: bool
+) -> None:
     """:func:`_apply` for the points ``ids`` (P,) in the order of g's rows."""
     xyz = store.point_rows(ids, "xyz_w") if normals else np.zeros((ids.size, 3))  # read by the normals only
     if g.desc.shape[1] % 8:
@@ -334,12 +384,55 @@ def _apply_ids(store: MapStore, ids: I64, g: _Gathered | _PairGathered, normals:
         store.assign_points(ids[rows], name, values)
 
 
+class _FewGathered:
+    """:class:`_Gathered`'s arrays for the descriptors alone (``normals=False``) of a few points, each point's
+    observations walked in keyframe-id order (``sorted(point.observations)``): the same rows in the same order as
+    _Gathered's sort and per-keyframe gathers, without their fixed cost of ~20 numpy calls (fusion refreshes the
+    descriptors of a handful of surviving points ~26 times per keyframe)."""
+
+    def __init__(self, store: MapStore, points: Sequence[MapPoint]) -> None:
+        """Observers no longer in ``store`` are left out (as _Gathered does with the observers missing from its
+        keyframes)."""
+        P = len(points)
+        rows: list[U8] = []
+        ptr = [0]
+        counts: list[int] = []
+        descriptors: dict[int, U8 | None] = {}  # by observer: its keypoints' descriptors (None: not in the map)
+        for point in points:
+            obs = point.observations
+            counts.append(len(obs))
+            for k in sorted(obs):
+                if k not in descriptors:
+                    descriptors[k] = store.get_keyframe(k).features.descriptors if store.has_keyframe(k) else None
+                d = descriptors[k]
+                if d is not None:
+                    rows.append(d[obs[k]])
+            ptr.append(len(rows))
+        E = len(rows)
+        self.n_observations = np.array(counts, np.int64)
+        self.ptr = np.array(ptr, np.int64)
+        self.ref_row = np.full(P, -1, np.int64)
+        self.center = np.zeros((E, 3))
+        self.level = np.zeros(E, np.int64)
+        self.desc = np.array(rows, np.uint8) if E else np.zeros((0, 32), np.uint8)
+        self.scale_factor = np.ones(P)
+        self.n_levels = np.ones(P, np.int64)
+
+
+#: refresh_points of descriptors alone walks the observations point by point (:class:`_FewGathered`) up to this many
+#: points; more go through _Gathered's sorted gathers (a tuning knob of the same result, not an ORB-SLAM constant)
+FEW_POINTS = 48
+
+
 def refresh_points(store: MapStore, point_ids: Iterable[int], normals: bool = True, descriptors: bool = True) -> None:
     """``update_normal_and_depth`` (when ``normals``) and ``compute_distinctive_descriptor`` (when
     ``descriptors``) for every listed point still in the map (duplicates and erased ids ignored), in one
     gather and one compiled pass."""
     points = store.get_points(sorted(set(point_ids)))
     if not points:
+        return
+    if descriptors and not normals and len(points) <= FEW_POINTS:
+        _apply(store, points, _FewGathered(store, points), False, True)
         return
     flat = flat_observations(points)
     observers = np.unique(flat[1]).tolist()
@@ -403,14 +496,38 @@ def create_depth_points(store: MapStore, kf: KeyFrame, min_points: int) -> list[
         return []
     sel = np.array(create, np.int64)
     xyz = feats.unproject_stereo(sel, invert_T(kf.T_c_w), kf.camera.K)
-    created: list[int] = []
-    for m, i in enumerate(create):
-        pid = store.new_point_id()
-        store.add_point(MapPoint(pid, xyz[m].copy(), feats.descriptors[i].copy(), kf.id, kf.id))
-        store.add_observation(pid, kf.id, i)
-        created.append(pid)
+    created = [store.new_point_id() for _ in create]
+    # the points and their one observation each written at once (the keypoints in ``create`` are distinct)
+    desc = feats.descriptors
+    add_points(
+        store,
+        [MapPoint(pid, xyz[m], desc[i], kf.id, kf.id) for m, (pid, i) in enumerate(zip(created, create, strict=True))],
+    )
+    add_observations(store, np.array(created, np.int64), kf.id, sel)
     refresh_points(store, created)
     return created
+
+
+def add_points(store: MapStore, points: Sequence[MapPoint]) -> None:
+    """``store.add_point`` of each point in order: at once through the store's ``add_points`` where it has one
+    (InMemoryMapStore; the MapStore protocol asks for the one-point form only), else one at a time."""
+    batch = getattr(store, "add_points", None)
+    if batch is not None:
+        batch(points)
+        return
+    for point in points:
+        store.add_point(point)
+
+
+def add_observations(store: MapStore, point_ids: I64, keyframe_id: int, feature_indices: I64) -> None:
+    """``store.add_observation(point_ids[q], keyframe_id, feature_indices[q])`` for q in order (P,): at once through
+    the store's ``add_observations`` where it has one (InMemoryMapStore), else one at a time."""
+    batch = getattr(store, "add_observations", None)
+    if batch is not None:
+        batch(point_ids, keyframe_id, feature_indices)
+        return
+    for pid, feat in zip(np.asarray(point_ids).tolist(), np.asarray(feature_indices).tolist(), strict=True):
+        store.add_observation(pid, keyframe_id, feat)
 
 
 def orbslam_observation_counts(store: MapStore, point_ids: Iterable[int]) -> I64:

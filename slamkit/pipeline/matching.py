@@ -378,5 +378,7 @@ def rotation_consistent(angle_diff_deg: F64, n_bins: int) -> NDArray[np.bool_]:
     counts = np.bincount(bins, minlength=n_bins)
     ranked = np.argsort(-counts, kind="stable")
     top = counts[ranked[0]]
-    keep_bins = [ranked[0]] + [b for b in ranked[1:3] if counts[b] > 0.1 * top]
-    return np.isin(bins, keep_bins)
+    keep_bins = np.zeros(n_bins, bool)  # a lookup by bin (np.isin over three bins sorts)
+    keep_bins[[ranked[0]] + [b for b in ranked[1:3] if counts[b] > 0.1 * top]] = True
+    out: NDArray[np.bool_] = keep_bins[bins]
+    return out

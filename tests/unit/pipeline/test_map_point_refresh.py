@@ -12,6 +12,7 @@ from slamkit.features import Features, Observations
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
+from slamkit.pipeline import map_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.map_points import compute_distinctive_descriptor, refresh_points, update_normal_and_depth
 
@@ -105,6 +106,39 @@ def test_batched_refresh_matches_the_per_point_rules(seed: int, n_kf: int) -> No
         assert point.d_max_m == pytest.approx(d_max, rel=1e-12)
         assert point.d_min_m == pytest.approx(d_min, rel=1e-12)
         np.testing.assert_array_equal(point.descriptor, desc)
+
+
+@pytest.mark.parametrize(("seed", "n_kf"), [(0, 8), (1, 8), (3, 40)])
+def test_few_point_descriptor_refresh_matches_the_sorted_gather(
+    seed: int, n_kf: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The descriptors-only refresh of a few points (walked point by point, fusion's survivors) writes the very
+    descriptors of the sorted batch gather and of ORB-SLAM's per-point rule; the normals and depth ranges stay."""
+    few, batch = random_map(seed, n_kf=n_kf), random_map(seed, n_kf=n_kf)
+    pids = few.point_ids()
+    chunks = [pids[i : i + 7] for i in range(0, len(pids), 7)]
+    before = {pid: (few.get_point(pid).normal_w.copy(), few.get_point(pid).d_max_m) for pid in pids}
+    calls = {"few": 0}
+    gathered = map_points._FewGathered
+
+    def counted(*args: object) -> map_points._FewGathered:
+        calls["few"] += 1
+        return gathered(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(map_points, "_FewGathered", counted)
+    for chunk in chunks:
+        refresh_points(few, [*chunk, chunk[0], 10_000], normals=False)
+    assert calls["few"] == len(chunks)
+    monkeypatch.setattr(map_points, "FEW_POINTS", 0)  # every set through _Gathered
+    for chunk in chunks:
+        refresh_points(batch, chunk, normals=False)
+    assert calls["few"] == len(chunks)
+    for pid in pids:
+        point = few.get_point(pid)
+        np.testing.assert_array_equal(point.descriptor, batch.get_point(pid).descriptor)
+        np.testing.assert_array_equal(point.descriptor, reference_refresh(point, few)[3])
+        np.testing.assert_array_equal(point.normal_w, before[pid][0])
+        assert point.d_max_m == before[pid][1]
 
 
 def test_single_point_forms_match_the_batch() -> None:

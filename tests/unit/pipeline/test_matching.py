@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from slamkit.pipeline.matching import (
     FeatureGrid,
@@ -111,3 +112,18 @@ def test_feature_grid_cells_and_order_equal_numpys_floor_division_and_stable_sor
         np.testing.assert_array_equal(grid.cell_start, start)
         np.testing.assert_array_equal(grid.cell_end, end)
         assert grid.order.dtype == grid.cell_start.dtype == grid.cell_end.dtype == np.int64
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rotation_consistent_keeps_the_three_fullest_bins_as_the_isin_rule(seed: int) -> None:
+    """The bin lookup keeps what ``np.isin(bins, keep_bins)`` keeps (ComputeThreeMaxima), ties and NaN-free angles
+    in [-720, 720) deg."""
+    rng = np.random.default_rng(seed)
+    diff = np.concatenate([rng.normal(10.0, 3.0, 60), rng.normal(200.0, 5.0, 12), rng.uniform(-720, 720, 40)])
+    bins = (np.mod(diff, 360.0) * (30 / 360.0)).astype(np.int64) % 30
+    counts = np.bincount(bins, minlength=30)
+    ranked = np.argsort(-counts, kind="stable")
+    keep_bins = [ranked[0]] + [b for b in ranked[1:3] if counts[b] > 0.1 * counts[ranked[0]]]
+    got = rotation_consistent(diff, 30)
+    np.testing.assert_array_equal(got, np.isin(bins, keep_bins))
+    assert got.dtype == bool and got.any() and not got.all()

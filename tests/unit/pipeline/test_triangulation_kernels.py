@@ -17,7 +17,7 @@ from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.local_mapping import LocalMapper, _fundamental_21
-from slamkit.pipeline.map_points import refresh_new_pairs, refresh_points
+from slamkit.pipeline.map_points import add_observations, add_points, new_pair_points, refresh_new_pairs, refresh_points
 from slamkit.pipeline.projection import project_points
 from slamkit.pipeline.triangulation_kernels import epipolar_candidates, parallax_ok, triangulated_ok
 
@@ -201,3 +201,45 @@ def test_refresh_of_new_pairs_equals_refresh_points(seed: int) -> None:
         for n in names:
             np.testing.assert_array_equal(store.point_rows(ids_a, n), expected[n], err_msg=n)
         assert np.isfinite(expected["d_max_m"]).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_new_pair_points_are_the_refreshed_points(seed: int) -> None:
+    """Points made by new_pair_points and then observed are, attribute for attribute and in the map's table, the
+    points made bare, observed, and refreshed by refresh_new_pairs (local mapping's former order), for either
+    keyframe as the reference."""
+    for ref in (0, 1):
+        maps = []
+        for folded in (False, True):
+            store, kf_a, kf_b = _scene(seed)
+            kf1, kf2 = (kf_a, kf_b) if ref == 0 else (kf_b, kf_a)
+            rng = np.random.default_rng(seed + 20)
+            f1, f2 = rng.permutation(400)[:120], rng.permutation(400)[:120]
+            xyz = rng.normal(size=(120, 3)) + np.array([0, 0, 4.0])
+            ids = np.array([store.new_point_id() for _ in range(120)], np.int64)
+            if folded:
+                add_points(store, new_pair_points(ids, xyz, kf1, f1, kf2, f2))
+            else:
+                for pid, p, a in zip(ids.tolist(), xyz, f1.tolist(), strict=True):
+                    store.add_point(MapPoint(pid, p, kf1.features.descriptors[a], kf1.id, kf1.id))
+            add_observations(store, ids, kf1.id, f1)
+            add_observations(store, ids, kf2.id, f2)
+            if not folded:
+                refresh_new_pairs(store, ids, kf1, f1, kf2, f2)
+            maps.append((store, ids))
+        (old, ids), (new, _) = maps
+        for name in ("xyz_w", "normal_w", "d_min_m", "d_max_m", "descriptor", "n_observations", "n_visible"):
+            a, b = old.point_rows(ids, name), new.point_rows(ids, name)
+            assert a.tobytes() == b.tobytes(), name
+        for pid in ids.tolist():
+            p, q = old.get_point(pid), new.get_point(pid)
+            for name in ("xyz_w", "normal_w", "descriptor"):
+                assert getattr(p, name).tobytes() == getattr(q, name).tobytes(), name
+            assert (p.d_min_m, p.d_max_m, p.ref_kf_id, p.first_kf_id) == (
+                q.d_min_m,
+                q.d_max_m,
+                q.ref_kf_id,
+                q.first_kf_id,
+            )
+            assert list(p.observations.items()) == list(q.observations.items())
+        assert np.isfinite(new.point_rows(ids, "d_max_m")).all()
