@@ -13,8 +13,9 @@ tracking extractor's (``initializing`` False); a frame of a monocular initialisa
 extractor) is extracted again by tracking, as before. The front end is called by one thread at a time (a lock): an
 extractor need not be thread-safe.
 
-Not used in real time, where a frame's extraction is part of the latency the clock judges, nor for frames handed in
-by a caller (``ThreadedRunner.step``).
+In real time (``runner.realtime_extract_ahead``) the frame source extracts each frame as it releases it, before the
+one-slot mailbox, while tracking works on the frame before: the two threads then take a camera's frames as a two-stage
+pipeline (docs/runtime.md). Not used for frames handed in by a caller (``ThreadedRunner.step``).
 """
 
 from __future__ import annotations
