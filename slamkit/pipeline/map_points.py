@@ -321,7 +321,21 @@ def new_pair_points(point_ids: I64, xyz_w: F64, kf1: KeyFrame, feat1: I64, kf2: 
         return []
     xyz = np.ascontiguousarray(xyz_w, np.float64)
     g = _PairGathered(kf1, np.asarray(feat1), kf2, np.asarray(feat2))
-    normal, has_normal, d_min, d_max, best = _refresh_kernel(
+    normal, has_normal, d_min, d_max, best = _refreshed(xyz, g, True, True)
+    desc = g.desc[best]  # each point has two observations: best >= 0
+    kf_id = kf1.id
+    return [
+        MapPoint(pid, xyz[q], desc[q], kf_id, kf_id, normal[q] if has_normal[q] else None, lo, hi)
+        for q, (pid, lo, hi) in enumerate(zip(ids.tolist(), d_min.tolist(), d_max.tolist(), strict=True))
+    ]
+
+
+def _refreshed(
+    xyz: F64, g: _Gathered | _PairGathered | _FewGathered, normals: bool, descriptors: bool
+) -> tuple[F64, NDArray[np.bool_], F64, F64, I64]:
+    """``_refresh_kernel`` on the points at ``xyz`` (P, 3) m (world) with their gathered observations ``g`` (rows in
+    the points' order): (normal (P, 3), has_normal (P,), d_min (P,) m, d_max (P,) m, best descriptor row (P,))."""
+    return _refresh_kernel(
         xyz,
         g.ptr,
         g.center,
@@ -330,15 +344,9 @@ def new_pair_points(point_ids: I64, xyz_w: F64, kf1: KeyFrame, feat1: I64, kf2: 
         g.level,
         g.scale_factor,
         g.n_levels,
-        True,
-        True,
+        normals,
+        descriptors,
     )
-    desc = g.desc[best]  # each point has two observations: best >= 0
-    kf_id = kf1.id
-    return [
-        MapPoint(pid, xyz[q], desc[q], kf_id, kf_id, normal[q] if has_normal[q] else None, lo, hi)
-        for q, (pid, lo, hi) in enumerate(zip(ids.tolist(), d_min.tolist(), d_max.tolist(), strict=True))
-    ]
 
 
 def _apply(
@@ -358,18 +366,7 @@ def _apply_ids(
     xyz = store.point_rows(ids, "xyz_w") if normals else np.zeros((ids.size, 3))  # read by the normals only
     if g.desc.shape[1] % 8:
         raise ValueError(f"descriptors must have a multiple of 8 bytes, got {g.desc.shape[1]}")
-    normal, has_normal, d_min, d_max, best = _refresh_kernel(
-        xyz,
-        g.ptr,
-        g.center,
-        np.ascontiguousarray(g.desc).view(np.uint64),
-        g.ref_row,
-        g.level,
-        g.scale_factor,
-        g.n_levels,
-        normals,
-        descriptors,
-    )
+    normal, has_normal, d_min, d_max, best = _refreshed(xyz, g, normals, descriptors)
     observed = g.n_observations > 0
     updates: list[tuple[str, NDArray[np.int64], NDArray[Any]]] = []
     if normals:
