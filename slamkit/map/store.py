@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Iterable, Sequence
 from contextlib import AbstractContextManager
+from itertools import chain
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
@@ -133,6 +134,18 @@ class InMemoryMapStore:
     def get_points(self, point_ids: Iterable[int]) -> list[MapPoint]:
         points = self._points
         return [points[p] for p in point_ids if p in points]
+
+    def flat_observations(self, point_ids: I64) -> tuple[I64, I64, I64]:
+        """``slamkit.pipeline.map_points.flat_observations(self.get_points(point_ids))`` (the points must be in the
+        map) read from the store's own dictionaries, without the points' read-only views: (counts (P,), kf (E,),
+        feat (E,)), point q's observations at rows sum(counts[:q]):sum(counts[:q + 1]) in its observation order."""
+        observations = self._observations
+        obs = [observations[p] for p in np.asarray(point_ids, np.int64).tolist()]
+        counts = np.fromiter(map(len, obs), np.int64, count=len(obs))
+        E = int(counts.sum())
+        kf = np.fromiter(chain.from_iterable(obs), np.int64, count=E)
+        feat = np.fromiter(chain.from_iterable(map(dict.values, obs)), np.int64, count=E)
+        return counts, kf, feat
 
     def point_rows(self, point_ids: I64, attribute: str) -> NDArray[Any]:
         if attribute not in _READABLE:

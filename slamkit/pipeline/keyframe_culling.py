@@ -1,8 +1,8 @@
 """Local keyframe culling (ORB-SLAM sec. VI-E, LocalMapping::KeyFrameCulling) without a Python loop per
 observation: the observations of every point the candidates see are gathered once into flat arrays, and a
-numba pass (GIL released) counts, for one candidate, the points seen at the same or a finer scale by at least
-``min_observers`` other keyframes. Culling a candidate only marks its observation rows dead, so the later
-candidates see the map exactly as the per-point loop of ORB-SLAM would.
+numba pass (GIL released) counts, for every candidate at once, the points seen at the same or a finer scale by at
+least ``min_observers`` other keyframes. Culling a candidate only marks its observation rows dead, so the later
+candidates see the map exactly as the per-point loop of ORB-SLAM would (their counts are taken again after a cull).
 """
 
 from __future__ import annotations
@@ -17,28 +17,66 @@ from slamkit.interfaces import MapStore
 from slamkit.pipeline.map_points import flat_observations, unique_point_ids
 
 I64 = NDArray[np.int64]
+B = NDArray[np.bool_]
 
 
 @numba.njit(cache=True, nogil=True)
 def _count_redundant(
-    rows_of: I64, level_of: I64, ptr: I64, obs_kf: I64, obs_level: I64, alive: NDArray[np.bool_], kf_id: int, m: int
-) -> int:  # pragma: no cover - compiled
-    """Points q = rows_of[i] (seen by ``kf_id`` at pyramid level level_of[i]) that have more than m live
-    observations and at least m of them, by other keyframes, at level <= level_of[i] + 1."""
-    redundant = 0
-    for i in range(rows_of.shape[0]):
-        q = rows_of[i]
-        n_live = 0
-        n_obs = 0
-        for e in range(ptr[q], ptr[q + 1]):
-            if not alive[e]:
+    cand_ptr: I64,
+    cand_kf: I64,
+    pids: I64,
+    levels: I64,
+    eligible: B,
+    rows: I64,
+    point_ids: I64,
+    ptr: I64,
+    obs_kf: I64,
+    obs_level: I64,
+    alive: B,
+    m: int,
+) -> tuple[I64, I64]:  # pragma: no cover - compiled
+    """For each candidate c (C,): its features f in cand_ptr[c]:cand_ptr[c + 1] of the flat arrays pids / levels /
+    eligible / rows (F,) (point id or -1, pyramid level, whether the feature counts, row of pids[f] in the sorted
+    ``point_ids`` (P,) by searchsorted) -> (n_points (C,): eligible features whose point is in the table, redundant
+    (C,): those of them whose point has more than m live observations and at least m of them, by keyframes other
+    than cand_kf[c], at level <= the feature's level + 1)."""
+    C = cand_kf.shape[0]
+    P = point_ids.shape[0]
+    n_points = np.zeros(C, np.int64)
+    redundant = np.zeros(C, np.int64)
+    for c in range(C):
+        kf_id = cand_kf[c]
+        for f in range(cand_ptr[c], cand_ptr[c + 1]):
+            pid = pids[f]
+            if pid < 0 or not eligible[f]:
                 continue
-            n_live += 1
-            if obs_kf[e] != kf_id and obs_level[e] <= level_of[i] + 1:
-                n_obs += 1
-        if n_live > m and n_obs >= m:
-            redundant += 1
-    return redundant
+            q = rows[f]
+            if q >= P or point_ids[q] != pid:
+                continue
+            n_points[c] += 1
+            limit = levels[f] + 1
+            n_live = 0
+            n_obs = 0
+            for e in range(ptr[q], ptr[q + 1]):
+                if not alive[e]:
+                    continue
+                n_live += 1
+                if obs_kf[e] != kf_id and obs_level[e] <= limit:
+                    n_obs += 1
+            if n_live > m and n_obs >= m:
+                redundant[c] += 1
+    return n_points, redundant
+
+
+def _gather_observations(store: MapStore, point_ids: I64) -> tuple[I64, I64, I64]:
+    """:func:`~slamkit.pipeline.map_points.flat_observations` of the points ``point_ids`` (P,), all in the map: through
+    the store's own ``flat_observations`` where it has one (InMemoryMapStore: its plain dictionaries, not the points'
+    read-only views), else from ``get_points``. -> (counts (P,), kf (E,), feat (E,))."""
+    own = getattr(store, "flat_observations", None)
+    if own is not None:
+        counts, kf, feat = own(point_ids)
+        return np.asarray(counts, np.int64), np.asarray(kf, np.int64), np.asarray(feat, np.int64)
+    return flat_observations(store.get_points(point_ids.tolist()))
 
 
 class ObservationTable:
@@ -52,18 +90,56 @@ class ObservationTable:
         self.store = store
         ids = unique_point_ids([store.get_keyframe(k).point_ids for k in kf_ids])
         self.point_ids = ids[store.has_points(ids)].astype(np.int64)
-        counts, self.obs_kf, feat = flat_observations(store.get_points(self.point_ids.tolist()))
+        counts, self.obs_kf, feat = _gather_observations(store, self.point_ids)
         self.ptr = np.zeros(counts.size + 1, np.int64)
         np.cumsum(counts, out=self.ptr[1:])
-        kf_of = self.obs_kf
-        self.obs_level = np.zeros(len(kf_of), np.int64)
-        order = np.argsort(self.obs_kf, kind="stable")
-        uniq, starts = np.unique(self.obs_kf[order], return_index=True)
-        bounds = np.append(starts, len(kf_of))
-        for i, k in enumerate(uniq.tolist()):
-            rows = order[bounds[i] : bounds[i + 1]]
-            self.obs_level[rows] = store.get_keyframe(k).features.level[feat[rows]]
-        self.alive = np.ones(len(kf_of), np.bool_)
+        self.obs_level = np.zeros(self.obs_kf.size, np.int64)
+        if self.obs_kf.size:
+            # each observation's level from its keyframe's level array: the observers' arrays laid end to end, an
+            # observation at (its keyframe's offset + its feature index); the observers found by a mark per id
+            present = np.zeros(int(self.obs_kf.max()) + 1, bool)
+            present[self.obs_kf] = True
+            observers = np.flatnonzero(present)
+            level_arrays = [store.get_keyframe(k).features.level for k in observers.tolist()]
+            offsets = np.zeros(observers.size + 1, np.int64)
+            np.cumsum([a.size for a in level_arrays], out=offsets[1:])
+            slot = np.zeros(present.size, np.int64)
+            slot[observers] = offsets[:-1]
+            self.obs_level = np.concatenate(level_arrays).astype(np.int64)[slot[self.obs_kf] + feat]
+        self.alive = np.ones(self.obs_kf.size, np.bool_)
+
+    def redundancies(self, kf_ids: Sequence[int], min_observers: int) -> tuple[I64, I64]:
+        """:meth:`redundancy` of each keyframe of ``kf_ids`` (K,) (each still in the map) in one compiled pass over
+        the map as it is now -> (n_points (K,), redundant (K,))."""
+        kfs = [self.store.get_keyframe(k) for k in kf_ids]
+        if not kfs:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        cand_ptr = np.zeros(len(kfs) + 1, np.int64)
+        np.cumsum([kf.point_ids.size for kf in kfs], out=cand_ptr[1:])
+        pids = np.concatenate([kf.point_ids for kf in kfs]).astype(np.int64, copy=False)
+        levels = np.concatenate([kf.features.level for kf in kfs]).astype(np.int64, copy=False)
+        eligible = np.ones(pids.size, np.bool_)
+        for c, kf in enumerate(kfs):
+            if kf.features.bf > 0.0:
+                depth = kf.features.depth_m
+                eligible[cand_ptr[c] : cand_ptr[c + 1]] = (
+                    np.isfinite(depth) & (depth >= 0.0) & (depth <= kf.features.th_depth_m)
+                )
+        rows = np.searchsorted(self.point_ids, pids).astype(np.int64, copy=False)
+        return _count_redundant(
+            cand_ptr,
+            np.array([kf.id for kf in kfs], np.int64),
+            pids,
+            levels,
+            eligible,
+            rows,
+            self.point_ids,
+            self.ptr,
+            self.obs_kf,
+            self.obs_level,
+            self.alive,
+            int(min_observers),
+        )
 
     def redundancy(self, kf_id: int, min_observers: int) -> tuple[int, int]:
         """(points of ``kf_id`` still in the map, those seen by >= min_observers other keyframes at the same or
@@ -72,27 +148,10 @@ class ObservationTable:
         A stereo/RGB-D keyframe (bf > 0) counts only its points observed with a depth up to its close threshold
         (ORB-SLAM2 KeyFrameCulling: ``if(!mbMonocular)`` skips a point whose keypoint depth is > mThDepth or < 0).
         ORB-SLAM2's first test ``Observations() > thObs`` counts a stereo observation twice; it never decides here:
-        a point with nObs >= thObs other observers has more than thObs observers in either count."""
-        kf = self.store.get_keyframe(kf_id)
-        has_point = kf.point_ids >= 0
-        if kf.features.bf > 0.0:
-            depth = kf.features.depth_m
-            has_point &= np.isfinite(depth) & (depth >= 0.0) & (depth <= kf.features.th_depth_m)
-        feats = np.flatnonzero(has_point)
-        pids = kf.point_ids[feats]
-        if pids.size == 0 or self.point_ids.size == 0:
-            return 0, 0
-        q = np.minimum(np.searchsorted(self.point_ids, pids), self.point_ids.size - 1)
-        # every point a live keyframe sees is in the table (culling only erases points left unobserved)
-        known = self.point_ids[q] == pids
-        rows = q[known]
-        levels = np.asarray(kf.features.level[feats[known]], np.int64)
-        if rows.size == 0:
-            return 0, 0
-        redundant = _count_redundant(
-            rows.astype(np.int64), levels, self.ptr, self.obs_kf, self.obs_level, self.alive, kf_id, min_observers
-        )
-        return int(rows.size), int(redundant)
+        a point with nObs >= thObs other observers has more than thObs observers in either count. Every point a live
+        keyframe sees is in the table (culling only erases points left unobserved)."""
+        n_points, redundant = self.redundancies([kf_id], min_observers)
+        return int(n_points[0]), int(redundant[0])
 
     def cull(self, kf_id: int) -> None:
         """Forget the observations of a keyframe erased from the map."""

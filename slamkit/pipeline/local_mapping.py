@@ -7,12 +7,15 @@ the local BA on a snapshot without holding the lock (slamkit/pipeline/bundle.py)
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
+from contextlib import nullcontext
 
 import numpy as np
 from numpy.typing import NDArray
 
+from slamkit.features import Features
 from slamkit.geometry.camera import PinholeCamera
 from slamkit.geometry.se3 import invert_T
 from slamkit.geometry.so3 import hat
@@ -46,6 +49,9 @@ log = logging.getLogger("slamkit.mapping")
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+
+#: the point id marking, in the scratch copy of a keyframe triangulation plans with, a feature already given a new point
+_PLANNED = np.iinfo(np.int64).max
 
 
 class LocalMapper:
@@ -170,27 +176,50 @@ class LocalMapper:
 
         Stops after the first neighbour once ``abort`` is set — a newer keyframe waits (ORB-SLAM2 CreateNewMapPoints:
         ``if(i>0 && CheckNewKeyFrames()) return;``; the runners set the token when they hand local mapping a
-        keyframe while it works). Each neighbour's matching and triangulation run under the read lock, its new points are added under the
-        write lock (done again there if a loop correction bumped the map's epoch in between)."""
+        keyframe while it works). Each neighbour's matching and triangulation run under the read lock; the new points of
+        all the neighbours are then added at once under the write lock (planned again there, for the same neighbours,
+        if a loop correction bumped the map's epoch in between). A neighbour's plan sees the features of ``kf`` that
+        the neighbours before it took as matched, so the points are those of adding each neighbour's in turn."""
         store = self.store
         with store.read():
             nn = self.cfg.triangulation_neighbors_stereo if kf.features.bf > 0.0 else self.cfg.triangulation_neighbors
             neighbors = store.covisibility.best_neighbors(kf.id, nn)
-        created = 0
+            epoch = store.epoch
+        planned, visited = self._plan_new_points(kf, neighbors, abort, read_lock=True)
+        with store.write():
+            if store.epoch != epoch:
+                planned, _ = self._plan_new_points(kf, neighbors[:visited], None, read_lock=False)
+            return self._add_points(kf, planned)
+
+    def _plan_new_points(
+        self, kf: KeyFrame, neighbors: list[int], abort: AbortToken | None, read_lock: bool
+    ) -> tuple[list[tuple[KeyFrame, I64, I64, F64]], int]:
+        """The new points of ``kf`` with each neighbour in turn (``_triangulate_with``, then the pairs ``_free_pairs``
+        gives a point), each neighbour under the read lock when ``read_lock``; a scratch copy of ``kf`` marks the
+        features taken by the neighbours before (the map is not changed). -> ([(neighbour, features of kf (S,), of the
+        neighbour (S,), (S, 3) world points m)], the number of neighbours visited before ``abort`` stopped the loop)."""
+        store = self.store
+        planned: list[tuple[KeyFrame, I64, I64, F64]] = []
+        view = kf  # kf with the features planned so far marked as matched
+        visited = 0
         for i, n_id in enumerate(neighbors):
             if i > 0 and abort is not None and abort.is_set():
                 break
-            with store.read():
-                epoch = store.epoch
-                found = self._triangulate_with(kf, n_id)
-            if found is None:
+            visited += 1
+            with store.read() if read_lock else nullcontext():
+                found = self._triangulate_with(view, n_id)
+                if found is None:
+                    continue
+                kf2 = store.get_keyframe(n_id)
+                i1, i2, xyz = found
+                sel = _free_pairs(view, kf2, i1, i2)
+            if not sel.size:
                 continue
-            with store.write():
-                if store.epoch != epoch:
-                    found = self._triangulate_with(kf, n_id)
-                if found is not None:
-                    created += self._add_points(kf, store.get_keyframe(n_id), *found)
-        return created
+            planned.append((kf2, i1[sel], i2[sel], xyz[sel]))
+            marked = np.array(view.point_ids)
+            marked[i1[sel]] = _PLANNED
+            view = dataclasses.replace(view, point_ids=marked)
+        return planned, visited
 
     def _triangulate_with(self, kf: KeyFrame, n_id: int) -> tuple[I64, I64, F64] | None:
         """(features of kf, features of the neighbour, (M, 3) m world points) that pass VI-C's checks, or None
@@ -266,11 +295,11 @@ class LocalMapper:
                 uv1,
                 uv2,
                 F21,
-                kf2.features.level_sigma2()[b],
+                _level_sigma2(kf2.features, b),
                 self.cfg.chi2.epipolar,
                 True,
                 np.ascontiguousarray(epipole, np.float64),
-                kf2.features.level_scale()[b],
+                _level_scale(kf2.features, b),
                 matcher.epipole_min_dist2,
                 np.isfinite(kf1.features.u_right_px[a]) | np.isfinite(kf2.features.u_right_px[b]),
             )
@@ -278,7 +307,7 @@ class LocalMapper:
         lines = np.c_[uv1, np.ones(a.size)] @ F21.T  # epipolar lines in image 2
         num = np.einsum("ij,ij->i", lines, np.c_[uv2, np.ones(b.size)])
         dist2 = num**2 / np.maximum(lines[:, 0] ** 2 + lines[:, 1] ** 2, 1e-12)
-        sigma2 = kf2.features.level_sigma2()[b]
+        sigma2 = _level_sigma2(kf2.features, b)
         ok = dist2 < self.cfg.chi2.epipolar * sigma2
         # ORB-SLAM: a candidate too close to the epipole cannot be triangulated reliably: squared distance below
         # epipole_min_dist2 x the scale factor of its level (not squared, as ORB-SLAM writes it). An epipole at
@@ -286,7 +315,7 @@ class LocalMapper:
         if not (kf1.features.two_cameras or kf2.features.two_cameras):
             # ORB-SLAM3 SearchForTriangulation checks the epipole for one-camera keyframes only (!pKF1->mpCamera2)
             epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
-            scale2 = kf2.features.level_scale()[b]
+            scale2 = _level_scale(kf2.features, b)
             with np.errstate(invalid="ignore"):
                 near_epipole = np.sum((uv2 - epipole) ** 2, axis=1) < matcher.epipole_min_dist2 * scale2
             # ORB-SLAM2/3 SearchForTriangulation: `if(!bStereo1 && !bStereo2)`: only a pair without a right coordinate
@@ -331,8 +360,8 @@ class LocalMapper:
             xyz = triangulate_points(kf1.T_c_w, kf2.T_c_w, K1, K2, uv1, uv2)
         ok &= np.all(np.isfinite(xyz), axis=1)
         xyz = np.where(np.isfinite(xyz), xyz, 0.0)
-        sigma1 = kf1.features.level_sigma2()[i1]
-        sigma2 = kf2.features.level_sigma2()[i2]
+        sigma1 = _level_sigma2(kf1.features, i1)
+        sigma2 = _level_sigma2(kf2.features, i2)
         for kf, idx, s2 in ((kf1, i1, sigma1), (kf2, i2, sigma2)):
             uv = kf.features.uv_undist_px[idx].astype(np.float64)  # the keypoint in its camera's pipeline image
             proj, z, _ = project_points(kf.T_c_w, xyz, kf.camera)
@@ -353,7 +382,7 @@ class LocalMapper:
         dist2 = np.linalg.norm(xyz - kf2.center_w, axis=1)
         ok &= (dist1 > 0) & (dist2 > 0)
         ratio_dist = dist2 / np.maximum(dist1, 1e-12)
-        ratio_octave = kf1.features.level_scale()[i1] / kf2.features.level_scale()[i2]
+        ratio_octave = _level_scale(kf1.features, i1) / _level_scale(kf2.features, i2)
         factor = cfg.scale_consistency_factor * kf1.features.scale_factor
         ok &= ~((ratio_dist * factor < ratio_octave) | (ratio_dist > ratio_octave * factor))
         if not ok.any():
@@ -392,33 +421,37 @@ class LocalMapper:
             np.ascontiguousarray(T2, np.float64),
             _pinhole_intrinsics(kf1),
             _pinhole_intrinsics(kf2),
-            cfg.chi2.mono * f1.level_sigma2()[i1],
-            cfg.chi2.mono * f2.level_sigma2()[i2],
+            cfg.chi2.mono * _level_sigma2(f1, i1),
+            cfg.chi2.mono * _level_sigma2(f2, i2),
             np.ascontiguousarray(kf1.center_w, np.float64),
             np.ascontiguousarray(kf2.center_w, np.float64),
-            f1.level_scale()[i1] / f2.level_scale()[i2],
+            _level_scale(f1, i1) / _level_scale(f2, i2),
             cfg.scale_consistency_factor * f1.scale_factor,
         )
         if not ok.any():
             return None
         return i1[ok], i2[ok], xyz[ok]
 
-    def _add_points(self, kf1: KeyFrame, kf2: KeyFrame, i1: I64, i2: I64, xyz: F64) -> int:
-        """Add the triangulated points whose two features are still unmatched (new map points, VI-C).
+    def _add_points(self, kf1: KeyFrame, planned: list[tuple[KeyFrame, I64, I64, F64]]) -> int:
+        """Add the planned new points (new map points, VI-C): for each (kf2, feat1 (S,), feat2 (S,), xyz (S, 3) world
+        m) of ``_plan_new_points`` in order, S points each observed by feature feat1[q] of kf1 and feat2[q] of kf2.
 
-        The pairs are taken in order, each only while its two features (and, for two-camera keyframes, their stereo
-        partners) are free of a point, those of the pairs taken before included; the points are then written at once
-        (map_points.add_points / add_observations)."""
+        The ids are drawn in that order and the points written at once (map_points.add_points / add_observations):
+        the map is the one the neighbours' points added one neighbour after the other leave."""
         store = self.store
-        sel = _free_pairs(kf1, kf2, i1, i2)
-        if not sel.size:
+        planned = [p for p in planned if p[1].size]
+        if not planned:
             return 0
-        feat1, feat2 = i1[sel], i2[sel]
-        created = np.array([store.new_point_id() for _ in range(sel.size)], np.int64)
-        # refresh_points(store, created) folded into the points' making: each is seen by (kf1, a) and (kf2, b) only
-        add_points(store, new_pair_points(created, xyz[sel], kf1, feat1, store.get_keyframe(kf2.id), feat2))
-        add_observations(store, created, kf1.id, feat1)
-        add_observations(store, created, kf2.id, feat2)
+        created = np.array([store.new_point_id() for _ in range(sum(p[1].size for p in planned))], np.int64)
+        bounds = np.cumsum([0, *(p[1].size for p in planned)])
+        points = []
+        for (kf2, feat1, feat2, xyz), lo, hi in zip(planned, bounds[:-1], bounds[1:], strict=True):
+            # refresh_points(store, created) folded into the points' making: each is seen by (kf1, a) and (kf2, b) only
+            points.extend(new_pair_points(created[lo:hi], xyz, kf1, feat1, kf2, feat2))
+        add_points(store, points)
+        add_observations(store, created, kf1.id, np.concatenate([p[1] for p in planned]))
+        for (kf2, _, feat2, _), lo, hi in zip(planned, bounds[:-1], bounds[1:], strict=True):
+            add_observations(store, created[lo:hi], kf2.id, feat2)
         self.recent_points.extend(created.tolist())
         return int(created.size)
 
@@ -540,12 +573,18 @@ class LocalMapper:
         table = ObservationTable(store, candidates)
         pinned = self.pins.snapshot()
         aborted_limit = cfg.keyframe_culling_max_candidates_aborted
+        # the counts of every keyframe still to visit, taken at once, and again after each cull (which changes them)
+        counts: dict[int, tuple[int, int]] = {}
         for count, k_id in enumerate(visit, start=1):
             if aborted_limit > 0 and count > aborted_limit and abort is not None and abort.is_set():
                 break  # ORB-SLAM3: `count > 20 && mbAbortBA`, tested after the 21st keyframe, before the 22nd
             if k_id == origin or k_id in pinned or not store.has_keyframe(k_id):
                 continue
-            n_points, redundant = table.redundancy(k_id, cfg.keyframe_culling_min_observers)
+            if k_id not in counts:
+                rest = [k for k in visit[count - 1 :] if k != origin and k not in pinned and store.has_keyframe(k)]
+                n_pts, n_red = table.redundancies(rest, cfg.keyframe_culling_min_observers)
+                counts = dict(zip(rest, zip(n_pts.tolist(), n_red.tolist(), strict=True), strict=True))
+            n_points, redundant = counts[k_id]
             if n_points and redundant > cfg.keyframe_culling_redundancy * n_points:
                 k = store.get_keyframe(k_id)
                 parent = store.spanning_tree.parent(k_id)
@@ -559,6 +598,7 @@ class LocalMapper:
                     for pid in seen[n_obs <= cfg.point_bad_max_observations].tolist():
                         store.remove_point(pid)
                 table.cull(k_id)
+                counts = {}
                 if self.place is not None:
                     self.place.remove(k_id)
         return culled
@@ -642,6 +682,16 @@ def _triangulate_with_depths(
     if use2.any():
         xyz[use2] = kf2.features.unproject_stereo(i2[use2], invert_T(kf2.T_c_w), K2)
     return rays | use1 | use2, xyz
+
+
+def _level_sigma2(features: Features, idx: I64) -> F64:
+    """``features.level_sigma2()[idx]`` (M,) px^2, computed for the M keypoints only (the same power per element)."""
+    return np.power(features.scale_factor, 2.0 * features.level[idx].astype(np.float64))
+
+
+def _level_scale(features: Features, idx: I64) -> F64:
+    """``features.level_scale()[idx]`` (M,), computed for the M keypoints only (the same power per element)."""
+    return np.power(features.scale_factor, features.level[idx].astype(np.float64))
 
 
 def _pinhole_one_camera(kf: KeyFrame) -> bool:
