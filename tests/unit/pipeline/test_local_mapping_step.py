@@ -4,6 +4,7 @@ path relies on is exact."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import numpy as np
@@ -19,8 +20,8 @@ from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.keyframe_pins import KeyFramePins
-from slamkit.pipeline.local_mapping import LocalMapper
-from slamkit.pipeline.map_points import refresh_points
+from slamkit.pipeline.local_mapping import LocalMapper, _free_pairs
+from slamkit.pipeline.map_points import add_observations, add_points, new_pair_points, refresh_points
 from slamkit.pipeline.matching import close_pairs
 from slamkit.plugins import ComponentRegistry
 from slamkit.problems import BundleProblem, BundleResult
@@ -415,3 +416,91 @@ def test_points_of_a_new_map_face_recent_point_culling(culled: bool) -> None:
     else:
         assert (found_ratio_culled, observation_culled) == (0, 0)
         assert alive.all()
+
+
+def _one_neighbour_at_a_time(mapper: LocalMapper, kf: KeyFrame) -> int:
+    """The triangulation of VI-C as ORB-SLAM writes it: each neighbour's new points added to the map before the next
+    neighbour is matched (the reference for the planned, written-at-once ``_create_new_points``)."""
+    store = mapper.store
+    created = 0
+    for n_id in store.covisibility.best_neighbors(kf.id, mapper.cfg.triangulation_neighbors):
+        found = mapper._triangulate_with(kf, n_id)
+        if found is None:
+            continue
+        kf2 = store.get_keyframe(n_id)
+        i1, i2, xyz = found
+        sel = _free_pairs(kf, kf2, i1, i2)
+        ids = np.array([store.new_point_id() for _ in range(sel.size)], np.int64)
+        add_points(store, new_pair_points(ids, xyz[sel], kf, i1[sel], kf2, i2[sel]))
+        add_observations(store, ids, kf.id, i1[sel])
+        add_observations(store, ids, n_id, i2[sel])
+        created += sel.size
+    return created
+
+
+def _map_of(store: InMemoryMapStore) -> list[tuple[object, ...]]:
+    """Every point's id, position, descriptor, reference keyframe, normal, depth range and observations (in order)."""
+    return [
+        (
+            p.id,
+            p.xyz_w.tobytes(),
+            p.descriptor.tobytes(),
+            p.ref_kf_id,
+            p.normal_w.tobytes(),
+            p.d_min_m,
+            p.d_max_m,
+            list(p.observations.items()),
+        )
+        for p in store.get_points(store.point_ids())
+    ]
+
+
+@pytest.mark.parametrize("place_name", [None, "dbow"])
+def test_new_points_planned_per_neighbour_make_the_map_of_adding_them_one_neighbour_at_a_time(
+    place_name: str | None,
+) -> None:
+    """Four neighbours see the new keyframe's free features (with noise on the pixels, so the neighbours disagree on
+    the points): the features the first neighbours take are not offered to the next, and the map the planned
+    points leave is, point by point and observation by observation, the one of adding each neighbour's at once."""
+    place = place_recognizer(place_name)
+    maps = []
+    for reference in (False, True):
+        xyz, desc = scene(1)
+        store = InMemoryMapStore()
+        rng = np.random.default_rng(7)
+        kfs = []
+        for x in (0.0, 0.15, 0.3, 0.45, 0.6):
+            kf = keyframe(store, x, xyz, desc)
+            f = kf.features
+            noisy = f.uv_undist_px + rng.normal(0.0, 0.7, f.uv_undist_px.shape).astype(np.float32)
+            levels = rng.integers(0, 3, len(f)).astype(np.int32)
+            feats = Features(noisy, noisy, levels, f.angle_deg, f.response, f.descriptors, 1.2, 8)
+            kfs.append(dataclasses.replace(kf, features=_record(feats)))
+        for kf in kfs[:4]:
+            store.add_keyframe(kf)
+            if place is not None:
+                store.set_keyframe_bow(kf.id, place.transform(kf.features.descriptors))
+        for j in range(N_MAPPED):
+            pid = store.new_point_id()
+            store.add_point(MapPoint(pid, xyz[j].copy(), desc[j].copy(), 0, 0))
+            for kf in kfs[:4]:
+                store.add_observation(pid, kf.id, j)
+        refresh_points(store, store.point_ids())
+        tracked = np.full(N_POINTS, -1, np.int64)
+        tracked[:N_MAPPED] = np.arange(N_MAPPED)
+        new = dataclasses.replace(kfs[4], point_ids=tracked)
+        store.add_keyframe(new)
+        if place is not None:
+            store.set_keyframe_bow(new.id, place.transform(new.features.descriptors))
+        for kf in store.keyframe_ids():
+            store.update_connections(kf)
+        mapper = LocalMapper(LocalMappingConfig(), Atlas.of(store), None, place)  # type: ignore[arg-type]
+        kf = store.get_keyframe(new.id)
+        created = _one_neighbour_at_a_time(mapper, kf) if reference else mapper._create_new_points(kf)
+        maps.append((created, _map_of(store), store.get_keyframe(new.id).point_ids.tolist()))
+        assert len(store.covisibility.best_neighbors(new.id, 20)) == 4
+    assert maps[0] == maps[1]
+    created, points, _ = maps[0]
+    # the points spread over several neighbours, and no feature of the new keyframe has two
+    observers = {tuple(sorted(obs)) for *_, obs in points[N_MAPPED:] for obs in [dict(obs)]}
+    assert created > 100 and len(observers) > 1

@@ -208,9 +208,15 @@ def test_culling_count_matches_the_per_observation_loop_while_culling(seed: int,
     candidates = store.keyframe_ids()[1:]
     table = ObservationTable(store, candidates)
     redundant_seen = 0
-    for k in candidates:
+    for i, k in enumerate(candidates):
         expected = naive_redundancy(store, k, 3)
         assert table.redundancy(k, 3) == expected
+        # the counts of every candidate left, in one pass, as local mapping takes them
+        rest = candidates[i:]
+        n_points, redundant = table.redundancies(rest, 3)
+        assert list(zip(n_points.tolist(), redundant.tolist(), strict=True)) == [
+            naive_redundancy(store, r, 3) for r in rest
+        ]
         redundant_seen += expected[1]
         if k % 3 == 0:  # erase some keyframes on the way: later counts must see their observations gone
             store.remove_keyframe(k)

@@ -21,7 +21,8 @@ def shuffled_map(seed: int, n_kf: int = 9, n_points: int = 200) -> InMemoryMapSt
     store = random_map(seed, n_kf=n_kf, n_points=0)
     for _ in range(n_points):
         observers = [
-            k for k in rng.permutation(n_kf).tolist()[: int(rng.integers(2, n_kf + 1))]
+            k
+            for k in rng.permutation(n_kf).tolist()[: int(rng.integers(2, n_kf + 1))]
             if np.any(store.get_keyframe(k).point_ids < 0)
         ]
         if len(observers) < 2:
@@ -48,6 +49,12 @@ def test_flat_and_sorted_observations_are_the_per_point_loops(seed: int) -> None
     assert list(zip(point.tolist(), kf_s.tolist(), feat_s.tolist(), strict=True)) == expected
     empty = flat_observations([])
     assert [a.size for a in empty] == [0, 0, 0]
+    # the in-memory store's own gather (keyframe culling's table): the same arrays from its dictionaries
+    some = np.array(store.point_ids()[1::2], np.int64)
+    own = store.flat_observations(some)
+    expected_some = flat_observations(store.get_points(some.tolist()))
+    assert [a.tolist() for a in own] == [a.tolist() for a in expected_some]
+    assert [a.size for a in store.flat_observations(np.zeros(0, np.int64))] == [0, 0, 0]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -68,7 +75,11 @@ def test_snapshot_rows_are_the_per_point_loop(seed: int) -> None:
     # every point here is in front of some camera (z ~ 4 m), so none is dropped and point rows are pids' order
     assert snap.dropped_point_ids == () and snap.point_ids.tolist() == pids
     got = zip(
-        prob.obs_point.tolist(), prob.obs_pose.tolist(), snap.obs_kf_ids.tolist(), snap.obs_feature.tolist(), strict=True
+        prob.obs_point.tolist(),
+        prob.obs_pose.tolist(),
+        snap.obs_kf_ids.tolist(),
+        snap.obs_feature.tolist(),
+        strict=True,
     )
     assert list(got) == expected
     for e, (_, _, k, f) in enumerate(expected):
