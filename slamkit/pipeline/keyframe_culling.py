@@ -33,25 +33,28 @@ def _count_redundant(
     obs_kf: I64,
     obs_level: I64,
     alive: B,
+    point_dead: B,
     m: int,
+    first: int,
 ) -> tuple[I64, I64]:  # pragma: no cover - compiled
     """For each candidate c (C,): its features f in cand_ptr[c]:cand_ptr[c + 1] of the flat arrays pids / levels /
     eligible / rows (F,) (point id or -1, pyramid level, whether the feature counts, row of pids[f] in the sorted
     ``point_ids`` (P,) by searchsorted) -> (n_points (C,): eligible features whose point is in the table, redundant
     (C,): those of them whose point has more than m live observations and at least m of them, by keyframes other
-    than cand_kf[c], at level <= the feature's level + 1)."""
+    than cand_kf[c], at level <= the feature's level + 1), for the candidates from ``first`` on (0 before). A point
+    of row q with point_dead[q] was erased from the map after the features were gathered: it counts as no point."""
     C = cand_kf.shape[0]
     P = point_ids.shape[0]
     n_points = np.zeros(C, np.int64)
     redundant = np.zeros(C, np.int64)
-    for c in range(C):
+    for c in range(first, C):
         kf_id = cand_kf[c]
         for f in range(cand_ptr[c], cand_ptr[c + 1]):
             pid = pids[f]
             if pid < 0 or not eligible[f]:
                 continue
             q = rows[f]
-            if q >= P or point_ids[q] != pid:
+            if q >= P or point_ids[q] != pid or point_dead[q]:
                 continue
             n_points[c] += 1
             limit = levels[f] + 1
@@ -83,7 +86,7 @@ class ObservationTable:
     """Every observation of the points seen by some keyframes, grouped by point (CSR: rows ptr[q]:ptr[q+1]).
 
     point_ids: (P,) sorted ids; obs_kf / obs_level: (E,) observing keyframe and the feature's pyramid level;
-    alive: (E,) False once the observing keyframe is culled.
+    alive: (E,) False once the observing keyframe is culled; point_dead: (P,) True once the point is erased.
     """
 
     def __init__(self, store: MapStore, kf_ids: Sequence[int]) -> None:
@@ -107,15 +110,46 @@ class ObservationTable:
             slot[observers] = offsets[:-1]
             self.obs_level = np.concatenate(level_arrays).astype(np.int64)[slot[self.obs_kf] + feat]
         self.alive = np.ones(self.obs_kf.size, np.bool_)
+        self.point_dead = np.zeros(self.point_ids.size, np.bool_)
+        self._candidates: tuple[tuple[int, ...], I64, I64, I64, I64, B, I64] | None = None
 
-    def redundancies(self, kf_ids: Sequence[int], min_observers: int) -> tuple[I64, I64]:
-        """:meth:`redundancy` of each keyframe of ``kf_ids`` (K,) (each still in the map) in one compiled pass over
-        the map as it is now -> (n_points (K,), redundant (K,))."""
+    def redundancies(self, kf_ids: Sequence[int], min_observers: int, first: int = 0) -> tuple[I64, I64]:
+        """:meth:`redundancy` of each keyframe of ``kf_ids`` (K,) (each in the map when first asked) in one compiled
+        pass over the map as it is now, for kf_ids[first:] (zeros before) -> (n_points (K,), redundant (K,)).
+
+        The keyframes' point ids, levels and depth filter are gathered on the first call for a list and kept for the
+        next calls with the same list (keyframe culling asks again after each cull, for the keyframes after it):
+        culling changes them only by erasing points, which :meth:`cull` records."""
+        key = tuple(kf_ids)
+        if self._candidates is None or self._candidates[0] != key:
+            self._candidates = (key, *self._gather_candidates(key))
+        _, cand_ptr, cand_kf, pids, levels, eligible, rows = self._candidates
+        return _count_redundant(
+            cand_ptr,
+            cand_kf,
+            pids,
+            levels,
+            eligible,
+            rows,
+            self.point_ids,
+            self.ptr,
+            self.obs_kf,
+            self.obs_level,
+            self.alive,
+            self.point_dead,
+            int(min_observers),
+            int(first),
+        )
+
+    def _gather_candidates(self, kf_ids: tuple[int, ...]) -> tuple[I64, I64, I64, I64, B, I64]:
+        """The keyframes' features laid end to end: (ptr (K + 1,), keyframe ids (K,), then per feature (F,): point id
+        or -1, level, whether it counts (stereo/RGB-D: a depth within the close threshold), its point's table row)."""
         kfs = [self.store.get_keyframe(k) for k in kf_ids]
-        if not kfs:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         cand_ptr = np.zeros(len(kfs) + 1, np.int64)
         np.cumsum([kf.point_ids.size for kf in kfs], out=cand_ptr[1:])
+        if not kfs:
+            empty = np.zeros(0, np.int64)
+            return cand_ptr, empty, empty, empty, np.zeros(0, np.bool_), empty
         pids = np.concatenate([kf.point_ids for kf in kfs]).astype(np.int64, copy=False)
         levels = np.concatenate([kf.features.level for kf in kfs]).astype(np.int64, copy=False)
         eligible = np.ones(pids.size, np.bool_)
@@ -126,20 +160,7 @@ class ObservationTable:
                     np.isfinite(depth) & (depth >= 0.0) & (depth <= kf.features.th_depth_m)
                 )
         rows = np.searchsorted(self.point_ids, pids).astype(np.int64, copy=False)
-        return _count_redundant(
-            cand_ptr,
-            np.array([kf.id for kf in kfs], np.int64),
-            pids,
-            levels,
-            eligible,
-            rows,
-            self.point_ids,
-            self.ptr,
-            self.obs_kf,
-            self.obs_level,
-            self.alive,
-            int(min_observers),
-        )
+        return cand_ptr, np.array(kf_ids, np.int64), pids, levels, eligible, rows
 
     def redundancy(self, kf_id: int, min_observers: int) -> tuple[int, int]:
         """(points of ``kf_id`` still in the map, those seen by >= min_observers other keyframes at the same or
@@ -153,6 +174,10 @@ class ObservationTable:
         n_points, redundant = self.redundancies([kf_id], min_observers)
         return int(n_points[0]), int(redundant[0])
 
-    def cull(self, kf_id: int) -> None:
-        """Forget the observations of a keyframe erased from the map."""
+    def cull(self, kf_id: int, erased_points: I64 | None = None) -> None:
+        """Forget the observations of a keyframe erased from the map, and the points ``erased_points`` erased with it
+        (those other keyframes observed: the keyframes' point ids gathered by :meth:`redundancies` still name them)."""
         self.alive &= self.obs_kf != kf_id
+        if erased_points is not None and erased_points.size and self.point_ids.size:
+            q = np.minimum(np.searchsorted(self.point_ids, erased_points), self.point_ids.size - 1)
+            self.point_dead[q[self.point_ids[q] == erased_points]] = True

@@ -290,7 +290,7 @@ class LocalMapper:
         F21 = _fundamental_21(kf1, kf2)
         if not (kf1.features.two_cameras or kf2.features.two_cameras):
             # one compiled pass: the epipolar distance and the epipole test below, for one-camera keyframes
-            epipole = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
+            epipole = _epipole(kf1, kf2)
             ok = epipolar_candidates(
                 uv1,
                 uv2,
@@ -571,20 +571,20 @@ class LocalMapper:
         if not candidates:
             return culled
         table = ObservationTable(store, candidates)
+        slot = {k: c for c, k in enumerate(candidates)}
         pinned = self.pins.snapshot()
         aborted_limit = cfg.keyframe_culling_max_candidates_aborted
-        # the counts of every keyframe still to visit, taken at once, and again after each cull (which changes them)
-        counts: dict[int, tuple[int, int]] = {}
+        # the counts of every candidate in one pass, taken again (for those after it) after each cull, which changes them
+        counts: tuple[I64, I64] | None = None
         for count, k_id in enumerate(visit, start=1):
             if aborted_limit > 0 and count > aborted_limit and abort is not None and abort.is_set():
                 break  # ORB-SLAM3: `count > 20 && mbAbortBA`, tested after the 21st keyframe, before the 22nd
             if k_id == origin or k_id in pinned or not store.has_keyframe(k_id):
                 continue
-            if k_id not in counts:
-                rest = [k for k in visit[count - 1 :] if k != origin and k not in pinned and store.has_keyframe(k)]
-                n_pts, n_red = table.redundancies(rest, cfg.keyframe_culling_min_observers)
-                counts = dict(zip(rest, zip(n_pts.tolist(), n_red.tolist(), strict=True), strict=True))
-            n_points, redundant = counts[k_id]
+            c = slot[k_id]
+            if counts is None:
+                counts = table.redundancies(candidates, cfg.keyframe_culling_min_observers, c)
+            n_points, redundant = int(counts[0][c]), int(counts[1][c])
             if n_points and redundant > cfg.keyframe_culling_redundancy * n_points:
                 k = store.get_keyframe(k_id)
                 parent = store.spanning_tree.parent(k_id)
@@ -593,12 +593,13 @@ class LocalMapper:
                 seen = k.point_ids[k.point_ids >= 0].copy()
                 store.remove_keyframe(k_id)
                 seen = seen[store.has_points(seen)]
+                erased = seen[:0]
                 if seen.size:
-                    n_obs = store.point_rows(seen, "n_observations")
-                    for pid in seen[n_obs <= cfg.point_bad_max_observations].tolist():
+                    erased = seen[store.point_rows(seen, "n_observations") <= cfg.point_bad_max_observations]
+                    for pid in erased.tolist():
                         store.remove_point(pid)
-                table.cull(k_id)
-                counts = {}
+                table.cull(k_id, erased)
+                counts = None
                 if self.place is not None:
                     self.place.remove(k_id)
         return culled
@@ -708,11 +709,28 @@ def _pinhole_intrinsics(kf: KeyFrame) -> F64:
 
 
 def _median_depth(kf: KeyFrame, store: MapStore) -> float:
+    """The median depth (m) in ``kf`` of the map points it observes (NaN: none)."""
     ids = kf.point_ids[kf.point_ids >= 0]
     ids = ids[store.has_points(ids)]
     if not ids.size:
         return float("nan")
-    return float(np.median(store.point_rows(ids, "xyz_w") @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3]))
+    return _median(store.point_rows(ids, "xyz_w") @ kf.T_c_w[2, :3] + kf.T_c_w[2, 3])
+
+
+def _median(values: F64) -> float:
+    """``float(np.median(values))`` of a non-empty (n,) float64 array by one partition: the middle element, or the mean
+    of the two middle ones as np.mean takes it ((a + b) / 2); NaN when any value is (np.median's partition and
+    checks cost more than the depth test they feed, per neighbour)."""
+    n = values.size
+    k = n // 2
+    # the last position too, as np.median: a NaN (sorted last) then lands there
+    if n % 2:
+        part = np.partition(values, (k, n - 1))
+        middle = float(part[k])
+    else:
+        part = np.partition(values, (k - 1, k, n - 1))
+        middle = float((part[k - 1] + part[k]) / 2.0)
+    return float("nan") if np.isnan(part[-1]) else middle
 
 
 def _pinhole_uv(kf: KeyFrame, idx: I64) -> F64:
@@ -730,6 +748,18 @@ def _pinhole_uv(kf: KeyFrame, idx: I64) -> F64:
         n = np.where(b[:, 2:3] > 1e-6, b[:, :2] / b[:, 2:3], np.nan)
     out: F64 = n @ K[:2, :2].T + K[:2, 2]
     return out
+
+
+def _epipole(kf1: KeyFrame, kf2: KeyFrame) -> F64:
+    """(2,) px: the centre of ``kf1`` in the pipeline image of ``kf2``, ``project_points(kf2.T_c_w, kf1.center_w[None],
+    kf2.camera)[0][0]``; for a PinholeCamera its ``project_image`` formula (u = fx x / z + cx, the same operations in
+    the same order) on the one point, without the array round trips."""
+    camera = kf2.camera
+    if type(camera) is not PinholeCamera:
+        return project_points(kf2.T_c_w, kf1.center_w[None], camera)[0][0]
+    x, y, z = (kf1.center_w[None] @ kf2.T_c_w[:3, :3].T + kf2.T_c_w[:3, 3])[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.array([camera.fx * x / z + camera.cx, camera.fy * y / z + camera.cy], np.float64)
 
 
 def _fundamental_21(kf1: KeyFrame, kf2: KeyFrame) -> F64:

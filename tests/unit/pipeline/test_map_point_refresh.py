@@ -206,19 +206,25 @@ def naive_redundancy(store: InMemoryMapStore, kf_id: int, m: int) -> tuple[int, 
 def test_culling_count_matches_the_per_observation_loop_while_culling(seed: int, rgbd: bool) -> None:
     store = random_map(seed, n_kf=10, n_points=300, rgbd=rgbd)
     candidates = store.keyframe_ids()[1:]
-    table = ObservationTable(store, candidates)
-    redundant_seen = 0
+    table = ObservationTable(store, candidates)  # asked one keyframe at a time
+    batch = ObservationTable(store, candidates)  # asked for every candidate left at once, as local mapping does
+    redundant_seen = erased_seen = 0
     for i, k in enumerate(candidates):
-        expected = naive_redundancy(store, k, 3)
-        assert table.redundancy(k, 3) == expected
-        # the counts of every candidate left, in one pass, as local mapping takes them
-        rest = candidates[i:]
-        n_points, redundant = table.redundancies(rest, 3)
-        assert list(zip(n_points.tolist(), redundant.tolist(), strict=True)) == [
-            naive_redundancy(store, r, 3) for r in rest
-        ]
-        redundant_seen += expected[1]
+        n_points, redundant = batch.redundancies(candidates, 3, i)
+        expected = [naive_redundancy(store, r, 3) for r in candidates[i:]]
+        assert list(zip(n_points[i:].tolist(), redundant[i:].tolist(), strict=True)) == expected
+        assert table.redundancy(k, 3) == expected[0]
+        redundant_seen += expected[0][1]
         if k % 3 == 0:  # erase some keyframes on the way: later counts must see their observations gone
+            # and, as keyframe culling, the points the keyframe leaves with two observations or fewer
+            seen = store.get_keyframe(k).point_ids
+            seen = seen[seen >= 0].copy()
             store.remove_keyframe(k)
-            table.cull(k)
-    assert redundant_seen > 0
+            seen = seen[store.has_points(seen)]
+            erased = seen[store.point_rows(seen, "n_observations") <= 2]
+            for pid in erased.tolist():
+                store.remove_point(pid)
+            erased_seen += erased.size
+            table.cull(k, erased)
+            batch.cull(k, erased)
+    assert redundant_seen > 0 and erased_seen > 0

@@ -16,7 +16,7 @@ from slamkit.map.atlas import Atlas
 from slamkit.map.entities import KeyFrame, MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.config import LocalMappingConfig
-from slamkit.pipeline.local_mapping import LocalMapper, _fundamental_21
+from slamkit.pipeline.local_mapping import LocalMapper, _epipole, _fundamental_21, _median
 from slamkit.pipeline.map_points import add_observations, add_points, new_pair_points, refresh_new_pairs, refresh_points
 from slamkit.pipeline.projection import project_points
 from slamkit.pipeline.triangulation_kernels import epipolar_candidates, parallax_ok, triangulated_ok
@@ -243,3 +243,33 @@ def test_new_pair_points_are_the_refreshed_points(seed: int) -> None:
             )
             assert list(p.observations.items()) == list(q.observations.items())
         assert np.isfinite(new.point_rows(ids, "d_max_m")).all()
+
+
+def test_median_is_numpys_median_to_the_bit() -> None:
+    """``_median`` (one partition) gives np.median's float for odd and even sizes, ties, infinities and NaN."""
+    rng = np.random.default_rng(3)
+    for n in [*range(1, 40), 101, 200, 999, 1000]:
+        for r in range(12):
+            values = rng.normal(2.0, 1.0, n) * (1e-3, 1.0, 1e3)[r % 3]
+            if r % 4 == 1:
+                values[rng.integers(n)] = values[rng.integers(n)]
+            if r % 5 == 2:
+                values[rng.integers(n)] = np.nan
+            if r % 6 == 3:
+                values[rng.integers(n)] = np.inf
+            with np.errstate(invalid="ignore"):
+                expected = float(np.median(values))
+                got = _median(values)
+            assert got == expected or (np.isnan(got) and np.isnan(expected)), (n, r)
+
+
+def test_epipole_is_project_points_to_the_bit() -> None:
+    """``_epipole``: the centre of kf1 projected into kf2 as ``project_points`` does, for random poses (a centre
+    behind the camera included)."""
+    rng = np.random.default_rng(4)
+    uv, level, desc = rng.uniform(0, 480, (5, 2)), np.zeros(5), rng.integers(0, 256, (5, 32), dtype=np.uint8)
+    for _ in range(200):
+        kf1 = _keyframe(0, _pose(rng, 2.0), uv, level, desc)
+        kf2 = _keyframe(1, _pose(rng, 2.0), uv, level, desc)
+        expected = project_points(kf2.T_c_w, kf1.center_w[None], kf2.camera)[0][0]
+        assert _epipole(kf1, kf2).tobytes() == expected.tobytes()
