@@ -101,9 +101,7 @@ def snapshot_bundle(
         raise KeyError(f"snapshot_bundle: map points {missing[:5]} are not in the map")
     point_id_array = np.fromiter((p.id for p in points), np.int64, count=len(points))
     counts, obs_kf_all, obs_feat_all = flat if flat is not None else flat_observations(points)
-    obs_point_s, obs_kf_s, obs_feat_s = sorted_observations(
-        counts, obs_kf_all, obs_feat_all, np.isin(obs_kf_all, kf_ids)
-    )
+    obs_point_s, obs_kf_s, obs_feat_s = sorted_observations(counts, obs_kf_all, obs_feat_all, np.isin(obs_kf_all, kf_ids))
     by_id = np.argsort(kf_ids, kind="stable")
     obs_pose_all = by_id[np.searchsorted(kf_ids[by_id], obs_kf_s)]  # the row of each observer in kf_ids
     all_xyz = store.point_rows(point_id_array, "xyz_w").reshape(-1, 3)
@@ -283,7 +281,9 @@ def run_bundle(
     return result
 
 
-def commit_bundle(store: MapStore, snap: BundleSnapshot, result: BundleResult, bad_max_observations: int = 1) -> int:
+def commit_bundle(
+    store: MapStore, snap: BundleSnapshot, result: BundleResult, bad_max_observations: int = 1
+) -> int:
     """Write optimized poses and points back, skipping entities culled meanwhile, and erase the
     observations flagged as outliers: a point one of them leaves with at most ``bad_max_observations``
     observations goes too (1: the store's own rule, a point needs two; ORB-SLAM2/3's MapPoint::EraseObservation

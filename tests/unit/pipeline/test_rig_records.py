@@ -67,6 +67,4 @@ def test_projection_searches_look_into_each_camera_among_its_own_keypoints() -> 
     assert one.camera is CAM and np.array_equal(one.T_c_w, T)
     assert one.taken.tolist() == [False, False, False, True, True]
     assert two.taken.tolist() == [True, True, True, False, False]
-    assert rec.T_c2_c1 is not None and np.allclose(
-        two.T_c_w, rec.T_c2_c1 @ T
-    )  # camera 2 at T_c2_c1 T_c_w (ORB-SLAM3 mTrl)
+    assert rec.T_c2_c1 is not None and np.allclose(two.T_c_w, rec.T_c2_c1 @ T)  # camera 2 at T_c2_c1 T_c_w (ORB-SLAM3 mTrl)
