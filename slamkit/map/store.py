@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import threading
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from contextlib import AbstractContextManager
+from itertools import chain
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
@@ -154,18 +156,13 @@ class InMemoryMapStore:
 
     def shared_point_counts(self, keyframe_id: int) -> dict[int, int]:
         """Other keyframe id -> number of map points it shares with ``keyframe_id``."""
-        counts: dict[int, int] = {}
-        observations = self._observations
-        for pid in self._kf_point_ids[keyframe_id].tolist():
-            if pid < 0:
-                continue
-            obs = observations.get(pid)
-            if obs is None:
-                continue
-            for other in obs:
-                if other != keyframe_id:
-                    counts[other] = counts.get(other, 0) + 1
-        return counts
+        own = self._kf_point_ids[keyframe_id]
+        get = self._observations.get
+        # every observer of every point, counted by Counter's C loop over the chained observation dicts: the same
+        # counts in the same first-seen order as a loop over the points and their observers
+        counts = Counter(chain.from_iterable(filter(None, map(get, own[own >= 0].tolist()))))
+        counts.pop(keyframe_id, None)
+        return dict(counts)
 
     # ---- mutations: entities ---------------------------------------------------------------------------
 
