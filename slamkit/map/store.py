@@ -343,10 +343,21 @@ class InMemoryMapStore:
             raise ValueError(f"replace_point: map point {old_id} cannot replace itself")
         old_obs = self._observations[old_id]
         new_obs = self._observations[new_id]
+        # add_observation(new_id, kf_id, feat) for each keyframe new does not see, its two counters summed into one
+        # write each (integer sums: the same counts)
+        added = 0
+        weight = 0
         for kf_id, feat in sorted(old_obs.items()):
-            self._kf_point_ids[kf_id][feat] = -1
+            own = self._kf_point_ids[kf_id]
+            own[feat] = -1
             if kf_id not in new_obs:
-                self.add_observation(new_id, kf_id, feat)
+                weight += self._observation_weight(kf_id, feat)
+                new_obs[kf_id] = feat
+                own[feat] = new_id
+                added += 1
+        if added:
+            self._table.increment(new_id, "n_observations", added)
+            self._table.increment(new_id, "n_observations_orbslam", weight)
         with self._counter_lock:
             for name in ("n_visible", "n_found"):
                 self._table.increment(new_id, name, self._table.value(old_id, name))
