@@ -250,21 +250,22 @@ class InMemoryMapStore:
         if not ids.size:
             return
         observations = self._observations
-        targets = [observations[pid] for pid in ids.tolist()]  # KeyError for a point not in the map, as add_observation
+        id_list, feat_list = ids.tolist(), feats.tolist()
+        targets = [observations[pid] for pid in id_list]  # KeyError for a point not in the map, as add_observation
         own = self._kf_point_ids[keyframe_id]
-        distinct = np.unique(ids).size == ids.size and np.unique(feats).size == feats.size
+        distinct = len(set(id_list)) == len(id_list) and len(set(feat_list)) == len(feat_list)
         if not distinct or any(keyframe_id in obs for obs in targets):
-            for pid, feat in zip(ids.tolist(), feats.tolist(), strict=True):  # the general rule, one at a time
+            for pid, feat in zip(id_list, feat_list, strict=True):  # the general rule, one at a time
                 self.add_observation(pid, keyframe_id, feat)
             return
         kf = self._keyframes.get(keyframe_id)
         if kf is None or kf.features.bf <= 0.0:
             weights: NDArray[np.int64] | int = 1
         else:
-            weights = np.array([observation_weight(kf.features, f) for f in feats.tolist()], np.int64)
+            weights = np.array([observation_weight(kf.features, f) for f in feat_list], np.int64)
         self._table.add(ids, "n_observations", 1)
         self._table.add(ids, "n_observations_orbslam", weights)
-        for obs, feat in zip(targets, feats.tolist(), strict=True):
+        for obs, feat in zip(targets, feat_list, strict=True):
             obs[keyframe_id] = feat
         own[feats] = ids
 

@@ -247,17 +247,18 @@ def _fuse_one_camera(
     observations commutes with the replacements, which still run one at a time in the matches' order."""
     if not pids.size:
         return 0
-    if np.unique(pids).size != pids.size or not store.has_points(pids).all():
+    listed = pids.tolist()
+    if len(set(listed)) != len(listed) or not store.has_points(pids).all():  # (a set: no sort of a few ids)
         return None
     kf_id = kf.id
-    if any(kf_id in point.observations for point in store.get_points(pids.tolist())):
+    if any(kf_id in point.observations for point in store.get_points(listed)):
         return None  # kf observes one at another keypoint (kf's point_ids should have ruled it out): the loop's rule
     existing = kf.point_ids[features]
     has_other = existing >= 0
     if has_other.any():
         has_other[has_other] = store.has_points(existing[has_other])
-        others = existing[has_other]
-        if np.unique(others).size != others.size:
+        others = existing[has_other].tolist()
+        if len(set(others)) != len(others):
             return None
     free = ~has_other
     fused = int(free.sum())
