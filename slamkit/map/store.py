@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from contextlib import AbstractContextManager
 from itertools import chain
@@ -167,18 +168,13 @@ class InMemoryMapStore:
 
     def shared_point_counts(self, keyframe_id: int) -> dict[int, int]:
         """Other keyframe id -> number of map points it shares with ``keyframe_id``."""
-        counts: dict[int, int] = {}
-        observations = self._observations
-        for pid in self._kf_point_ids[keyframe_id].tolist():
-            if pid < 0:
-                continue
-            obs = observations.get(pid)
-            if obs is None:
-                continue
-            for other in obs:
-                if other != keyframe_id:
-                    counts[other] = counts.get(other, 0) + 1
-        return counts
+        own = self._kf_point_ids[keyframe_id]
+        get = self._observations.get
+        # every observer of every point, counted by Counter's C loop over the chained observation dicts: the same
+        # counts in the same first-seen order as a loop over the points and their observers
+        counts = Counter(chain.from_iterable(filter(None, map(get, own[own >= 0].tolist()))))
+        counts.pop(keyframe_id, None)
+        return dict(counts)
 
     # ---- mutations: entities ---------------------------------------------------------------------------
 
@@ -266,21 +262,22 @@ class InMemoryMapStore:
         if not ids.size:
             return
         observations = self._observations
-        targets = [observations[pid] for pid in ids.tolist()]  # KeyError for a point not in the map, as add_observation
+        id_list, feat_list = ids.tolist(), feats.tolist()
+        targets = [observations[pid] for pid in id_list]  # KeyError for a point not in the map, as add_observation
         own = self._kf_point_ids[keyframe_id]
-        distinct = np.unique(ids).size == ids.size and np.unique(feats).size == feats.size
+        distinct = len(set(id_list)) == len(id_list) and len(set(feat_list)) == len(feat_list)
         if not distinct or any(keyframe_id in obs for obs in targets):
-            for pid, feat in zip(ids.tolist(), feats.tolist(), strict=True):  # the general rule, one at a time
+            for pid, feat in zip(id_list, feat_list, strict=True):  # the general rule, one at a time
                 self.add_observation(pid, keyframe_id, feat)
             return
         kf = self._keyframes.get(keyframe_id)
         if kf is None or kf.features.bf <= 0.0:
             weights: NDArray[np.int64] | int = 1
         else:
-            weights = np.array([observation_weight(kf.features, f) for f in feats.tolist()], np.int64)
+            weights = np.array([observation_weight(kf.features, f) for f in feat_list], np.int64)
         self._table.add(ids, "n_observations", 1)
         self._table.add(ids, "n_observations_orbslam", weights)
-        for obs, feat in zip(targets, feats.tolist(), strict=True):
+        for obs, feat in zip(targets, feat_list, strict=True):
             obs[keyframe_id] = feat
         own[feats] = ids
 
@@ -359,10 +356,21 @@ class InMemoryMapStore:
             raise ValueError(f"replace_point: map point {old_id} cannot replace itself")
         old_obs = self._observations[old_id]
         new_obs = self._observations[new_id]
+        # add_observation(new_id, kf_id, feat) for each keyframe new does not see, its two counters summed into one
+        # write each (integer sums: the same counts)
+        added = 0
+        weight = 0
         for kf_id, feat in sorted(old_obs.items()):
-            self._kf_point_ids[kf_id][feat] = -1
+            own = self._kf_point_ids[kf_id]
+            own[feat] = -1
             if kf_id not in new_obs:
-                self.add_observation(new_id, kf_id, feat)
+                weight += self._observation_weight(kf_id, feat)
+                new_obs[kf_id] = feat
+                own[feat] = new_id
+                added += 1
+        if added:
+            self._table.increment(new_id, "n_observations", added)
+            self._table.increment(new_id, "n_observations_orbslam", weight)
         with self._counter_lock:
             for name in ("n_visible", "n_found"):
                 self._table.increment(new_id, name, self._table.value(old_id, name))

@@ -3,6 +3,8 @@ the keyframe; a match either adds an observation or merges two points that are t
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numba
 import numpy as np
 from numpy.typing import NDArray
@@ -65,6 +67,7 @@ def fuse_points(
     max_distance: int,
     chi2_gate: float,
     chi2_gate_stereo: float | None = None,
+    refresh_survivors: bool = True,
 ) -> int:
     """Project ``point_ids`` into ``kf`` and fuse each match (radius_px scaled by the predicted level).
 
@@ -77,10 +80,24 @@ def fuse_points(
     candidate in the window before the descriptor comparison: 3 dof with the right coordinate (u_R = u - bf / z)
     against this threshold (pipeline.chi2.stereo_rounded, 7.8), 2 dof against ``chi2_gate`` for a candidate without
     one. None, or a monocular keyframe: the 2-dof gate on the best match only (slamkit's monocular fusion).
+
+    refresh_survivors=False (a one-camera keyframe): the merges' surviving points keep their descriptors; the caller
+    refreshes the descriptors of every point ``kf`` observes before anything reads them (local mapping's
+    SearchInNeighbors, right after its last fusion), which covers the survivors: each holds a keypoint of ``kf``.
     """
     if not kf.features.two_cameras:
         return _fuse_view(
-            store, kf, kf, None, point_ids, radius_px, incoming_wins, max_distance, chi2_gate, chi2_gate_stereo
+            store,
+            kf,
+            kf,
+            None,
+            point_ids,
+            radius_px,
+            incoming_wins,
+            max_distance,
+            chi2_gate,
+            chi2_gate_stereo,
+            refresh_survivors,
         )
     # a two-camera keyframe (ORB-SLAM3 SearchInNeighbors: Fuse(pKF, points) then Fuse(pKF, points, bRight = true)):
     # each camera's keypoints through that camera
@@ -97,6 +114,7 @@ def fuse_points(
             max_distance,
             chi2_gate,
             chi2_gate_stereo,
+            True,  # the second camera's matching reads the first's survivors
         )
         for c in keyframe_cameras(kf)
     )
@@ -113,6 +131,7 @@ def _fuse_view(
     max_distance: int,
     chi2_gate: float,
     chi2_gate_stereo: float | None,
+    refresh_survivors: bool = True,
 ) -> int:
     """fuse_points into one camera of ``kf``: ``view`` gives the pose and camera model (``kf`` itself for a one-camera
     keyframe, :func:`keyframe_view`), ``taken`` (N,) the keypoints of the other camera (None: none)."""
@@ -172,9 +191,15 @@ def _fuse_view(
         uv_pred = test.uv_px[q[m.query]]
         err2 = np.sum((uv_pred - feats.uv_undist_px[m.feature]) ** 2, axis=1)
         gated = err2 <= chi2_gate * sigma2[m.feature]
+    rows, features = m.query[gated], m.feature[gated]
+    batch = getattr(store, "add_observations", None)
+    if taken is None and batch is not None:
+        done = _fuse_one_camera(store, kf, ids[q[rows]], features, incoming_wins, batch, refresh_survivors)
+        if done is not None:
+            return done
     fused = 0
     survivors: list[int] = []
-    for row, feat in zip(m.query[gated].tolist(), m.feature[gated].tolist(), strict=True):
+    for row, feat in zip(rows.tolist(), features.tolist(), strict=True):
         pid = int(ids[q[row]])
         if not store.has_point(pid):
             continue
@@ -197,5 +222,60 @@ def _fuse_view(
         else:
             store.add_observation(point.id, kf_id, feat)
         fused += 1
-    refresh_points(store, survivors, normals=False)  # ORB-SLAM Replace: the survivor's descriptor
+    if refresh_survivors:
+        refresh_points(store, survivors, normals=False)  # ORB-SLAM Replace: the survivor's descriptor
+    return fused
+
+
+def _fuse_one_camera(
+    store: MapStore,
+    kf: KeyFrame,
+    pids: I64,
+    features: I64,
+    incoming_wins: bool,
+    add_observations: Callable[[I64, int, I64], None],
+    refresh_survivors: bool = True,
+) -> int | None:
+    """_fuse_view's matches for a one-camera keyframe, point pids[i] (M,) at keypoint features[i] (M,) of ``kf``
+    (points kf does not observe, distinct keypoints): the same map as the loop over the matches in their order, with
+    the keypoints that have no point in one batch (``add_observations``, the in-memory store's). Returns the number
+    fused, or None (nothing done) unless the points are distinct and in the map and the points at the keypoints are
+    distinct: then the loop decides.
+
+    Each match then changes only its own point, the point at its keypoint and that keypoint of kf (a point's
+    observations move only when it is replaced by, or replaces, the point at its keypoint), so the batch of new
+    observations commutes with the replacements, which still run one at a time in the matches' order."""
+    if not pids.size:
+        return 0
+    listed = pids.tolist()
+    if len(set(listed)) != len(listed) or not store.has_points(pids).all():  # (a set: no sort of a few ids)
+        return None
+    kf_id = kf.id
+    if any(kf_id in point.observations for point in store.get_points(listed)):
+        return None  # kf observes one at another keypoint (kf's point_ids should have ruled it out): the loop's rule
+    existing = kf.point_ids[features]
+    has_other = existing >= 0
+    if has_other.any():
+        has_other[has_other] = store.has_points(existing[has_other])
+        others = existing[has_other].tolist()
+        if len(set(others)) != len(others):
+            return None
+    free = ~has_other
+    fused = int(free.sum())
+    if fused:
+        add_observations(pids[free], kf_id, features[free])
+    survivors: list[int] = []
+    for pid, other_id in zip(pids[has_other].tolist(), existing[has_other].tolist(), strict=True):
+        if other_id == pid:
+            continue
+        point, other = store.get_point(pid), store.get_point(other_id)
+        if not incoming_wins and len(other.observations) > len(point.observations):
+            replace_point(store, point, other, refresh=False)
+            survivors.append(other_id)
+        else:
+            replace_point(store, other, point, refresh=False)
+            survivors.append(pid)
+        fused += 1
+    if refresh_survivors:
+        refresh_points(store, survivors, normals=False)  # ORB-SLAM Replace: the survivor's descriptor
     return fused

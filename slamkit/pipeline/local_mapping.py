@@ -500,8 +500,9 @@ class LocalMapper:
                     max_distance=cfg.matcher.th_low,
                     chi2_gate=cfg.chi2.fuse_mono,
                     chi2_gate_stereo=cfg.chi2.stereo_rounded if cfg.fuse_right_coordinate_gate else None,
+                    refresh_survivors=False,  # the refresh below covers them (each holds a keypoint of kf)
                 )
-        with store.write():
+            # in the same write phase: nobody reads a merge's survivor before its descriptor is refreshed
             refresh_points(store, kf.point_ids[kf.point_ids >= 0].tolist())
             store.update_connections(kf.id)
         return fused

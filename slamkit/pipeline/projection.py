@@ -10,12 +10,15 @@ import dataclasses
 import threading
 import weakref
 from dataclasses import dataclass
+from typing import cast
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.errors import ConfigError
 from slamkit.features import Features, Observations
+from slamkit.geometry.camera import PinholeCamera
 from slamkit.interfaces import Camera
 from slamkit.pipeline.frame import ImageBounds
 from slamkit.pipeline.map_points import predict_level
@@ -217,6 +220,21 @@ def frustum_test(
     """ORB-SLAM Frame::isInFrustum for many points: (1) projects inside the image with positive depth,
     (3) distance within [0.8 d_min, 1.2 d_max], (2) viewing angle v.n >= min_view_cos (cos 60 deg),
     (4) predicted pyramid level from the distance. Filter (5), the descriptor match, is ``match_projected``."""
+    if type(camera).project_image is PinholeCamera.project_image:
+        # the pinhole model's arithmetic in one compiled pass; the products that numpy hands to BLAS / einsum's
+        # kernels (which may fuse multiply-adds) stay numpy calls, so every value is the same bit for bit
+        xyz_c = xyz_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]  # project_points' expression
+        center = -T_c_w[:3, :3].T @ T_c_w[:3, 3]
+        ray = xyz_w - center
+        dot = np.einsum("ij,ij->i", ray, normal_w)
+        p = cast(PinholeCamera, camera)
+        uv, dist, view_cos, ok = _pinhole_frustum(
+            xyz_c, ray, dot, np.asarray(d_min_m, np.float64), np.asarray(d_max_m, np.float64),
+            float(p.fx), float(p.fy), float(p.cx), float(p.cy),
+            float(bounds.min_u), float(bounds.max_u), float(bounds.min_v), float(bounds.max_v), float(min_view_cos),
+        )  # fmt: skip
+        level = predict_level(d_max_m, dist, scale_factor, n_levels)
+        return FrustumTest(ok, uv, level, view_cos, xyz_c[:, 2])
     uv, z, valid = project_points(T_c_w, xyz_w, camera)
     center = -T_c_w[:3, :3].T @ T_c_w[:3, 3]
     ray = xyz_w - center
@@ -229,6 +247,52 @@ def frustum_test(
     ok &= view_cos >= min_view_cos
     level = predict_level(d_max_m, dist, scale_factor, n_levels)
     return FrustumTest(ok, uv, level, view_cos, z)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pinhole_frustum(
+    xyz_c: F64,
+    ray: F64,
+    dot: F64,
+    d_min_m: F64,
+    d_max_m: F64,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    min_u: float,
+    max_u: float,
+    min_v: float,
+    max_v: float,
+    min_view_cos: float,
+) -> tuple[F64, F64, F64, NDArray[np.bool_]]:  # pragma: no cover - compiled
+    """:func:`frustum_test`'s elementwise part for a pinhole camera (``PinholeCamera.project_image``), per point i:
+    xyz_c (N, 3) m the point in the camera, ray (N, 3) m camera centre -> point (world), dot (N,) ray . normal_w.
+    -> (uv (N, 2) px: u = fx x / z + cx, v = fy y / z + cy; dist (N,) m = |ray| (np.linalg.norm's sum order);
+    view_cos (N,) = dot / dist; ok (N,): z > 0, finite uv inside [min_u, max_u) x [min_v, max_v),
+    0.8 d_min <= dist <= 1.2 d_max, view_cos >= min_view_cos). The same IEEE operations in the same order as the
+    numpy expressions of project_points / PinholeCamera.project_image / ImageBounds.contains / frustum_test."""
+    n = xyz_c.shape[0]
+    uv = np.empty((n, 2))
+    dist = np.empty(n)
+    view_cos = np.empty(n)
+    ok = np.empty(n, np.bool_)
+    for i in range(n):
+        z = xyz_c[i, 2]
+        u = fx * xyz_c[i, 0] / z + cx
+        v = fy * xyz_c[i, 1] / z + cy
+        uv[i, 0] = u
+        uv[i, 1] = v
+        rx = ray[i, 0]
+        ry = ray[i, 1]
+        rz = ray[i, 2]
+        d = np.sqrt(rx * rx + ry * ry + rz * rz)
+        dist[i] = d
+        c = dot[i] / d
+        view_cos[i] = c
+        inside = np.isfinite(u) and np.isfinite(v) and u >= min_u and u < max_u and v >= min_v and v < max_v
+        ok[i] = z > 0 and inside and d >= 0.8 * d_min_m[i] and d <= 1.2 * d_max_m[i] and c >= min_view_cos
+    return uv, dist, view_cos, ok
 
 
 def radius_by_viewing_cos(view_cos: F64) -> F64:
