@@ -16,6 +16,7 @@ from typing import Any
 import numba
 import numpy as np
 from llvmlite import ir
+from llvmlite.binding import llvm_version_info
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -229,6 +230,24 @@ def _ir_lane_load(builder: ir.IRBuilder, base: ir.Value, offset: int) -> ir.Valu
     return builder.load(builder.bitcast(ptr, _V8_IR.as_pointer()), align=8)
 
 
+def _ir_masked_ops(builder: ir.IRBuilder, ptr_t: ir.Type) -> tuple[ir.Function, ir.Function, Any]:
+    """llvm.masked.load / llvm.masked.store of 8 float64 lanes, and the cast of a ``double*`` row pointer to their
+    pointer argument: LLVM 15+ (opaque pointers) names them by ``p0`` and takes the pointer as it is, LLVM 14 (numba
+    0.60's llvmlite) by ``p0v8f64`` and takes an ``<8 x double>*``."""
+    if llvm_version_info >= (15,):
+        suffix, vptr_t = "p0", ptr_t
+    else:
+        suffix, vptr_t = "p0v8f64", _V8_IR.as_pointer()
+    mod = builder.module
+    mload = _ir_function(mod, f"llvm.masked.load.v8f64.{suffix}", _V8_IR, [vptr_t, _I32_IR, _M8_IR, _V8_IR])
+    mstore = _ir_function(mod, f"llvm.masked.store.v8f64.{suffix}", ir.VoidType(), [_V8_IR, vptr_t, _I32_IR, _M8_IR])
+
+    def as_row(ptr: ir.Value) -> ir.Value:
+        return ptr if vptr_t is ptr_t else builder.bitcast(ptr, vptr_t)
+
+    return mload, mstore, as_row
+
+
 def _ir_int(context: Any, builder: ir.IRBuilder, value: ir.Value, ty: types.Type) -> ir.Value:
     return context.cast(builder, value, ty, types.int64)
 
@@ -254,9 +273,7 @@ def _make_block_update(k_first: int, a_row: int, a_col: int, upper: bool) -> Any
             so, ss = _ir_int(context, builder, so, at[1]), _ir_int(context, builder, ss, at[2])
             ao, bo = _ir_int(context, builder, ao, at[4]), _ir_int(context, builder, bo, at[6])
             mod = builder.module
-            ptr_t = s_data.type
-            mload = _ir_function(mod, "llvm.masked.load.v8f64.p0", _V8_IR, [ptr_t, _I32_IR, _M8_IR, _V8_IR])
-            mstore = _ir_function(mod, "llvm.masked.store.v8f64.p0", ir.VoidType(), [_V8_IR, ptr_t, _I32_IR, _M8_IR])
+            mload, mstore, as_row = _ir_masked_ops(builder, s_data.type)
             fma = _ir_function(mod, "llvm.fma.v8f64", _V8_IR, [_V8_IR, _V8_IR, _V8_IR])
             b_base = builder.gep(b_data, [bo])
             Bv = [_ir_lane_load(builder, b_base, 8 * k) for k in range(3)]
@@ -266,7 +283,7 @@ def _make_block_update(k_first: int, a_row: int, a_col: int, upper: bool) -> Any
             for i in range(6):
                 mask = ir.Constant(_M8_IR, [int((i <= j or not upper) and j < 6) for j in range(8)])
                 a = [builder.load(builder.gep(a_base, [ir.Constant(_I64_IR, a_row * i + a_col * k)])) for k in range(3)]
-                row = builder.gep(s_data, [builder.add(so, builder.mul(ss, ir.Constant(_I64_IR, i)))])
+                row = as_row(builder.gep(s_data, [builder.add(so, builder.mul(ss, ir.Constant(_I64_IR, i)))]))
                 s = builder.call(mload, [row, align, mask, zero])
                 k0, k1, k2 = order
                 t = builder.fmul(_ir_splat(builder, a[k0]), Bv[k0])
