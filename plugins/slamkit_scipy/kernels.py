@@ -11,8 +11,15 @@ fx, fy, cx, cy, k1..k4 per observation; the pinhole path reads intr (E, 4) as be
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
+from llvmlite import ir
+from llvmlite.binding import llvm_version_info
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 from numpy.typing import NDArray
 
 from slamkit.geometry.se3_kernels import se3_exp_times
@@ -180,76 +187,161 @@ def _inv3(M: F64, out: F64) -> None:  # pragma: no cover - compiled
     out[2, 2] = (a * e - b * d) * inv
 
 
-#: Unsigned offsets for the compiled kernels' indices: numba tests a signed index for wraparound (a negative index counts
-#: from the end) at every access, an unsigned one it does not, so index arithmetic in uint64 (uint64 + int64 would be
-#: float64 in numba) spares that test in the innermost loops and lets LLVM vectorize a row update.
-_U1, _U2, _U3, _U4, _U5, _U6 = (np.uint64(k) for k in range(1, 7))
+#: Unsigned block offsets for the compiled kernels' indices: numba tests a signed index for wraparound (a negative index
+#: counts from the end) at every access, an unsigned one it does not (uint64 + int64 would be float64 in numba).
+_U6 = np.uint64(6)
 
-#: LLVM fast-math flags of the reduced camera system (issue 15, branch lmsolve): reassociation and contraction let each
-#: entry's update S -= a0 b0 + a1 b1 + a2 b2 compile to three fused negative multiply-adds (0.80-0.89x the kernel's time
-#: on captured fr1 local BAs; the steps move by ~1e-10 relative, the order in which an entry's products are summed is
-#: then the compiler's); "nsz" ignores the sign of zero. No "nnan" / "ninf": a singular V + lam I must still give
-#: non-finite entries, which the Cholesky kernel rejects (the LM then raises the damping).
+
+# ---- explicit SIMD rows of the reduced camera system (branch lbacpu) ---------------------------------------------
+#
+# numba leaves LLVM's SLP vectorizer off and fully unrolls 6-trip loops before the loop vectorizer sees them, so a
+# 6x6 block update written in Python stays scalar however it is written (docs/BENCHMARKS.md, branches lmfr1 and
+# lmsolve). The intrinsics below emit the vector IR directly: one row of a 6x6 block of S is one 8-lane vector
+# (lanes 6 and 7 masked off: llvm.masked.load / llvm.masked.store, one AVX-512 instruction each where the CPU has it,
+# a pair of AVX2 masked moves or scalar code elsewhere), updated with one multiply and two fused multiply-adds
+# (llvm.fma, exact IEEE fused operations: no fast-math flag lets LLVM reorder them). Each entry therefore receives
+# exactly the operations the previous scalar kernel (rows of 6 scalar updates compiled with _SCHUR_FASTMATH) performed
+# on this project's machines (x86-64 with FMA; read from its assembly): an off-diagonal entry t = a2 b2, t = fma(a1, b1, t), t = fma(a0, b0, t),
+# S -= t; a diagonal block's entry the same from k = 0 up; Y = W V^-1 from k = 0 up. S, rhs and V^-1 equal the
+# scalar kernel's bit for bit on 182 captured fr1_xyz local BAs (/work/ref/s20/lbacpu/tools/schur_ab.py), and the
+# trajectories of whole runs are unchanged (docs/BENCHMARKS.md, section lbacpu).
+# numba compiles these into ba_reduced_system's cache entry: after changing them, clear this module's numba cache.
+
+_F64_IR = ir.DoubleType()
+_I32_IR = ir.IntType(32)
+_I64_IR = ir.IntType(64)
+_V8_IR = ir.VectorType(_F64_IR, 8)
+_M8_IR = ir.VectorType(ir.IntType(1), 8)
+
+
+def _ir_function(module: ir.Module, name: str, ret: ir.Type, args: list[ir.Type]) -> ir.Function:
+    return cgutils.get_or_insert_function(module, ir.FunctionType(ret, args), name)
+
+
+def _ir_splat(builder: ir.IRBuilder, x: ir.Value) -> ir.Value:
+    """An 8-lane vector of the scalar x."""
+    v = builder.insert_element(ir.Constant(_V8_IR, ir.Undefined), x, ir.Constant(_I32_IR, 0))
+    return builder.shuffle_vector(v, ir.Constant(_V8_IR, ir.Undefined), ir.Constant(ir.VectorType(_I32_IR, 8), [0] * 8))
+
+
+def _ir_lane_load(builder: ir.IRBuilder, base: ir.Value, offset: int) -> ir.Value:
+    """8 consecutive float64 from base + offset (the padded rows of the per-point scratch arrays)."""
+    ptr = builder.gep(base, [ir.Constant(_I64_IR, offset)])
+    return builder.load(builder.bitcast(ptr, _V8_IR.as_pointer()), align=8)
+
+
+def _ir_masked_ops(builder: ir.IRBuilder, ptr_t: ir.Type) -> tuple[ir.Function, ir.Function, Any]:
+    """llvm.masked.load / llvm.masked.store of 8 float64 lanes, and the cast of a ``double*`` row pointer to their
+    pointer argument: LLVM 15+ (opaque pointers) names them by ``p0`` and takes the pointer as it is, LLVM 14 (numba
+    0.60's llvmlite) by ``p0v8f64`` and takes an ``<8 x double>*``."""
+    if llvm_version_info >= (15,):
+        suffix, vptr_t = "p0", ptr_t
+    else:
+        suffix, vptr_t = "p0v8f64", _V8_IR.as_pointer()
+    mod = builder.module
+    mload = _ir_function(mod, f"llvm.masked.load.v8f64.{suffix}", _V8_IR, [vptr_t, _I32_IR, _M8_IR, _V8_IR])
+    mstore = _ir_function(mod, f"llvm.masked.store.v8f64.{suffix}", ir.VoidType(), [_V8_IR, vptr_t, _I32_IR, _M8_IR])
+
+    def as_row(ptr: ir.Value) -> ir.Value:
+        return ptr if vptr_t is ptr_t else builder.bitcast(ptr, vptr_t)
+
+    return mload, mstore, as_row
+
+
+def _ir_int(context: Any, builder: ir.IRBuilder, value: ir.Value, ty: types.Type) -> ir.Value:
+    return context.cast(builder, value, ty, types.int64)
+
+
+def _make_block_update(k_first: int, a_row: int, a_col: int, upper: bool) -> Any:
+    """An intrinsic ``f(S, s_off, s_stride, A, a_off, B, b_off)`` (C-contiguous float64 arrays, offsets in elements of
+    their flat data): for i, j in 0..5 (j >= i only when ``upper``),
+    S_flat[s_off + i s_stride + j] -= sum over k of A_flat[a_off + a_row i + a_col k] B_flat[b_off + 8 k + j],
+    the three products summed from k = ``k_first`` (0 or 2) in one multiply and two fused multiply-adds, the sum then
+    subtracted from S (module comment above). B holds three 8-lane rows (lanes 6 and 7 are read, never used)."""
+    order = (0, 1, 2) if k_first == 0 else (2, 1, 0)
+
+    @intrinsic
+    def block_update(typingctx: Any, S: Any, s_off: Any, s_stride: Any, A: Any, a_off: Any, B: Any, b_off: Any) -> Any:
+        sig = types.void(S, s_off, s_stride, A, a_off, B, b_off)
+
+        def codegen(context: Any, builder: ir.IRBuilder, signature: Any, args: Any) -> Any:
+            S_, so, ss, A_, ao, B_, bo = args
+            at = signature.args
+            s_data = context.make_array(at[0])(context, builder, S_).data
+            a_data = context.make_array(at[3])(context, builder, A_).data
+            b_data = context.make_array(at[5])(context, builder, B_).data
+            so, ss = _ir_int(context, builder, so, at[1]), _ir_int(context, builder, ss, at[2])
+            ao, bo = _ir_int(context, builder, ao, at[4]), _ir_int(context, builder, bo, at[6])
+            mod = builder.module
+            mload, mstore, as_row = _ir_masked_ops(builder, s_data.type)
+            fma = _ir_function(mod, "llvm.fma.v8f64", _V8_IR, [_V8_IR, _V8_IR, _V8_IR])
+            b_base = builder.gep(b_data, [bo])
+            Bv = [_ir_lane_load(builder, b_base, 8 * k) for k in range(3)]
+            a_base = builder.gep(a_data, [ao])
+            zero = ir.Constant(_V8_IR, [0.0] * 8)
+            align = ir.Constant(_I32_IR, 8)
+            for i in range(6):
+                mask = ir.Constant(_M8_IR, [int((i <= j or not upper) and j < 6) for j in range(8)])
+                a = [builder.load(builder.gep(a_base, [ir.Constant(_I64_IR, a_row * i + a_col * k)])) for k in range(3)]
+                row = as_row(builder.gep(s_data, [builder.add(so, builder.mul(ss, ir.Constant(_I64_IR, i)))]))
+                s = builder.call(mload, [row, align, mask, zero])
+                k0, k1, k2 = order
+                t = builder.fmul(_ir_splat(builder, a[k0]), Bv[k0])
+                t = builder.call(fma, [_ir_splat(builder, a[k1]), Bv[k1], t])
+                t = builder.call(fma, [_ir_splat(builder, a[k2]), Bv[k2], t])
+                builder.call(mstore, [builder.fsub(s, t), row, align, mask])
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    return block_update
+
+
+#: Y_a W_b^T into the block (ca, cb), ca < cb: A = Y_a^T (scratch YT, a_row 1, a_col 8), B = W_b^T (scratch WT).
+_sub_block_yw = _make_block_update(2, 1, 8, upper=False)
+#: W_b Y_a^T into the block (cb, ca), cb < ca: A = W_b (the (E, 6, 3) array: a_row 3, a_col 1), B = Y_a^T (YT).
+_sub_block_wy = _make_block_update(2, 3, 1, upper=False)
+#: A point's own diagonal block Y_a W_a^T, its upper triangle only (the Cholesky kernel reads no other entry).
+_sub_block_diag = _make_block_update(0, 1, 8, upper=True)
+
+
+def _y_transposed_typer(typingctx: Any, YT: Any, y_off: Any, WT: Any, w_off: Any, Vinv: Any, v_off: Any) -> Any:
+    """YT_flat[y_off + 8 k + i] = Y[i, k] = fma(W[i, 2], Vi[2, k], fma(W[i, 1], Vi[1, k], W[i, 0] Vi[0, k])) for all 8
+    lanes i (W^T's padded rows WT_flat[w_off + 8 m + i]; Vi = Vinv_flat[v_off:v_off + 9], row-major 3x3): one
+    observation's Y = W (V + lam I)^-1, transposed, in three 8-lane vectors."""
+    sig = types.void(YT, y_off, WT, w_off, Vinv, v_off)
+
+    def codegen(context: Any, builder: ir.IRBuilder, signature: Any, args: Any) -> Any:
+        Y_, yo, W_, wo, V_, vo = args
+        at = signature.args
+        y_data = context.make_array(at[0])(context, builder, Y_).data
+        w_data = context.make_array(at[2])(context, builder, W_).data
+        v_data = context.make_array(at[4])(context, builder, V_).data
+        yo, wo, vo = (_ir_int(context, builder, x, t) for x, t in ((yo, at[1]), (wo, at[3]), (vo, at[5])))
+        fma = _ir_function(builder.module, "llvm.fma.v8f64", _V8_IR, [_V8_IR, _V8_IR, _V8_IR])
+        w_base = builder.gep(w_data, [wo])
+        Wv = [_ir_lane_load(builder, w_base, 8 * m) for m in range(3)]
+        v_base = builder.gep(v_data, [vo])
+        y_base = builder.gep(y_data, [yo])
+        for k in range(3):
+            v = [builder.load(builder.gep(v_base, [ir.Constant(_I64_IR, 3 * m + k)])) for m in range(3)]
+            t = builder.fmul(Wv[0], _ir_splat(builder, v[0]))
+            t = builder.call(fma, [Wv[1], _ir_splat(builder, v[1]), t])
+            t = builder.call(fma, [Wv[2], _ir_splat(builder, v[2]), t])
+            out = builder.gep(y_base, [ir.Constant(_I64_IR, 8 * k)])
+            builder.store(t, builder.bitcast(out, _V8_IR.as_pointer()), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+_y_transposed: Any = intrinsic(_y_transposed_typer)
+
+#: LLVM fast-math flags of the reduced camera system's remaining scalar code (the right-hand side and a rig's
+#: second-camera pairs; issue 15, branch lmsolve): reassociation and contraction fuse each a0 b0 + a1 b1 + a2 b2;
+#: "nsz" ignores the sign of zero. No "nnan" / "ninf": a singular V + lam I must still give non-finite entries, which
+#: the Cholesky kernel rejects (the LM then raises the damping).
 _SCHUR_FASTMATH = {"reassoc", "contract", "nsz"}
-
-
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=_SCHUR_FASTMATH)
-def _block_row(b: F64, e: int) -> tuple[float, ...]:  # pragma: no cover - compiled
-    """The 18 entries of the (6, 3) block b[e] in row-major order, read into registers (a UniTuple)."""
-    return (
-        b[e, 0, 0], b[e, 0, 1], b[e, 0, 2], b[e, 1, 0], b[e, 1, 1], b[e, 1, 2],
-        b[e, 2, 0], b[e, 2, 1], b[e, 2, 2], b[e, 3, 0], b[e, 3, 1], b[e, 3, 2],
-        b[e, 4, 0], b[e, 4, 1], b[e, 4, 2], b[e, 5, 0], b[e, 5, 1], b[e, 5, 2],
-    )  # fmt: skip
-
-
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=_SCHUR_FASTMATH)
-def _subtract_row6(
-    S: F64, r: int, o: int, a0: float, a1: float, a2: float, b: tuple[float, ...]
-) -> None:  # pragma: no cover - compiled
-    """S[r, o + j] -= a0 b[3 j] + a1 b[3 j + 1] + a2 b[3 j + 2] for j = 0..5 (b: a :func:`_block_row`), fused
-    multiply-adds in the compiler's order (_SCHUR_FASTMATH): one row of a pair's 6x6 block of the reduced camera
-    system."""
-    S[r, o] -= a0 * b[0] + a1 * b[1] + a2 * b[2]
-    S[r, o + _U1] -= a0 * b[3] + a1 * b[4] + a2 * b[5]
-    S[r, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
-    S[r, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
-    S[r, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
-    S[r, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
-
-
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=_SCHUR_FASTMATH)
-def _subtract_upper6(S: F64, o: int, Y: F64, a: int, b: tuple[float, ...]) -> None:  # pragma: no cover - compiled
-    """The upper triangle of a diagonal 6x6 block of S at rows / columns o..o+5: S[o + i, o + j] -= Y[a, i, 0] b[3 j] +
-    Y[a, i, 1] b[3 j + 1] + Y[a, i, 2] b[3 j + 2] for j >= i (b: a :func:`_block_row`) (the entries
-    :func:`_subtract_row6` would write there, and nothing below the diagonal)."""
-    a0, a1, a2 = Y[a, 0, 0], Y[a, 0, 1], Y[a, 0, 2]
-    S[o, o] -= a0 * b[0] + a1 * b[1] + a2 * b[2]
-    S[o, o + _U1] -= a0 * b[3] + a1 * b[4] + a2 * b[5]
-    S[o, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
-    S[o, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
-    S[o, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
-    S[o, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
-    a0, a1, a2 = Y[a, 1, 0], Y[a, 1, 1], Y[a, 1, 2]
-    S[o + _U1, o + _U1] -= a0 * b[3] + a1 * b[4] + a2 * b[5]
-    S[o + _U1, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
-    S[o + _U1, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
-    S[o + _U1, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
-    S[o + _U1, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
-    a0, a1, a2 = Y[a, 2, 0], Y[a, 2, 1], Y[a, 2, 2]
-    S[o + _U2, o + _U2] -= a0 * b[6] + a1 * b[7] + a2 * b[8]
-    S[o + _U2, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
-    S[o + _U2, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
-    S[o + _U2, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
-    a0, a1, a2 = Y[a, 3, 0], Y[a, 3, 1], Y[a, 3, 2]
-    S[o + _U3, o + _U3] -= a0 * b[9] + a1 * b[10] + a2 * b[11]
-    S[o + _U3, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
-    S[o + _U3, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
-    a0, a1, a2 = Y[a, 4, 0], Y[a, 4, 1], Y[a, 4, 2]
-    S[o + _U4, o + _U4] -= a0 * b[12] + a1 * b[13] + a2 * b[14]
-    S[o + _U4, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
-    a0, a1, a2 = Y[a, 5, 0], Y[a, 5, 1], Y[a, 5, 2]
-    S[o + _U5, o + _U5] -= a0 * b[15] + a1 * b[16] + a2 * b[17]
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_SCHUR_FASTMATH)
@@ -267,14 +359,20 @@ def ba_reduced_system(
     """Schur complement with damping lam: -> S (6 nc, 6 nc) = U + lam I - W (V + lam I)^-1 W^T (dense, its upper
     triangle only, which is all :func:`cholesky_solve_upper` reads: the strictly-lower off-diagonal blocks are left 0
     and the lower triangle of a diagonal block holds U + lam I less a rig's second-camera pairs only),
-    rhs (6 nc,) = -gc + W (V + lam I)^-1 gp, and Vinv (npt, 3, 3).
+    rhs (6 nc,) = -gc + W (V + lam I)^-1 gp, and Vinv (npt, 3, 3). W must be C-contiguous (E, 6, 3).
 
     point_obs[point_ptr[q]:point_ptr[q + 1]] lists the observations of free point q whose pose is free.
+    Per point, each observation's W_a^T and Y_a^T = (W_a (V + lam I)^-1)^T are kept in 8-lane rows (scratch WT, YT:
+    (n, 3, 8)), and each pair (a <= b) updates its 6x6 block of S one 8-lane row at a time (the SIMD intrinsics
+    above): the block Y_a W_b^T goes to the upper triangle (its transpose W_b Y_a^T when ca > cb), a point's own
+    diagonal block gets its upper triangle. Every entry of S receives the products over k = 0, 1, 2 of one pair,
+    fused, one point after the other.
     """
     nc = U.shape[0]
     npt = V.shape[0]
-    S = np.zeros((6 * nc, 6 * nc))
-    rhs = np.zeros(6 * nc)
+    n6 = 6 * nc
+    S = np.zeros((n6, n6))
+    rhs = np.zeros(n6)
     Vinv = np.zeros((npt, 3, 3))
     for q in range(nc):
         for i in range(6):
@@ -283,9 +381,11 @@ def ba_reduced_system(
                 S[6 * q + i, 6 * q + jj] = U[q, i, jj]
             S[6 * q + i, 6 * q + i] += lam
     Vd = np.zeros((3, 3))
-    Y = np.zeros((64, 6, 3))  # Y_a = W_a (V + lam I)^-1 of the point's observations
-    cs = np.zeros(64, np.uint64)  # free pose index of each observation (unsigned: see _U1)
+    YT = np.zeros((64, 3, 8))  # YT[a, k, i] = Y_a[i, k], Y_a = W_a (V + lam I)^-1 of the point's observations
+    WT = np.zeros((64, 3, 8))  # WT[a, k, i] = W_a[i, k]
+    cs = np.zeros(64, np.uint64)  # free pose index of each observation (unsigned: see _U6)
     es = np.zeros(64, np.int64)  # the observation (row of W)
+    un6 = np.uint64(n6)
     for q in range(npt):
         for i in range(3):
             for jj in range(3):
@@ -296,8 +396,9 @@ def ba_reduced_system(
         n = point_ptr[q + 1] - start
         if n == 0:
             continue
-        if Y.shape[0] < n:
-            Y = np.zeros((n, 6, 3))
+        if YT.shape[0] < n:
+            YT = np.zeros((n, 3, 8))
+            WT = np.zeros((n, 3, 8))
             cs = np.zeros(n, np.uint64)
             es = np.zeros(n, np.int64)
         for a in range(n):
@@ -305,39 +406,27 @@ def ba_reduced_system(
             es[a] = e
             cs[a] = np.uint64(c[e])
             for i in range(6):
-                for jj in range(3):
-                    Y[a, i, jj] = (
-                        W[e, i, 0] * Vinv[q, 0, jj] + W[e, i, 1] * Vinv[q, 1, jj] + W[e, i, 2] * Vinv[q, 2, jj]
-                    )
+                for k in range(3):
+                    WT[a, k, i] = W[e, i, k]
+            _y_transposed(YT, 24 * a, WT, 24 * a, Vinv, 9 * q)
             ca = c[e]
             for i in range(6):
-                rhs[6 * ca + i] += Y[a, i, 0] * gp[q, 0] + Y[a, i, 1] * gp[q, 1] + Y[a, i, 2] * gp[q, 2]
-        # Each pair (a <= b) once: the block Y_a W_b^T goes to the upper triangle (its transpose when ca > cb; the
-        # Cholesky kernel reads no other), diagonal blocks are kept whole. Every entry of S receives the products
-        # Y_a[i, k] W_b[jj, k] over k = 0, 1, 2 (fused, _SCHUR_FASTMATH), one point after the other, whichever branch
-        # writes it: the operand of the other observation is read once per pair into registers (_block_row).
+                rhs[6 * ca + i] += YT[a, 0, i] * gp[q, 0] + YT[a, 1, i] * gp[q, 1] + YT[a, 2, i] * gp[q, 2]
         for a in range(n):
             ca = cs[a]
-            ya = _block_row(Y, a)
             for b in range(a, n):
                 cb = cs[b]
                 if ca < cb:  # S[6 ca + i, 6 cb + jj] -= Y_a[i] . W_b[jj]
-                    wb = _block_row(W, es[b])
-                    for i in range(6):
-                        _subtract_row6(S, _U6 * ca + np.uint64(i), _U6 * cb, Y[a, i, 0], Y[a, i, 1], Y[a, i, 2], wb)
+                    _sub_block_yw(S, _U6 * ca * un6 + _U6 * cb, n6, YT, 24 * a, WT, 24 * b)
                 elif ca > cb:  # S[6 cb + jj, 6 ca + i] -= W_b[jj] . Y_a[i]
-                    eb = es[b]
-                    for jj in range(6):
-                        _subtract_row6(
-                            S, _U6 * cb + np.uint64(jj), _U6 * ca, W[eb, jj, 0], W[eb, jj, 1], W[eb, jj, 2], ya
-                        )
+                    _sub_block_wy(S, _U6 * cb * un6 + _U6 * ca, n6, W, 18 * es[b], YT, 24 * a)
                 elif a == b:  # the point's own diagonal block: its upper triangle (the Cholesky kernel reads no other)
-                    _subtract_upper6(S, _U6 * ca, Y, a, _block_row(W, es[b]))
+                    _sub_block_diag(S, _U6 * ca * un6 + _U6 * ca, n6, YT, 24 * a, WT, 24 * b)
                 else:  # one keyframe observes the point twice (a rig's second camera): both halves of the block
                     eb = es[b]
                     for i in range(6):
                         for jj in range(6):
-                            v = Y[a, i, 0] * W[eb, jj, 0] + Y[a, i, 1] * W[eb, jj, 1] + Y[a, i, 2] * W[eb, jj, 2]
+                            v = YT[a, 0, i] * W[eb, jj, 0] + YT[a, 1, i] * W[eb, jj, 1] + YT[a, 2, i] * W[eb, jj, 2]
                             S[_U6 * ca + np.uint64(i), _U6 * ca + np.uint64(jj)] -= v
                             S[_U6 * ca + np.uint64(jj), _U6 * ca + np.uint64(i)] -= v
     return S, rhs, Vinv

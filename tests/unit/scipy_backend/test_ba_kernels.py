@@ -4,6 +4,8 @@ the reduced system, compiled with fast-math contraction: to rounding), and again
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 from slamkit_scipy.kernels import ba_reduced_system, ba_retract, cholesky_solve_upper
@@ -122,6 +124,50 @@ def test_reduced_system_is_the_reference(seed: int, twice: bool) -> None:
     assert got[1].shape == want[1].shape
     np.testing.assert_allclose(got[1], want[1], rtol=0.0, atol=1e-12 * np.abs(want[1]).max())
     np.testing.assert_allclose(got[2], want[2], rtol=0.0, atol=1e-12 * np.abs(want[2]).max())
+
+
+def _fma(a: float, b: float, c: float) -> float:
+    """a b + c rounded once (the exact value as a Fraction, then float(): CPython rounds an int ratio correctly)."""
+    return float(Fraction(float(a)) * Fraction(float(b)) + Fraction(float(c)))
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_reduced_system_pair_blocks_to_the_bit(seed: int) -> None:
+    """The SIMD pair updates of ba_reduced_system perform, per entry, exactly the documented fused operations: Y_a[i, k]
+    = fma(W_a[i, 2], Vi[2, k], fma(W_a[i, 1], Vi[1, k], W_a[i, 0] Vi[0, k])); an off-diagonal block entry t = Y_a[i, 2]
+    W_b[j, 2], t = fma(Y_a[i, 1], W_b[j, 1], t), t = fma(Y_a[i, 0], W_b[j, 0], t), S -= t (the same t transposed when
+    c_a > c_b); a diagonal block's upper entry t = Y_a[i, 0] W_a[j, 0], then fma with k = 1, 2. So S's upper triangle
+    equals this exact-FMA reference to the bit; the masked lanes write nothing: a diagonal block's lower triangle is
+    U + lam I, every block below the diagonal blocks 0. (One rounding more or less, or another order, would differ.)"""
+    U, V, W, gc, gp, lam, c, ptr, obs = random_problem(seed, nc=5, npt=30, twice=False)
+    nc, npt = U.shape[0], V.shape[0]
+    S, _, Vinv = ba_reduced_system(U, V, W, gc, gp, lam, c, ptr, obs)
+    want = np.zeros((6 * nc, 6 * nc))
+    for k in range(nc):
+        want[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] = U[k]
+        want[np.arange(6 * k, 6 * k + 6), np.arange(6 * k, 6 * k + 6)] += lam
+    for q in range(npt):
+        Vi = Vinv[q]
+        np.testing.assert_allclose(Vi, _inv3_reference(V[q] + lam * np.eye(3)), rtol=1e-13)
+        rows = [int(e) for e in obs[ptr[q] : ptr[q + 1]]]
+        Y = np.array([[[_fma(W[e, i, 2], Vi[2, k], _fma(W[e, i, 1], Vi[1, k], W[e, i, 0] * Vi[0, k])) for k in range(3)]
+                       for i in range(6)] for e in rows])  # fmt: skip
+        for a, ea in enumerate(rows):
+            for b in range(a, len(rows)):
+                eb = rows[b]
+                ca, cb = int(c[ea]), int(c[eb])
+                for i in range(6):
+                    for j in range(6):
+                        y, w = Y[a, i], W[eb, j]
+                        if ca != cb:
+                            t = _fma(y[0], w[0], _fma(y[1], w[1], y[2] * w[2]))
+                            r, s = (6 * ca + i, 6 * cb + j) if ca < cb else (6 * cb + j, 6 * ca + i)
+                            want[r, s] -= t
+                        elif j >= i:
+                            want[6 * ca + i, 6 * ca + j] -= _fma(y[2], w[2], _fma(y[1], w[1], y[0] * w[0]))
+    upper = np.triu(np.ones(want.shape, bool))
+    assert np.array_equal(S[upper].view(np.int64), want[upper].view(np.int64))
+    assert np.array_equal(S[~upper], want[~upper])  # diagonal blocks' lower triangles U + lam I, 0 elsewhere
 
 
 def test_reduced_system_is_the_schur_complement() -> None:
