@@ -11,7 +11,8 @@ Nothing the pipeline computes changes: a frame's record is what ``observe`` give
 (the extraction depends on the image and the extractor only), and a record is used only when tracking asks for the
 tracking extractor's (``initializing`` False); a frame of a monocular initialisation (ORB-SLAM's bigger initialisation
 extractor) is extracted again by tracking, as before. The front end is called by one thread at a time (a lock): an
-extractor need not be thread-safe.
+extractor need not be thread-safe. The records made are kept apart (a condition): tracking takes a ready record
+without waiting for the extraction ahead of a later frame.
 
 In real time (``runner.realtime_extract_ahead``) the frame source extracts each frame as it releases it, before the
 one-slot mailbox, while tracking works on the frame before: the two threads then take a camera's frames as a two-stage
@@ -46,8 +47,10 @@ class ExtractedAhead:
         self.frontend = frontend
         self.camera = camera
         self._wanted = wanted
-        self._lock = threading.Lock()  # one extraction at a time: the front end's extractors are not shared
+        self._frontend_lock = threading.Lock()  # one extraction at a time: the front end's extractors are not shared
+        self._cond = threading.Condition()  # guards _ready and _in_flight (never held during an extraction)
         self._ready: dict[int, tuple[FrameData, Observations, float]] = {}  # frame index -> (packet, record, ms)
+        self._in_flight: int | None = None  # the frame being extracted ahead now
         self._served_ms: dict[int, float] = {}  # frames whose record came from ahead -> its extraction's ms
         self.extracted = 0  # records made ahead
         self.served = 0  # records tracking took from ahead
@@ -57,22 +60,32 @@ class ExtractedAhead:
         frame itself and meets the error where a frame's failure belongs (its frame number, the run's outputs)."""
         if self._wanted is not None and not self._wanted(data):
             return
+        with self._cond:
+            self._in_flight = data.index
+        made: tuple[FrameData, Observations, float] | None = None
         try:
-            with self._lock:
+            with self._frontend_lock:
                 t0 = time.perf_counter()
                 record = self.frontend.observe(data, self.camera, False)
-                ms = (time.perf_counter() - t0) * 1e3
+                made = (data, record, (time.perf_counter() - t0) * 1e3)
         except Exception as exc:  # tracking extracts this frame itself and reports the error there
             log.debug("frame %d: extraction ahead failed (%s); tracking extracts it", data.index, exc)
-            return
-        with self._lock:
-            self._ready[data.index] = (data, record, ms)
-            self.extracted += 1
+        finally:
+            with self._cond:
+                self._in_flight = None
+                if made is not None:
+                    self._ready[data.index] = made
+                    self.extracted += 1
+                self._cond.notify_all()
 
     def observe(self, data: FrameData, camera: Camera, initializing: bool = False) -> Observations:
         """The record of ``data``: the one extracted ahead (taken once) when it is the tracking extractor's for this
-        packet and camera, else the wrapped front end's ``observe``."""
-        with self._lock:
+        packet and camera, else the wrapped front end's ``observe``. A ready record is taken without waiting for the
+        extraction ahead of a later frame (the front end's lock guards extractions only); a frame whose own
+        extraction ahead is under way is waited for rather than extracted twice."""
+        with self._cond:
+            while self._in_flight == data.index:
+                self._cond.wait()
             ready = self._ready.pop(data.index, None)
             # frames tracking has passed (skipped, or asked with the initialisation extractor) are never asked again
             for index in [i for i in self._ready if i < data.index]:
@@ -81,7 +94,7 @@ class ExtractedAhead:
             self._served_ms[data.index] = ready[2]
             self.served += 1
             return ready[1]
-        with self._lock:
+        with self._frontend_lock:
             return self.frontend.observe(data, camera, initializing)
 
     def served_ms(self, frame_index: int) -> float | None:
