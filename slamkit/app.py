@@ -245,6 +245,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             frame_waits_for=str(cfg.runner.get("frame_waits_for", "local_mapping")),
             extract_ahead=_int_setting(cfg.runner, "extract_ahead", 0, 64, 0),
             realtime_extract_ahead=bool(cfg.runner.get("realtime_extract_ahead", False)),
+            extract_ahead_single_threaded=bool(cfg.runner.get("extract_ahead_single_threaded", False)),
         )
     else:
         runner = SequentialRunner(

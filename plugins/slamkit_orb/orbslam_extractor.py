@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 from slamkit.errors import CalibrationError, ConfigError
 from slamkit.features import Features
 from slamkit.interfaces import Camera
+from slamkit.thread_budget import is_single_threaded
 from slamkit_orb.grid_fast import FAST_BACKENDS, FAST_RADIUS, FastBackend, GridFast
 from slamkit_orb.level_kernel import levels_keypoints
 from slamkit_orb.orientation import circular_patch_extent, intensity_centroid_angles
@@ -115,8 +116,8 @@ class OrbSlamExtractor:
     cell_size_px: nominal grid cell side, px (30).
     edge_threshold: px, no keypoint closer than this to a level's border (19).
     patch_size, half_patch_size: the descriptor patch (31) and the orientation patch radius (15).
-    n_threads: worker threads the pyramid levels are shared among (1: all in the caller's thread). The
-        output does not depend on it.
+    n_threads: worker threads the pyramid levels are shared among (1: all in the caller's thread; so is every
+        extraction a caller runs inside slamkit.thread_budget.single_threaded). The output does not depend on it.
     fast_backend: FAST implementation: "compiled" (fast9.py, numba; faster and holds no GIL) or "opencv"
         (cv2.FastFeatureDetector). The output does not depend on it.
 
@@ -304,7 +305,9 @@ class OrbSlamExtractor:
         return [by_level[level] for level in range(len(pyramid))]
 
     def _executor(self) -> ThreadPoolExecutor | None:
-        if self.n_threads < 2:
+        """The level threads' pool; None (all levels in the calling thread) with one thread, or while the caller
+        asked for its work to stay in its thread (slamkit.thread_budget: extraction beside a busy thread)."""
+        if self.n_threads < 2 or is_single_threaded():
             return None
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=self.n_threads, thread_name_prefix="orb-level")

@@ -21,6 +21,7 @@ pipeline (docs/runtime.md). Not used for frames handed in by a caller (``Threade
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -30,6 +31,7 @@ from typing import Any
 from slamkit.features import Observations
 from slamkit.interfaces import Camera, FrontEnd
 from slamkit.sensors import FrameData
+from slamkit.thread_budget import single_threaded
 
 log = logging.getLogger("slamkit.runtime")
 
@@ -41,12 +43,23 @@ class ExtractedAhead:
 
     wanted: whether a frame read now is worth extracting ahead (the tracker's hint: not while it initialises a map,
     whose frames get the initialisation extractor; a wrong hint costs time only, never a different record).
+    single_threaded: run the extractions ahead inside ``slamkit.thread_budget.single_threaded`` (an extractor's own
+    worker threads, such as the ORB extractor's level threads, are not used; the records are the same).
     """
 
-    def __init__(self, frontend: FrontEnd, camera: Camera, wanted: Callable[[FrameData], bool] | None = None) -> None:
+    def __init__(
+        self,
+        frontend: FrontEnd,
+        camera: Camera,
+        wanted: Callable[[FrameData], bool] | None = None,
+        single_threaded: bool = False,
+    ) -> None:
         self.frontend = frontend
         self.camera = camera
         self._wanted = wanted
+        # extractions ahead keep their work in the frame-source thread (slamkit.thread_budget): beside a busy local
+        # mapping thread, an extractor's own worker threads would take its core
+        self.single_threaded = single_threaded
         self._frontend_lock = threading.Lock()  # one extraction at a time: the front end's extractors are not shared
         self._cond = threading.Condition()  # guards _ready and _in_flight (never held during an extraction)
         self._ready: dict[int, tuple[FrameData, Observations, float]] = {}  # frame index -> (packet, record, ms)
@@ -64,7 +77,7 @@ class ExtractedAhead:
             self._in_flight = data.index
         made: tuple[FrameData, Observations, float] | None = None
         try:
-            with self._frontend_lock:
+            with self._frontend_lock, single_threaded() if self.single_threaded else contextlib.nullcontext():
                 t0 = time.perf_counter()
                 record = self.frontend.observe(data, self.camera, False)
                 made = (data, record, (time.perf_counter() - t0) * 1e3)

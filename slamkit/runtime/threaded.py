@@ -121,6 +121,7 @@ class ThreadedRunner:
         frame_waits_for: str = FRAME_WAITS_FOR_LOCAL_MAPPING,
         extract_ahead: int = 0,
         realtime_extract_ahead: bool = False,
+        extract_ahead_single_threaded: bool = False,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -139,11 +140,15 @@ class ThreadedRunner:
         extract_ahead: as fast as possible only, the frames the frame source reads and extracts features of ahead of
         tracking (slamkit/runtime/extract_ahead.py: the same records, made on the core local mapping leaves idle);
         0: tracking extracts each frame itself. realtime_extract_ahead: in real time, the frame source extracts each
-        frame's features as it releases it (while tracking works on the one before), before the mailbox."""
+        frame's features as it releases it (while tracking works on the one before), before the mailbox.
+        extract_ahead_single_threaded: as fast as possible, the extractions ahead keep their work in the frame-source
+        thread (slamkit.thread_budget; the ORB extractor's level threads are not used): they run beside local
+        mapping, which every frame after a keyframe waits for. Real time: not used."""
         if extract_ahead < 0:
             raise ConfigError(f"runner.extract_ahead = {extract_ahead}: expected a number of frames >= 0 (0: off)")
         self.extract_ahead = int(extract_ahead)
         self.realtime_extract_ahead = bool(realtime_extract_ahead)
+        self.extract_ahead_single_threaded = bool(extract_ahead_single_threaded)
         self._ahead: ExtractedAhead | None = None
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
@@ -498,7 +503,12 @@ class ThreadedRunner:
         paced = not live or bool(getattr(dataset, "paced", False))
         self._ahead = None
         if (self.extract_ahead > 0 and not self.realtime) or (self.realtime and self.realtime_extract_ahead):
-            self._ahead = ExtractedAhead(self.tracker.frontend, camera, self.tracker.uses_tracking_extractor)
+            self._ahead = ExtractedAhead(
+                self.tracker.frontend,
+                camera,
+                self.tracker.uses_tracking_extractor,
+                single_threaded=self.extract_ahead_single_threaded and not self.realtime,
+            )
         self._source = FrameSource(
             frames,
             self.realtime,

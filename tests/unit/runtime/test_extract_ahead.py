@@ -138,3 +138,36 @@ def test_a_ready_record_is_taken_while_a_later_frame_is_being_extracted() -> Non
         source.join(10.0)
     waiting.join(10.0)
     assert second == [("record", 2)] and frontend.calls == [1, 2] and ahead.served == 2
+
+
+def test_single_threaded_extractions_ahead_stay_in_the_frame_source_thread(
+    room: tuple[Any, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """runner.extract_ahead_single_threaded: the ORB extractor's pyramid levels are all detected in the frame source's
+    own thread (none in its level threads), and the record is the one the level threads give."""
+    frontend, dataset = room
+    extractor = frontend.extractor
+    assert extractor.n_threads >= 2  # the room's default: the levels are shared out to worker threads
+    ran_in: list[str] = []
+    level_group = extractor._level_group
+
+    def spy(levels: list[int], pyramid: list[Any]) -> Any:
+        ran_in.append(threading.current_thread().name)
+        return level_group(levels, pyramid)
+
+    monkeypatch.setattr(extractor, "_level_group", spy)
+    data = dataset[3]
+    threads: dict[bool, set[str]] = {}
+    records = {}
+    for single in (False, True):
+        ran_in.clear()
+        ahead = ExtractedAhead(frontend, dataset.camera, single_threaded=single)
+        source = threading.Thread(target=ahead.prepare, args=(data,), name="frame-source")
+        source.start()
+        source.join()
+        records[single] = ahead.observe(data, dataset.camera)
+        assert ahead.served == 1
+        threads[single] = set(ran_in)
+    assert threads[True] == {"frame-source"}
+    assert "frame-source" in threads[False] and len(threads[False]) == 2  # the caller and one level thread
+    _same_record(records[True], records[False])
