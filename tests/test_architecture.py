@@ -18,8 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 CORE = ROOT / "slamkit"
 DOC = ROOT / "docs" / "architecture.md"
 
-#: Plain-data modules every room may import.
-PLAIN = {"errors", "sensors", "features", "problems"}
+#: Plain-data modules every room may import (thread_budget: a per-thread hint, no state beyond a thread-local).
+PLAIN = {"errors", "sensors", "features", "problems", "thread_budget"}
 
 #: room -> rooms it may import (besides itself and PLAIN), as docs/architecture.md's table says.
 ALLOWED: dict[str, set[str]] = {
@@ -27,6 +27,7 @@ ALLOWED: dict[str, set[str]] = {
     "sensors": set(),
     "features": set(),
     "problems": set(),
+    "thread_budget": set(),
     "geometry": set(),
     "interfaces": {"map"},
     "events": {"interfaces"},
