@@ -122,6 +122,7 @@ class ThreadedRunner:
         extract_ahead: int = 0,
         realtime_extract_ahead: bool = False,
         extract_ahead_single_threaded: bool = False,
+        realtime_extract_single_threaded: bool = False,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -143,12 +144,16 @@ class ThreadedRunner:
         frame's features as it releases it (while tracking works on the one before), before the mailbox.
         extract_ahead_single_threaded: as fast as possible, the extractions ahead keep their work in the frame-source
         thread (slamkit.thread_budget; the ORB extractor's level threads are not used): they run beside local
-        mapping, which every frame after a keyframe waits for. Real time: not used."""
+        mapping, which every frame after a keyframe waits for. Real time: not used.
+        realtime_extract_single_threaded: in real time with ``realtime_extract_ahead``, the same for the frame source's
+        extractions: one core extracts while tracking, at a higher priority than local mapping
+        (``background_niceness``), would otherwise take both cores from local mapping for every frame's extraction."""
         if extract_ahead < 0:
             raise ConfigError(f"runner.extract_ahead = {extract_ahead}: expected a number of frames >= 0 (0: off)")
         self.extract_ahead = int(extract_ahead)
         self.realtime_extract_ahead = bool(realtime_extract_ahead)
         self.extract_ahead_single_threaded = bool(extract_ahead_single_threaded)
+        self.realtime_extract_single_threaded = bool(realtime_extract_single_threaded)
         self._ahead: ExtractedAhead | None = None
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
@@ -507,7 +512,9 @@ class ThreadedRunner:
                 self.tracker.frontend,
                 camera,
                 self.tracker.uses_tracking_extractor,
-                single_threaded=self.extract_ahead_single_threaded and not self.realtime,
+                single_threaded=(
+                    self.realtime_extract_single_threaded if self.realtime else self.extract_ahead_single_threaded
+                ),
             )
         self._source = FrameSource(
             frames,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,6 +19,7 @@ from slamkit.app import build_runner
 from slamkit.config import compose_config
 from slamkit.eval.run_metrics import runner_metrics
 from slamkit.pipeline.local_mapping import LocalMapper
+from slamkit.runtime.extract_ahead import ExtractedAhead
 from slamkit.runtime.threaded import ThreadedRunner
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker
 
@@ -389,6 +391,48 @@ def test_preloaded_realtime_playback_holds_every_frame_in_memory_and_restores_th
     assert runner._mapping is not None and runner._mapping.niceness == 5
     if sys.platform.startswith("linux"):
         assert runner._mapping.priority_lowered
+
+
+@pytest.mark.parametrize("single", [False, True])
+def test_realtime_extractions_ahead_stay_in_the_frame_source_thread_when_asked(
+    single: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """runner.realtime_extract_single_threaded: in real time the frame source's extractions detect every pyramid
+    level in its own thread (the extractor's level threads stay idle, leaving a core to local mapping); false: the
+    level threads take part, as in tracking's own extraction."""
+    runner, dataset = _runner(
+        "runner.realtime=true",
+        "runner.speed=8.0",
+        "dataset.max_frames=30",
+        "runner.realtime_extract_ahead=true",
+        f"runner.realtime_extract_single_threaded={str(single).lower()}",
+    )
+    extractor = runner.tracker.frontend.extractor
+    assert extractor.n_threads >= 2
+    # the pyramid levels detected during the frame source's extractions ahead (ExtractedAhead.prepare holds the
+    # front end's lock: no other extraction runs meanwhile), by thread
+    threads: set[str] = set()
+    preparing = threading.Event()
+    level_group, prepare = extractor._level_group, ExtractedAhead.prepare
+
+    def spy(levels: list[int], pyramid: list[Any]) -> Any:
+        if preparing.is_set():
+            threads.add(threading.current_thread().name)
+        return level_group(levels, pyramid)
+
+    def prepared(self: ExtractedAhead, data: Any) -> Any:
+        preparing.set()
+        try:
+            return prepare(self, data)
+        finally:
+            preparing.clear()
+
+    monkeypatch.setattr(extractor, "_level_group", spy)
+    monkeypatch.setattr(ExtractedAhead, "prepare", prepared)
+    log = runner.run(dataset, dataset.camera)
+    assert len(log.tracking) + log.frames_dropped == 30
+    assert "frame-source" in threads
+    assert (threads == {"frame-source"}) == single  # false: the extractor's level threads took part
 
 
 class _RecordedPlayback:
