@@ -122,7 +122,7 @@ class ThreadedRunner:
         extract_ahead: int = 0,
         realtime_extract_ahead: bool = False,
         extract_ahead_single_threaded: bool = False,
-        realtime_extract_single_threaded: bool = False,
+        realtime_extract_single_threaded: bool = True,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
