@@ -72,7 +72,7 @@ def snapshot_bundle(
     store: MapStore,
     free_kf_ids: list[int],
     fixed_kf_ids: list[int],
-    point_ids: list[int],
+    point_ids: list[int] | I64,
     iterations_first: int = 5,
     iterations_second: int = 10,
     chi2_mono: float = 5.991,
@@ -83,8 +83,9 @@ def snapshot_bundle(
     """Copy what a (local or global) BA needs out of the map: the poses of free and fixed keyframes, the
     points, and every observation of those points by those keyframes (ORB-SLAM LocalBundleAdjustment).
 
-    points / flat: ``store.get_points(point_ids)`` and its ``flat_observations`` when the caller has them already
-    (local BA gathers them to find its fixed keyframes); read from the store when None."""
+    flat: the ``flat_observations`` of ``point_ids`` when the caller has them already (local BA gathers them to find
+    its fixed keyframes): the caller vouches that every point is in the map; points: ``store.get_points(point_ids)``
+    when the caller has them (only read when ``flat`` is None). Both are read from the store when None."""
     kf_ids = np.array(list(free_kf_ids) + list(fixed_kf_ids), np.int64)
     keyframes = [store.get_keyframe(int(k)) for k in kf_ids]
     T = np.array([kf.T_c_w for kf in keyframes], np.float64).reshape(-1, 4, 4)
@@ -93,14 +94,17 @@ def snapshot_bundle(
     camera = _bundle_camera(keyframes)
     # every observation of the points by these keyframes, in point order, then keyframe id order (C iterators
     # over the observation dictionaries and one sort: no Python loop per observation)
-    if points is None:
-        points = store.get_points(int(p) for p in point_ids)
-        flat = None
-    if len(points) != len(point_ids):
-        missing = sorted(set(int(p) for p in point_ids) - {p.id for p in points})
-        raise KeyError(f"snapshot_bundle: map points {missing[:5]} are not in the map")
-    point_id_array = np.fromiter((p.id for p in points), np.int64, count=len(points))
-    counts, obs_kf_all, obs_feat_all = flat if flat is not None else flat_observations(points)
+    if flat is None:
+        if points is None:
+            points = store.get_points(int(p) for p in point_ids)
+        if len(points) != len(point_ids):
+            missing = sorted(set(int(p) for p in point_ids) - {p.id for p in points})
+            raise KeyError(f"snapshot_bundle: map points {missing[:5]} are not in the map")
+        flat = flat_observations(points)
+    # every point is in the map (checked above, or vouched for with ``flat``): get_points kept them all, in order,
+    # so the ids of the points are point_ids themselves
+    point_id_array = np.array(point_ids, np.int64).reshape(-1)
+    counts, obs_kf_all, obs_feat_all = flat
     obs_point_s, obs_kf_s, obs_feat_s = sorted_observations(counts, obs_kf_all, obs_feat_all, np.isin(obs_kf_all, kf_ids))
     by_id = np.argsort(kf_ids, kind="stable")
     obs_pose_all = by_id[np.searchsorted(kf_ids[by_id], obs_kf_s)]  # the row of each observer in kf_ids
@@ -108,7 +112,7 @@ def snapshot_bundle(
     # A point behind every camera that sees it (or seen by none of these keyframes) cannot be optimized: it is
     # left out and reported, and the caller erases it (ORB-SLAM would flag all its observations as outliers).
     depth = np.einsum("ej,ej->e", T[obs_pose_all, 2, :3], all_xyz[obs_point_s]) + T[obs_pose_all, 2, 3]
-    usable = np.zeros(len(points), bool)
+    usable = np.zeros(point_id_array.size, bool)
     usable[obs_point_s[depth > 0.0]] = True
     dropped = point_id_array[~usable].tolist()
     pids = point_id_array[usable]

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.interfaces import MapStore
-from slamkit.pipeline.map_points import flat_observations, unique_point_ids
+from slamkit.pipeline.map_points import gather_observations, unique_point_ids
 
 I64 = NDArray[np.int64]
 B = NDArray[np.bool_]
@@ -71,17 +71,6 @@ def _count_redundant(
     return n_points, redundant
 
 
-def _gather_observations(store: MapStore, point_ids: I64) -> tuple[I64, I64, I64]:
-    """:func:`~slamkit.pipeline.map_points.flat_observations` of the points ``point_ids`` (P,), all in the map: through
-    the store's own ``flat_observations`` where it has one (InMemoryMapStore: its plain dictionaries, not the points'
-    read-only views), else from ``get_points``. -> (counts (P,), kf (E,), feat (E,))."""
-    own = getattr(store, "flat_observations", None)
-    if own is not None:
-        counts, kf, feat = own(point_ids)
-        return np.asarray(counts, np.int64), np.asarray(kf, np.int64), np.asarray(feat, np.int64)
-    return flat_observations(store.get_points(point_ids.tolist()))
-
-
 class ObservationTable:
     """Every observation of the points seen by some keyframes, grouped by point (CSR: rows ptr[q]:ptr[q+1]).
 
@@ -93,7 +82,7 @@ class ObservationTable:
         self.store = store
         ids = unique_point_ids([store.get_keyframe(k).point_ids for k in kf_ids])
         self.point_ids = ids[store.has_points(ids)].astype(np.int64)
-        counts, self.obs_kf, feat = _gather_observations(store, self.point_ids)
+        counts, self.obs_kf, feat = gather_observations(store, self.point_ids)
         self.ptr = np.zeros(counts.size + 1, np.int64)
         np.cumsum(counts, out=self.ptr[1:])
         self.obs_level = np.zeros(self.obs_kf.size, np.int64)

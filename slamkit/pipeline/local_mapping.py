@@ -34,7 +34,7 @@ from slamkit.pipeline.map_points import (
     add_observations,
     add_points,
     create_depth_points,
-    flat_observations,
+    gather_observations,
     new_pair_points,
     orbslam_observation_counts,
     refresh_points,
@@ -517,15 +517,18 @@ class LocalMapper:
             local = [kf.id, *store.covisibility.neighbors(kf.id)]
             origin = store.origin_keyframe_id()
             free = [k for k in local if k != origin]
-            seen = np.unique(np.concatenate([store.get_keyframe(k).point_ids for k in local]))
-            pids = seen[seen >= 0].tolist()
-            points = store.get_points(pids)
-            flat = flat_observations(points)
-            observers = np.unique(flat[1])
+            # the local points (sorted ids) and their observations, by a mark per id and from the store's own
+            # dictionaries (np.unique of ~30k ids sorted them; the points' read-only views were walked)
+            pids = unique_point_ids([store.get_keyframe(k).point_ids for k in local])
+            missing = ~store.has_points(pids)
+            if missing.any():  # a keyframe's point_ids name only points of the map
+                raise KeyError(f"local BA: map points {pids[missing][:5].tolist()} are not in the map")
+            flat = gather_observations(store, pids)
+            observers = unique_point_ids([flat[1]])  # the observing keyframes' ids, sorted
             fixed = np.setdiff1d(observers, np.array(free, np.int64)).tolist()
             if not fixed and free:
                 fixed = [free.pop(free.index(min(free)))]
-            if not free or not pids:
+            if not free or not pids.size:
                 return 0, False
             cfg = self.cfg
             snap = snapshot_bundle(
@@ -537,7 +540,6 @@ class LocalMapper:
                 cfg.ba_iterations_second,
                 cfg.chi2.mono,
                 cfg.chi2.stereo,
-                points=points,
                 flat=flat,
             )
         result = run_bundle(store, self.optimizer, snap, abort, self.cfg.ba_point_bad_max_observations)

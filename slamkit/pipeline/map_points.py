@@ -184,6 +184,17 @@ def flat_observations(points: Sequence[MapPoint]) -> tuple[I64, I64, I64]:
     return counts, kf, feat
 
 
+def gather_observations(store: MapStore, point_ids: I64) -> tuple[I64, I64, I64]:
+    """:func:`flat_observations` of the points ``point_ids`` (P,), all in the map: through the store's own
+    ``flat_observations`` where it has one (InMemoryMapStore: its plain dictionaries, not the points' read-only
+    views), else from ``get_points``. -> (counts (P,), kf (E,), feat (E,))."""
+    own = getattr(store, "flat_observations", None)
+    if own is not None:
+        counts, kf, feat = own(point_ids)
+        return np.asarray(counts, np.int64), np.asarray(kf, np.int64), np.asarray(feat, np.int64)
+    return flat_observations(store.get_points(np.asarray(point_ids, np.int64).tolist()))
+
+
 def sorted_observations(counts: I64, kf: I64, feat: I64, keep: NDArray[np.bool_] | None = None) -> tuple[I64, I64, I64]:
     """The rows of flat_observations grouped by point and, within a point, in keyframe-id order (the order of
     ``for kf_id in sorted(point.observations)``), only those with ``keep`` (E,) when given.

@@ -11,7 +11,13 @@ import pytest
 from slamkit.map.entities import MapPoint
 from slamkit.map.store import InMemoryMapStore
 from slamkit.pipeline.bundle import snapshot_bundle
-from slamkit.pipeline.map_points import flat_observations, refresh_points, sorted_observations
+from slamkit.pipeline.map_points import (
+    flat_observations,
+    gather_observations,
+    refresh_points,
+    sorted_observations,
+    unique_point_ids,
+)
 from tests.unit.pipeline.test_map_point_refresh import random_map, reference_refresh
 
 
@@ -87,6 +93,60 @@ def test_snapshot_rows_are_the_per_point_loop(seed: int) -> None:
         np.testing.assert_array_equal(prob.uv_px[e], feats.uv_undist_px[f])
         assert prob.level[e] == feats.level[f]
     np.testing.assert_array_equal(prob.T_c_w, np.array([store.get_keyframe(k).T_c_w for k in free + fixed]))
+
+
+class _ViewsOnlyStore:
+    """A store without InMemoryMapStore's own ``flat_observations``: gather_observations reads the points' views."""
+
+    def __init__(self, store: InMemoryMapStore) -> None:
+        self._store = store
+
+    def get_points(self, point_ids: list[int]) -> list[MapPoint]:
+        return self._store.get_points(point_ids)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_local_ba_gather_is_the_points_gather(seed: int) -> None:
+    """Local BA's gather (the sorted local point ids by unique_point_ids, their observations by gather_observations,
+    the snapshot given only ``flat``) builds the problem of the former path (np.unique, get_points, flat_observations,
+    the snapshot given the points too) array for array, to the bit."""
+    store = shuffled_map(seed)
+    kf_ids = store.keyframe_ids()
+    local = kf_ids[2:]
+    free = local[1:]
+    seen = np.unique(np.concatenate([store.get_keyframe(k).point_ids for k in local]))
+    pids_old = seen[seen >= 0].tolist()
+    points = store.get_points(pids_old)
+    flat_old = flat_observations(points)
+    pids_new = unique_point_ids([store.get_keyframe(k).point_ids for k in local])
+    flat_new = gather_observations(store, pids_new)
+    assert pids_new.dtype == np.int64 and pids_new.tolist() == pids_old
+    assert [a.tolist() for a in flat_new] == [a.tolist() for a in flat_old]
+    assert [a.tolist() for a in gather_observations(_ViewsOnlyStore(store), pids_new)] == [a.tolist() for a in flat_old]  # type: ignore[arg-type]
+    observers_old = np.unique(flat_old[1])
+    observers_new = unique_point_ids([flat_new[1]])
+    assert observers_new.tolist() == observers_old.tolist()
+    fixed = np.setdiff1d(observers_new, np.array(free, np.int64)).tolist()
+    assert fixed  # keyframes outside the window observe some local points: fixed ones
+    old = snapshot_bundle(store, free, fixed, pids_old, points=points, flat=flat_old)
+    new = snapshot_bundle(store, free, fixed, pids_new, flat=flat_new)
+    for name in ("kf_ids", "point_ids", "obs_kf_ids", "obs_feature"):
+        np.testing.assert_array_equal(getattr(new, name), getattr(old, name))
+    assert new.dropped_point_ids == old.dropped_point_ids
+    for field in (
+        "T_c_w",
+        "pose_fixed",
+        "xyz_w",
+        "obs_pose",
+        "obs_point",
+        "uv_px",
+        "u_right_px",
+        "level",
+        "intrinsics",
+    ):
+        a, b = getattr(new.problem, field), getattr(old.problem, field)
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
 
 
 def test_refresh_of_shuffled_observations_follows_the_per_point_rules() -> None:
