@@ -1,0 +1,50 @@
+"""Fusion's closing refresh (LocalMapper._search_in_neighbors) recomputes only the new keyframe's points whose
+observations changed since insertion refreshed them (LocalMapper._changed_points): on real maps (the synthetic room,
+monocular and RGB-D, sequential runner) refreshing the points it leaves out rewrites none of their bits."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slamkit.app import build_runner
+from slamkit.config import compose_config
+from slamkit.map.entities import KeyFrame
+from slamkit.pipeline import local_mapping
+from slamkit.pipeline.map_points import refresh_points
+
+ATTRIBUTES = ("normal_w", "d_min_m", "d_max_m", "descriptor")
+
+
+@pytest.mark.parametrize(
+    "overrides", [["dataset.max_frames=70"], ["frontend=rgbd", "dataset.max_frames=30"]], ids=["mono", "rgbd"]
+)
+def test_points_the_closing_refresh_leaves_out_hold_what_a_refresh_would_write(
+    monkeypatch: pytest.MonkeyPatch, overrides: list[str]
+) -> None:
+    changed_points = local_mapping.LocalMapper._changed_points
+    counts = {"observed": 0, "left_out": 0}
+
+    def checked(mapper: local_mapping.LocalMapper, kf: KeyFrame) -> np.ndarray:
+        changed = changed_points(mapper, kf)
+        store = mapper.store
+        ids = np.unique(kf.point_ids[kf.point_ids >= 0])
+        ids = ids[store.has_points(ids)]
+        left_out = np.setdiff1d(ids, changed)
+        counts["observed"] += int(ids.size)
+        counts["left_out"] += int(left_out.size)
+        if left_out.size:
+            before = {a: store.point_rows(left_out, a) for a in ATTRIBUTES}
+            refresh_points(store, left_out.tolist())  # the old closing refresh of these points
+            for a in ATTRIBUTES:
+                after = store.point_rows(left_out, a)
+                assert np.array_equal(before[a].view(np.uint8), after.view(np.uint8)), a  # bit for bit
+        return changed
+
+    monkeypatch.setattr(local_mapping.LocalMapper, "_changed_points", checked)
+    cfg = compose_config(["runner=sequential", "runner.progress=false", "optimizer.worker=inline", *overrides])
+    runner, dataset = build_runner(cfg)
+    runner.run(dataset, dataset.camera)
+    # the path is exercised: most points are left out (fusion changes the observations of a minority)
+    assert counts["observed"] > 1000
+    assert counts["left_out"] > counts["observed"] // 4
