@@ -26,7 +26,7 @@ from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.frame import keyframe_cameras, keyframe_view
-from slamkit.pipeline.fusion import fuse_points
+from slamkit.pipeline.fusion import KeyFramePoints, fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.keyframe_pins import KeyFramePins
@@ -480,14 +480,14 @@ class LocalMapper:
                         targets.append(n2)
                         seen.add(n2)
         fused = 0
+        own = KeyFramePoints(kf)  # kf's points with their rows, re-gathered only where a merge changed them
         for t_id in targets:  # one short write phase per target
             with store.write():
                 if store.has_keyframe(t_id):
-                    pids = kf.point_ids[kf.point_ids >= 0].tolist()
                     fused += fuse_points(
                         store,
                         store.get_keyframe(t_id),
-                        pids,
+                        own.update(store),
                         cfg.fuse_search_radius_px,
                         max_distance=cfg.matcher.th_low,
                         chi2_gate=cfg.chi2.fuse_mono,
