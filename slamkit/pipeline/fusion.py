@@ -47,6 +47,53 @@ def absent_from(ids: I64, own: I64) -> NDArray[np.bool_]:  # pragma: no cover - 
     return out
 
 
+class KeyFramePoints:
+    """The points one keyframe observes as fusion candidates, with the rows fusion's frustum test reads (position,
+    normal, depth range), kept across the passes that fuse them into one neighbour after another (local mapping's
+    SearchInNeighbors: ~20-25 passes per keyframe). :meth:`update` re-reads the keyframe's point ids and which of
+    them are in the map, and gathers the rows only at the keypoints whose point changed since the last pass (a merge
+    puts the surviving point there): the same ids, in the same (keypoint) order, with the same rows as
+    ``store.point_rows`` of ``kf.point_ids[kf.point_ids >= 0]`` in the map, provided no point's position, normal or
+    depth range moves between the passes (fusion refreshes descriptors only; local BA runs after it)."""
+
+    def __init__(self, kf: KeyFrame) -> None:
+        """kf: the keyframe whose points are fused (its ``point_ids`` (N,) read at each update)."""
+        self.kf = kf
+        n = kf.point_ids.shape[0]
+        self._at = np.full(n, -1, np.int64)  # the point whose rows each keypoint's slot holds (-1: none)
+        self._xyz = np.zeros((n, 3))
+        self._normal = np.zeros((n, 3))
+        self._d_min = np.zeros(n)
+        self._d_max = np.zeros(n)
+        self.ids = np.zeros(0, np.int64)
+        self.xyz_w = np.zeros((0, 3))
+        self.normal_w = np.zeros((0, 3))
+        self.d_min_m = np.zeros(0)
+        self.d_max_m = np.zeros(0)
+
+    def update(self, store: MapStore) -> KeyFramePoints:
+        """Read the keyframe's points now: ids (K,) in keypoint order, xyz_w (K, 3) m, normal_w (K, 3), d_min_m and
+        d_max_m (K,) m (world frame). Returns self."""
+        pids = np.asarray(self.kf.point_ids, np.int64)
+        slots = np.flatnonzero(pids >= 0)
+        slots = slots[store.has_points(pids[slots])]
+        ids = pids[slots]
+        stale = slots[self._at[slots] != ids]
+        if stale.size:
+            fresh = pids[stale]
+            self._xyz[stale] = store.point_rows(fresh, "xyz_w")
+            self._normal[stale] = store.point_rows(fresh, "normal_w")
+            self._d_min[stale] = store.point_rows(fresh, "d_min_m")
+            self._d_max[stale] = store.point_rows(fresh, "d_max_m")
+            self._at[stale] = fresh
+        self.ids = ids
+        self.xyz_w = self._xyz[slots]
+        self.normal_w = self._normal[slots]
+        self.d_min_m = self._d_min[slots]
+        self.d_max_m = self._d_max[slots]
+        return self
+
+
 def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool = True) -> None:
     """Move every observation of ``old`` to ``new`` (where ``new`` is not already observed) and erase old.
 
@@ -60,7 +107,7 @@ def replace_point(store: MapStore, old: MapPoint, new: MapPoint, refresh: bool =
 def fuse_points(
     store: MapStore,
     kf: KeyFrame,
-    point_ids: list[int] | I64,
+    point_ids: list[int] | I64 | KeyFramePoints,
     radius_px: float,
     incoming_wins: bool = False,
     *,
@@ -80,6 +127,8 @@ def fuse_points(
     candidate in the window before the descriptor comparison: 3 dof with the right coordinate (u_R = u - bf / z)
     against this threshold (pipeline.chi2.stereo_rounded, 7.8), 2 dof against ``chi2_gate`` for a candidate without
     one. None, or a monocular keyframe: the 2-dof gate on the best match only (slamkit's monocular fusion).
+
+    point_ids: the ids, or a :class:`KeyFramePoints` updated for this call (its ids with the rows it holds).
 
     refresh_survivors=False (a one-camera keyframe): the merges' surviving points keep their descriptors; the caller
     refreshes the descriptors of every point ``kf`` observes before anything reads them (local mapping's
@@ -125,7 +174,7 @@ def _fuse_view(
     kf: KeyFrame,
     view: KeyFrame,
     taken: NDArray[np.bool_] | None,
-    point_ids: list[int] | I64,
+    point_ids: list[int] | I64 | KeyFramePoints,
     radius_px: float,
     incoming_wins: bool,
     max_distance: int,
@@ -136,23 +185,35 @@ def _fuse_view(
     """fuse_points into one camera of ``kf``: ``view`` gives the pose and camera model (``kf`` itself for a one-camera
     keyframe, :func:`keyframe_view`), ``taken`` (N,) the keypoints of the other camera (None: none)."""
     kf_id = kf.id
-    ids = np.asarray(point_ids if isinstance(point_ids, np.ndarray) else list(point_ids), np.int64).reshape(-1)
-    ids = ids[store.has_points(ids)]
+    held = point_ids if isinstance(point_ids, KeyFramePoints) else None
+    if isinstance(point_ids, KeyFramePoints):
+        ids = point_ids.ids
+    else:
+        ids = np.asarray(point_ids if isinstance(point_ids, np.ndarray) else list(point_ids), np.int64).reshape(-1)
+        ids = ids[store.has_points(ids)]
     # leave out the points kf observes already: an observation is recorded in both directions (MapStore.add_observation:
     # point.observations[kf] = f and kf.point_ids[f] = point), so they are the candidates among kf's point_ids
-    ids = ids[absent_from(ids, kf.point_ids)]
+    keep = absent_from(ids, kf.point_ids)
+    if held is not None and taken is not None:  # a two-camera keyframe's second view: the first's merges erased some
+        keep &= store.has_points(ids)
+    ids = ids[keep]
     if not ids.size or len(kf.features) == 0:
         return 0
     feats = kf.features
     bounds = ImageBounds.of(view.camera)
+    if held is not None:
+        xyz, normal, d_min, d_max = held.xyz_w[keep], held.normal_w[keep], held.d_min_m[keep], held.d_max_m[keep]
+    else:
+        xyz, normal = store.point_rows(ids, "xyz_w"), store.point_rows(ids, "normal_w")
+        d_min, d_max = store.point_rows(ids, "d_min_m"), store.point_rows(ids, "d_max_m")
     test = frustum_test(
         view.T_c_w,
         view.camera,
         bounds,
-        store.point_rows(ids, "xyz_w"),
-        store.point_rows(ids, "normal_w"),
-        store.point_rows(ids, "d_min_m"),
-        store.point_rows(ids, "d_max_m"),
+        xyz,
+        normal,
+        d_min,
+        d_max,
         0.5,
         feats.scale_factor,
         feats.n_levels,

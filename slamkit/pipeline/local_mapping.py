@@ -26,7 +26,7 @@ from slamkit.map.entities import KeyFrame
 from slamkit.pipeline.bundle import run_bundle, snapshot_bundle
 from slamkit.pipeline.config import LocalMappingConfig
 from slamkit.pipeline.frame import keyframe_cameras, keyframe_view
-from slamkit.pipeline.fusion import fuse_points
+from slamkit.pipeline.fusion import KeyFramePoints, fuse_points
 from slamkit.pipeline.keyframe_culling import ObservationTable
 from slamkit.pipeline.keyframe_insertion import insert_keyframe
 from slamkit.pipeline.keyframe_pins import KeyFramePins
@@ -72,6 +72,9 @@ class LocalMapper:
         self.optimizer = optimizer
         self.place = place  # describes each keyframe with a bag of words (ORB-SLAM ProcessNewKeyFrame)
         self.recent_points: list[int] = []
+        # (keyframe id, its point ids (sorted), their observation counts) right after insertion's refresh of them:
+        # fusion's closing refresh recomputes only the points whose observations changed since (_changed_points)
+        self._inserted: tuple[int, I64, I64] | None = None
 
     @property
     def store(self) -> MapStore:
@@ -122,7 +125,9 @@ class LocalMapper:
         points that VI-B's culling checks."""
         store = self.store
         cull_own = self.cfg.new_map_points_culled_stereo if kf.features.bf > 0.0 else self.cfg.new_map_points_culled
-        if not insert_keyframe(store, kf) and cull_own:
+        inserted = insert_keyframe(store, kf)
+        self._inserted = (kf.id, *_observation_counts(store, kf.point_ids)) if inserted else None
+        if not inserted and cull_own:
             own = store.get_keyframe(kf.id).point_ids
             own = own[own >= 0]
             known = set(self.recent_points)
@@ -475,14 +480,14 @@ class LocalMapper:
                         targets.append(n2)
                         seen.add(n2)
         fused = 0
+        own = KeyFramePoints(kf)  # kf's points with their rows, re-gathered only where a merge changed them
         for t_id in targets:  # one short write phase per target
             with store.write():
                 if store.has_keyframe(t_id):
-                    pids = kf.point_ids[kf.point_ids >= 0].tolist()
                     fused += fuse_points(
                         store,
                         store.get_keyframe(t_id),
-                        pids,
+                        own.update(store),
                         cfg.fuse_search_radius_px,
                         max_distance=cfg.matcher.th_low,
                         chi2_gate=cfg.chi2.fuse_mono,
@@ -503,9 +508,26 @@ class LocalMapper:
                     refresh_survivors=False,  # the refresh below covers them (each holds a keypoint of kf)
                 )
             # in the same write phase: nobody reads a merge's survivor before its descriptor is refreshed
-            refresh_points(store, kf.point_ids[kf.point_ids >= 0].tolist())
+            refresh_points(store, self._changed_points(kf).tolist())
             store.update_connections(kf.id)
         return fused
+
+    def _changed_points(self, kf: KeyFrame) -> I64:
+        """The points ``kf`` observes (ids (K,)) whose normal, depth range and descriptor a refresh could change since
+        insertion refreshed them: those it did not refresh (triangulated, fused in, or a keyframe of a new map, which
+        initialisation inserted) and those whose number of observations changed. Within one keyframe's step, until
+        its local BA, the observations of a point in the map only grow (fusion adds observations of keyframes that
+        do not observe the point, and a replacement adds to the survivor; removals come with local BA's outliers and
+        keyframe culling, and loop correction parks local mapping between keyframes) and no position moves, so an
+        unchanged count is an unchanged set of observations and the refresh would compute the values it holds."""
+        ids = kf.point_ids[kf.point_ids >= 0]
+        if self._inserted is None or self._inserted[0] != kf.id:
+            return ids
+        _, before, counts = self._inserted
+        ids, now = _observation_counts(self.store, ids)
+        at = np.minimum(np.searchsorted(before, ids), max(before.size - 1, 0))
+        same = (before[at] == ids) & (counts[at] == now) if before.size else np.zeros(ids.size, bool)
+        return ids[~same]
 
     # ---- VI-D (local BA) -----------------------------------------------------------------------------
 
@@ -709,6 +731,15 @@ def _pinhole_intrinsics(kf: KeyFrame) -> F64:
     cam = kf.camera
     assert isinstance(cam, PinholeCamera)
     return np.array([cam.fx, cam.fy, cam.cx, cam.cy], np.float64)
+
+
+def _observation_counts(store: MapStore, point_ids: I64) -> tuple[I64, I64]:
+    """The distinct ids among ``point_ids`` (-1: no point) of points in the map, sorted (K,), and each one's number
+    of observing keyframes (K,)."""
+    ids = np.unique(point_ids[point_ids >= 0])
+    ids = ids[store.has_points(ids)]
+    counts = np.fromiter((len(p.observations) for p in store.get_points(ids.tolist())), np.int64, count=ids.size)
+    return ids, counts
 
 
 def _median_depth(kf: KeyFrame, store: MapStore) -> float:

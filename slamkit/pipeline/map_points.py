@@ -96,7 +96,8 @@ def _refresh_kernel(
     -> normal (P, 3) and has_normal (P,): mean of the unit vectors camera centre -> point, normalised;
        d_min, d_max (P,) m from the reference observation ref_row[q] (NaN when it has none);
        best (P,) the observation row with the least median Hamming distance to the others (first on ties),
-       -1 when the point has no observation.
+       -1 when the point has no observation. A row whose median cannot beat the best so far (counted, not sorted)
+       is skipped: the same ``best`` as sorting every row.
 
     normals=False leaves normal / has_normal / d_min / d_max at zero / False / NaN (``center`` and ``ref_row`` are
     not read); descriptors=False leaves best at -1 (``desc64`` is not read): the caller does not use them.
@@ -131,8 +132,19 @@ def _refresh_kernel(
                     d = row_distance(desc64, s + a, desc64, s + b)
                     dmat[a, b] = d
                     dmat[b, a] = d
+            lower = (n - 1) // 2
             best_median = np.inf
             for a in range(n):
+                if a > 0:
+                    # row a's median is at least its lower middle value r[lower], which is >= best_median when at
+                    # most ``lower`` of its entries are below best_median: then the row cannot win (strict <), and
+                    # one counting pass skips its sort (the rows after the best so far mostly end here)
+                    below = 0
+                    for b in range(n):
+                        if dmat[a, b] < best_median:
+                            below += 1
+                    if below <= lower:
+                        continue
                 if n <= 24:  # row a sorted by insertion (short rows: a point's observations)
                     for b in range(n):
                         v = dmat[a, b]

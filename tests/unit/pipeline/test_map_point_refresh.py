@@ -228,3 +228,43 @@ def test_culling_count_matches_the_per_observation_loop_while_culling(seed: int,
             table.cull(k, erased)
             batch.cull(k, erased)
     assert redundant_seen > 0 and erased_seen > 0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_descriptor_choice_skipping_rows_equals_the_full_median_argmin(seed: int) -> None:
+    """The kernel skips a row whose median cannot beat the best so far (a count, no sort): its choice stays
+    np.argmin of every row's np.median (first on ties), for clustered descriptors (a point's real observations: near
+    copies plus outliers, many equal medians) and uniform ones, 2 to 60 observations (both sorts, n <= 24 and > 24)."""
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(2, 61, 400)
+    rows: list[np.ndarray] = []
+    for q, n in enumerate(sizes.tolist()):
+        if q % 3 == 2:
+            rows.append(rng.integers(0, 256, (n, 32), dtype=np.uint8))
+            continue
+        base = rng.integers(0, 256, 32, dtype=np.uint8)
+        flips = rng.random((n, 256)) < rng.choice([0.0, 0.02, 0.1])
+        near = np.packbits(np.unpackbits(base)[None, :] ^ flips, axis=1)
+        outlier = rng.random(n) < 0.2
+        near[outlier] = rng.integers(0, 256, (int(outlier.sum()), 32), dtype=np.uint8)
+        rows.append(near)
+    ptr = np.zeros(sizes.size + 1, np.int64)
+    np.cumsum(sizes, out=ptr[1:])
+    desc = np.ascontiguousarray(np.concatenate(rows))
+    P, E = sizes.size, int(ptr[-1])
+    *_, best = map_points._refresh_kernel(
+        np.zeros((P, 3)),
+        ptr,
+        np.zeros((E, 3)),
+        desc.view(np.uint64),
+        np.full(P, -1, np.int64),
+        np.zeros(E, np.int64),
+        np.ones(P),
+        np.ones(P, np.int64),
+        False,
+        True,
+    )
+    for q in range(P):
+        d = rows[q]
+        bits = np.unpackbits(d[:, None, :] ^ d[None, :, :], axis=2).sum(axis=2)
+        assert best[q] == ptr[q] + int(np.argmin(np.median(bits, axis=1)))
