@@ -122,6 +122,7 @@ class ThreadedRunner:
         extract_ahead: int = 0,
         realtime_extract_ahead: bool = False,
         extract_ahead_single_threaded: bool = False,
+        realtime_extract_ahead_init: bool = False,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -143,12 +144,16 @@ class ThreadedRunner:
         frame's features as it releases it (while tracking works on the one before), before the mailbox.
         extract_ahead_single_threaded: as fast as possible, the extractions ahead keep their work in the frame-source
         thread (slamkit.thread_budget; the ORB extractor's level threads are not used): they run beside local
-        mapping, which every frame after a keyframe waits for. Real time: not used."""
+        mapping, which every frame after a keyframe waits for. Real time: not used.
+        realtime_extract_ahead_init: with ``realtime_extract_ahead``, the frames of a monocular initialisation are
+        extracted ahead too, with the initialisation extractor (the same records; tracking then spends only the
+        initialisation attempt on each); False: tracking extracts them itself."""
         if extract_ahead < 0:
             raise ConfigError(f"runner.extract_ahead = {extract_ahead}: expected a number of frames >= 0 (0: off)")
         self.extract_ahead = int(extract_ahead)
         self.realtime_extract_ahead = bool(realtime_extract_ahead)
         self.extract_ahead_single_threaded = bool(extract_ahead_single_threaded)
+        self.realtime_extract_ahead_init = bool(realtime_extract_ahead_init)
         self._ahead: ExtractedAhead | None = None
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
@@ -508,6 +513,7 @@ class ThreadedRunner:
                 camera,
                 self.tracker.uses_tracking_extractor,
                 single_threaded=self.extract_ahead_single_threaded and not self.realtime,
+                initialisation=self.realtime and self.realtime_extract_ahead_init,
             )
         self._source = FrameSource(
             frames,
