@@ -169,33 +169,40 @@ def check_motion_screened(
         P1, P2, center2, uv1, uv2, float(max_reproj_err_px), float(max_cos_parallax), _AT_INFINITY
     )
     exact = np.zeros(idx.size, dtype=bool)
+    center1 = np.zeros(3)
 
-    def settle(rows: NDArray[np.bool_]) -> None:
-        """The rows' points and tests by check_motion's arithmetic (the tests on every row, at its position)."""
+    def solve(rows: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """The rows' points by check_motion's DLT (row by row its arithmetic); returns the rows new to it."""
         new = rows & ~exact
-        if not new.any():
-            return
-        xyz[new] = triangulate_points(_IDENTITY, T_cur_ref, K, K, uv1[new], uv2[new])
+        if new.any():
+            xyz[new] = triangulate_points(_IDENTITY, T_cur_ref, K, K, uv1[new], uv2[new])
+            par_margin[new] = 0.0
+            exact[new] = True
+        return new
+
+    new = solve(unsure)
+    if new.any():  # their tests by check_motion's arithmetic, run on every row (each at its position there)
         p, n, g = _point_tests(T_cur_ref, K, xyz, uv1, uv2, max_reproj_err_px, max_cos_parallax)
         par[new], near[new], good[new] = p[new], n[new], g[new]
-        par_margin[new] = 0.0
-        exact[new] = True
-
-    settle(unsure)
     n_good = int(good.sum())
     parallax = 0.0
     if n_good > 0:
         k = min(parallax_rank, n_good - 1)
-        par_good = par[good]
-        approx = float(np.sort(par_good)[::-1][k])
-        # the screened parallaxes are within their margins of the exact ones (radians, x10 for safety), so the exact
-        # k-th largest is within the widest margin of the screened k-th: only the points that close to it are solved
-        width = float(np.degrees(10.0 * np.max(par_margin[good]))) + 1e-12
-        band = good & (np.abs(par - approx) <= width)
-        settle(band)
-        above = int(np.sum(good & ~band & (par > approx)))
+        # each exact parallax lies in [par - w, par + w] (w: the screen's margin, radians, x10 for safety; 0 where
+        # solved exactly), so the exact k-th largest lies between the k-th largest lower and upper ends: a point whose
+        # interval lies wholly above (below) that range is above (below) it; the rest are solved exactly
+        w = np.degrees(10.0 * par_margin) + 1e-12 * (par_margin > 0)
+        lo, hi = par - w, par + w
+        kth_lo = float(np.sort(lo[good])[::-1][k])
+        kth_hi = float(np.sort(hi[good])[::-1][k])
+        above = good & (lo > kth_hi)
+        band = good & ~above & (hi >= kth_lo)
+        if solve(band).any():
+            # check_motion's parallax arithmetic, on every row (each at its position there)
+            par[band] = parallax_deg(xyz, center1, center2)[band]
         ranked = np.sort(par[band])[::-1]
-        if not 0 <= k - above < ranked.size:
+        n_above = int(above.sum())
+        if not 0 <= k - n_above < ranked.size:
             return check_motion(
                 R,
                 t,
@@ -207,7 +214,7 @@ def check_motion_screened(
                 max_cos_parallax=max_cos_parallax,
                 parallax_rank=parallax_rank,
             )
-        parallax = float(ranked[k - above])
+        parallax = float(ranked[k - n_above])
     triangulated[idx[good & ~near]] = True
     return HypothesisCheck(n_good, parallax, xyz_none, triangulated)
 
