@@ -103,10 +103,10 @@ def main() -> None:
     tracker.frontend = RecordedFrontEnd(tracker.frontend, records)
     timings: dict[str, float] = {}
     init = tracker.init
-    init.match = _timed(init.match, timings, "match_ms")  # type: ignore[method-assign]
+    init.match = _timed(init.match, timings, "match_ms")
     init.initializer.initialize = _timed(init.initializer.initialize, timings, "initialize_ms")
     real_create = tracker_module.create_initial_map
-    tracker_module.create_initial_map = _timed(real_create, timings, "create_map_ms")  # type: ignore[assignment]
+    tracker_module.create_initial_map = _timed(real_create, timings, "create_map_ms")
 
     samples: dict[int, dict[str, list[float]]] = {}
     first: dict[int, dict[str, float]] = {}  # the first pass (after the tracker's warm-up), as a run's first attempts
