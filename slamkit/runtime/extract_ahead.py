@@ -9,11 +9,12 @@ observation record ready and the extraction runs on the core local mapping leave
 
 Nothing the pipeline computes changes: a frame's record is what ``observe`` gives for it whichever thread runs it
 (the extraction depends on the image and the extractor only), and a record is used only when tracking asks for the
-tracking extractor's (``initializing`` False); a frame of a monocular initialisation (ORB-SLAM's bigger initialisation
-extractor) is extracted again by tracking, as before, unless ``initialisation`` (real time): the frame source then
-extracts such a frame with the initialisation extractor, and the record is served when tracking asks for that one. The front end is called by one thread at a time (a lock): an
-extractor need not be thread-safe. The records made are kept apart (a condition): tracking takes a ready record
-without waiting for the extraction ahead of a later frame.
+extractor it was made with; a frame of a monocular initialisation (ORB-SLAM's bigger initialisation extractor) is
+extracted by tracking, as before, unless ``initialisation`` (real time, ``runner.realtime_extract_ahead_init``): the
+frame source then extracts such a frame with the initialisation extractor, and the record is served when tracking asks
+for that one. The front end is called by one thread at a time (a lock): an extractor need not be thread-safe. The
+records made are kept apart (a condition): tracking takes a ready record without waiting for the extraction ahead of a
+later frame.
 
 In real time (``runner.realtime_extract_ahead``) the frame source extracts each frame as it releases it, before the
 one-slot mailbox, while tracking works on the frame before: the two threads then take a camera's frames as a two-stage

@@ -461,7 +461,7 @@ def test_loop_detection_runs_without_parking_local_mapping(monkeypatch: pytest.M
 
 @pytest.mark.parametrize("ahead_init", [True, False])
 def test_realtime_extraction_ahead_of_a_monocular_initialisations_frames(ahead_init: bool) -> None:
-    """``runner.realtime_extract_ahead_init`` (default true): in real time the frame source extracts the frames of a
+    """``runner.realtime_extract_ahead_init`` (default false): in real time the frame source extracts the frames of a
     monocular initialisation ahead too, with the initialisation extractor (ORB-SLAM's 2x features), and tracking is
     served those records; false: tracking extracts them itself, as before."""
     runner, dataset = _runner(

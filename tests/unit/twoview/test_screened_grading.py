@@ -14,6 +14,7 @@ from slamkit_twoview.reconstruct import check_motion, check_motion_screened, exa
 from slamkit_twoview.screen import screen_points
 
 from slamkit.geometry import so3_exp
+from slamkit.geometry.so3 import hat
 
 GRADING = {"max_reproj_err_px": 2.0, "max_cos_parallax": 0.99998, "parallax_rank": 50}
 
@@ -32,9 +33,7 @@ SCENES = [
 
 def _motions(views: Any, K: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """The true motion's four essential hypotheses, the eight of its plane homography and some perturbed ones."""
-    E = np.cross(np.eye(3), views.t / np.linalg.norm(views.t)) @ views.R  # [t]x R (columns: t x e_i)
-    E = -E  # np.cross(I, t)[i] = e_i x t = -(t x e_i): hat(t) is the negative
-    hyp = decompose_essential(E)
+    hyp = decompose_essential(hat(views.t / np.linalg.norm(views.t)) @ views.R)  # E = [t]x R
     motions = list(zip(hyp.R, hyp.t, strict=True))
     normal = np.array([0.0, -1.0, 1.0]) / np.sqrt(2.0)
     H = K @ (views.R + np.outer(views.t, normal) / 3.0) @ np.linalg.inv(K)
