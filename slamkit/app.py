@@ -247,6 +247,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             realtime_extract_ahead=bool(cfg.runner.get("realtime_extract_ahead", False)),
             extract_ahead_single_threaded=bool(cfg.runner.get("extract_ahead_single_threaded", False)),
             realtime_extract_single_threaded=bool(cfg.runner.get("realtime_extract_single_threaded", True)),
+            realtime_extract_ahead_init=bool(cfg.runner.get("realtime_extract_ahead_init", False)),
         )
     else:
         runner = SequentialRunner(

@@ -34,6 +34,8 @@ from slamkit_twoview.reconstruct import (
     HypothesisCheck,
     Selection,
     check_motion,
+    check_motion_screened,
+    exact_points,
     pose_matrix,
     select_from_fundamental,
     select_from_homography,
@@ -84,6 +86,7 @@ class TwoViewInitializer:
         parallax_rank: int = 50,
         min_singular_ratio: float = 1.00001,
         parallel_models: bool = True,
+        screened_grading: bool = True,
     ) -> None:
         numbers = {
             "ransac_iterations": ransac_iterations,
@@ -123,6 +126,7 @@ class TwoViewInitializer:
         _check(v["min_singular_ratio"] >= 1.0, "min_singular_ratio", "a ratio >= 1", min_singular_ratio)
         _check(isinstance(refine_on_inliers, bool), "refine_on_inliers", "true or false", refine_on_inliers)
         _check(isinstance(parallel_models, bool), "parallel_models", "true or false", parallel_models)
+        _check(isinstance(screened_grading, bool), "screened_grading", "true or false", screened_grading)
         self.ransac_iterations = int(ransac_iterations)
         self.sigma_px = float(sigma_px)
         self.T_H = float(T_H)
@@ -132,6 +136,7 @@ class TwoViewInitializer:
         self.h_points_per_set = int(h_points_per_set)
         self.refine_on_inliers = bool(refine_on_inliers)
         self.parallel_models = bool(parallel_models)
+        self.screened_grading = bool(screened_grading)
         self.min_parallax_deg = float(min_parallax_deg)
         self.min_triangulated = int(min_triangulated)
         self.min_good_fraction = float(min_good_fraction)
@@ -219,7 +224,7 @@ class TwoViewInitializer:
             min_triangulated=self.min_triangulated,
             min_parallax_deg=self.min_parallax_deg,
         )
-        return self._result("H", hyp, checks, sel, details)
+        return self._result("H", hyp, checks, sel, details, uv1, uv2, K)
 
     def _reconstruct_f(self, fit: ModelFit, uv1: F64, uv2: F64, K: F64, details: dict[str, Any]) -> TwoViewResult:
         if self.refine_on_inliers:
@@ -236,7 +241,7 @@ class TwoViewInitializer:
             min_triangulated=self.min_triangulated,
             min_parallax_deg=self.min_parallax_deg,
         )
-        return self._result("F", hyp, checks, sel, details)
+        return self._result("F", hyp, checks, sel, details, uv1, uv2, K)
 
     def _refine_on_essential_manifold(self, fit: ModelFit, uv1: F64, uv2: F64, K: F64) -> ModelFit:
         """F replaced by the Sampson-optimal essential matrix of its inliers, re-scored (new inlier set).
@@ -260,10 +265,13 @@ class TwoViewInitializer:
         """Paper sec. IV-4: rather than Faugeras' visibility test (fragile at low parallax), triangulate every
         hypothesis and count the points that are good under it. With ``parallel_models`` the second half of the
         hypotheses (4 of H's 8) is graded in the F-fitting thread meanwhile (its batched triangulation SVDs release
-        the GIL); each check is a pure function of its hypothesis, so the list is the same either way."""
+        the GIL); each check is a pure function of its hypothesis, so the list is the same either way. With
+        ``screened_grading`` each check is ``check_motion_screened``'s (the same counts, parallax and mask; its points are
+        computed by ``_result`` for the hypothesis kept)."""
+        check = check_motion_screened if self.screened_grading else check_motion
 
         def grade(i: int) -> HypothesisCheck:
-            return check_motion(
+            return check(
                 hyp.R[i],
                 hyp.t[i],
                 K,
@@ -282,13 +290,16 @@ class TwoViewInitializer:
         later = [model_pool().submit(grade, i) for i in range(half, n)]
         return [grade(i) for i in range(half)] + [f.result() for f in later]
 
-    @staticmethod
     def _result(
+        self,
         model: Literal["H", "F"],
         hyp: MotionHypotheses,
         checks: list[HypothesisCheck],
         sel: Selection,
         details: dict[str, Any],
+        uv1: F64,
+        uv2: F64,
+        K: F64,
     ) -> TwoViewResult:
         details["n_good"] = [c.n_good for c in checks]
         details["parallax_deg"] = [c.parallax_deg for c in checks]
@@ -299,13 +310,16 @@ class TwoViewInitializer:
                 False, f"{m} reconstruction refused: " + "; ".join(sel.failures), model=m, details=details
             )
         best = checks[sel.best]
+        xyz_ref = best.xyz_ref
+        if self.screened_grading:  # the screened checks leave the points to the hypothesis kept
+            xyz_ref = exact_points(hyp.R[sel.best], hyp.t[sel.best], K, uv1, uv2, best.triangulated)
         return TwoViewResult(
             True,
             f"{m} reconstruction: hypothesis {sel.best} with {best.n_good} good points, "
             f"parallax {best.parallax_deg:.3g} deg",
             model=m,
             T_cur_ref=pose_matrix(hyp.R[sel.best], hyp.t[sel.best]),
-            xyz_ref=best.xyz_ref,
+            xyz_ref=xyz_ref,
             triangulated=best.triangulated,
             details=details,
         )

@@ -43,6 +43,12 @@ def slamkit_components() -> list[ComponentSpec]:
                 # also grades half of the motion hypotheses in the second thread (same result either way; false:
                 # everything in the calling thread)
                 "parallel_models": True,
+                # slamkit (not in ORB-SLAM): each hypothesis' points triangulated and graded by a compiled screen, with
+                # ORB-SLAM's DLT (LAPACK's SVD) only for the points a margin cannot decide, those near the ranked
+                # parallax and the points of the hypothesis kept (reconstruct.py check_motion_screened): the same
+                # counts, parallax and points as false (every point by the DLT), in less time (docs/BENCHMARKS.md,
+                # branch initspeed)
+                "screened_grading": True,
             },
             description="ORB-SLAM's two-view map initializer: H/F model selection (sec. IV)",
         )

@@ -15,7 +15,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slamkit.geometry.se3 import invert_T
-from slamkit.geometry.twoview import cheirality_mask, parallax_deg, reprojection_error_px, triangulate_points
+from slamkit.geometry.twoview import (
+    _AT_INFINITY,
+    cheirality_mask,
+    parallax_deg,
+    reprojection_error_px,
+    triangulate_points,
+)
+from slamkit_twoview.screen import screen_points
 
 F64 = NDArray[np.float64]
 _IDENTITY = np.eye(4)
@@ -86,15 +93,9 @@ def check_motion(
         return HypothesisCheck(0, 0.0, xyz_all, triangulated)
 
     xyz = triangulate_points(_IDENTITY, T_cur_ref, K, K, uv_ref_px[idx], uv_cur_px[idx])
-    finite = np.all(np.isfinite(xyz), axis=1)
-    with np.errstate(invalid="ignore"):
-        par = parallax_deg(xyz, np.zeros(3), invert_T(T_cur_ref)[:3, 3])
-        near_parallel = np.cos(np.radians(par)) >= max_cos_parallax
-        in_front = cheirality_mask(_IDENTITY, T_cur_ref, xyz)
-        err_ref = _projective_reprojection_px(_IDENTITY, K, xyz, uv_ref_px[idx])
-        err_cur = _projective_reprojection_px(T_cur_ref, K, xyz, uv_cur_px[idx])
-        good = finite & (in_front | near_parallel) & (err_ref <= max_reproj_err_px) & (err_cur <= max_reproj_err_px)
-
+    par, near_parallel, good = _point_tests(
+        T_cur_ref, K, xyz, uv_ref_px[idx], uv_cur_px[idx], max_reproj_err_px, max_cos_parallax
+    )
     n_good = int(good.sum())
     parallax = 0.0
     if n_good > 0:
@@ -104,6 +105,118 @@ def check_motion(
     triangulated[idx[tri]] = True
     xyz_all[idx[tri]] = xyz[tri]
     return HypothesisCheck(n_good, parallax, xyz_all, triangulated)
+
+
+def _point_tests(
+    T_cur_ref: F64, K: F64, xyz: F64, uv_ref_px: F64, uv_cur_px: F64, max_reproj_err_px: float, max_cos_parallax: float
+) -> tuple[F64, NDArray[np.bool_], NDArray[np.bool_]]:
+    """CheckRT's tests of N triangulated points (N, 3) in the reference camera, observed at (N, 2) px in each image ->
+    (parallax (N,) degrees, near_parallel (N,), good (N,)). Each row's result depends on that row's inputs only."""
+    finite = np.all(np.isfinite(xyz), axis=1)
+    with np.errstate(invalid="ignore"):
+        par = parallax_deg(xyz, np.zeros(3), invert_T(T_cur_ref)[:3, 3])
+        near_parallel = np.cos(np.radians(par)) >= max_cos_parallax
+        in_front = cheirality_mask(_IDENTITY, T_cur_ref, xyz)
+        err_ref = _projective_reprojection_px(_IDENTITY, K, xyz, uv_ref_px)
+        err_cur = _projective_reprojection_px(T_cur_ref, K, xyz, uv_cur_px)
+        good = finite & (in_front | near_parallel) & (err_ref <= max_reproj_err_px) & (err_cur <= max_reproj_err_px)
+    return par, near_parallel, good
+
+
+def exact_points(R: F64, t: F64, K: F64, uv_ref_px: F64, uv_cur_px: F64, triangulated: NDArray[np.bool_]) -> F64:
+    """(M, 3) m in the reference camera: the triangulated matches' points as ``check_motion`` computes them (its DLT,
+    row by row the same arithmetic), NaN elsewhere. R: (3, 3), t: (3,); uv_*: (M, 2) px; triangulated: (M,) bool."""
+    xyz_all = np.full((uv_ref_px.shape[0], 3), np.nan)
+    rows = np.flatnonzero(triangulated)
+    if rows.size:
+        xyz_all[rows] = triangulate_points(_IDENTITY, pose_matrix(R, t), K, K, uv_ref_px[rows], uv_cur_px[rows])
+    return xyz_all
+
+
+def check_motion_screened(
+    R: F64,
+    t: F64,
+    K: F64,
+    uv_ref_px: F64,
+    uv_cur_px: F64,
+    inliers: NDArray[np.bool_],
+    *,
+    max_reproj_err_px: float,
+    max_cos_parallax: float,
+    parallax_rank: int,
+) -> HypothesisCheck:
+    """``check_motion``'s n_good, parallax and triangulated mask, with LAPACK's SVD only where it decides something.
+
+    Every inlier is triangulated and graded by the compiled screen (screen.py); the points it leaves ``unsure`` (a test
+    too close to its threshold for its solution to decide), and those whose parallax may be the hypothesis' ranked
+    one, get ``check_motion``'s own arithmetic: their DLT solved as there, and the tests run on all the inliers' rows
+    at the same positions. The result's xyz_ref is NaN throughout (``exact_points`` gives the points of the hypothesis
+    kept). Falls back to ``check_motion`` if the ranked parallax cannot be told from the screened values.
+    """
+    M = uv_ref_px.shape[0]
+    idx = np.flatnonzero(inliers)
+    triangulated = np.zeros(M, dtype=bool)
+    xyz_none = np.full((M, 3), np.nan)
+    if idx.size == 0:
+        return HypothesisCheck(0, 0.0, xyz_none, triangulated)
+    T_cur_ref = pose_matrix(R, t)
+    P1 = K @ _IDENTITY[:3]
+    P2 = K @ T_cur_ref[:3]
+    center2 = invert_T(T_cur_ref)[:3, 3]
+    uv1 = np.ascontiguousarray(uv_ref_px[idx], dtype=np.float64)
+    uv2 = np.ascontiguousarray(uv_cur_px[idx], dtype=np.float64)
+    xyz, par, par_margin, good, near, unsure = screen_points(
+        P1, P2, center2, uv1, uv2, float(max_reproj_err_px), float(max_cos_parallax), _AT_INFINITY
+    )
+    exact = np.zeros(idx.size, dtype=bool)
+    center1 = np.zeros(3)
+
+    def solve(rows: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """The rows' points by check_motion's DLT (row by row its arithmetic); returns the rows new to it."""
+        new = rows & ~exact
+        if new.any():
+            xyz[new] = triangulate_points(_IDENTITY, T_cur_ref, K, K, uv1[new], uv2[new])
+            par_margin[new] = 0.0
+            exact[new] = True
+        return new
+
+    new = solve(unsure)
+    if new.any():  # their tests by check_motion's arithmetic, run on every row (each at its position there)
+        p, n, g = _point_tests(T_cur_ref, K, xyz, uv1, uv2, max_reproj_err_px, max_cos_parallax)
+        par[new], near[new], good[new] = p[new], n[new], g[new]
+    n_good = int(good.sum())
+    parallax = 0.0
+    if n_good > 0:
+        k = min(parallax_rank, n_good - 1)
+        # each exact parallax lies in [par - w, par + w] (w: the screen's margin, radians, x10 for safety; 0 where
+        # solved exactly), so the exact k-th largest lies between the k-th largest lower and upper ends: a point whose
+        # interval lies wholly above (below) that range is above (below) it; the rest are solved exactly
+        w = np.degrees(10.0 * par_margin) + 1e-12 * (par_margin > 0)
+        lo, hi = par - w, par + w
+        kth_lo = float(np.sort(lo[good])[::-1][k])
+        kth_hi = float(np.sort(hi[good])[::-1][k])
+        above = good & (lo > kth_hi)
+        band = good & ~above & (hi >= kth_lo)
+        if solve(band).any():
+            # check_motion's parallax arithmetic, on every row (each at its position there)
+            par[band] = parallax_deg(xyz, center1, center2)[band]
+        ranked = np.sort(par[band])[::-1]
+        n_above = int(above.sum())
+        if not 0 <= k - n_above < ranked.size:
+            return check_motion(
+                R,
+                t,
+                K,
+                uv_ref_px,
+                uv_cur_px,
+                inliers,
+                max_reproj_err_px=max_reproj_err_px,
+                max_cos_parallax=max_cos_parallax,
+                parallax_rank=parallax_rank,
+            )
+        parallax = float(ranked[k - n_above])
+    triangulated[idx[good & ~near]] = True
+    return HypothesisCheck(n_good, parallax, xyz_none, triangulated)
 
 
 @dataclass(frozen=True)

@@ -105,7 +105,9 @@ def snapshot_bundle(
     # so the ids of the points are point_ids themselves
     point_id_array = np.array(point_ids, np.int64).reshape(-1)
     counts, obs_kf_all, obs_feat_all = flat
-    obs_point_s, obs_kf_s, obs_feat_s = sorted_observations(counts, obs_kf_all, obs_feat_all, np.isin(obs_kf_all, kf_ids))
+    obs_point_s, obs_kf_s, obs_feat_s = sorted_observations(
+        counts, obs_kf_all, obs_feat_all, np.isin(obs_kf_all, kf_ids)
+    )
     by_id = np.argsort(kf_ids, kind="stable")
     obs_pose_all = by_id[np.searchsorted(kf_ids[by_id], obs_kf_s)]  # the row of each observer in kf_ids
     all_xyz = store.point_rows(point_id_array, "xyz_w").reshape(-1, 3)
@@ -285,9 +287,7 @@ def run_bundle(
     return result
 
 
-def commit_bundle(
-    store: MapStore, snap: BundleSnapshot, result: BundleResult, bad_max_observations: int = 1
-) -> int:
+def commit_bundle(store: MapStore, snap: BundleSnapshot, result: BundleResult, bad_max_observations: int = 1) -> int:
     """Write optimized poses and points back, skipping entities culled meanwhile, and erase the
     observations flagged as outliers: a point one of them leaves with at most ``bad_max_observations``
     observations goes too (1: the store's own rule, a point needs two; ORB-SLAM2/3's MapPoint::EraseObservation

@@ -123,6 +123,7 @@ class ThreadedRunner:
         realtime_extract_ahead: bool = False,
         extract_ahead_single_threaded: bool = False,
         realtime_extract_single_threaded: bool = True,
+        realtime_extract_ahead_init: bool = False,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -147,13 +148,17 @@ class ThreadedRunner:
         mapping, which every frame after a keyframe waits for. Real time: not used.
         realtime_extract_single_threaded: in real time with ``realtime_extract_ahead``, the same for the frame source's
         extractions: one core extracts while tracking, at a higher priority than local mapping
-        (``background_niceness``), would otherwise take both cores from local mapping for every frame's extraction."""
+        (``background_niceness``), would otherwise take both cores from local mapping for every frame's extraction.
+        realtime_extract_ahead_init: with ``realtime_extract_ahead``, the frames of a monocular initialisation are
+        extracted ahead too, with the initialisation extractor (the same records; tracking then spends only the
+        initialisation attempt on each); False: tracking extracts them itself."""
         if extract_ahead < 0:
             raise ConfigError(f"runner.extract_ahead = {extract_ahead}: expected a number of frames >= 0 (0: off)")
         self.extract_ahead = int(extract_ahead)
         self.realtime_extract_ahead = bool(realtime_extract_ahead)
         self.extract_ahead_single_threaded = bool(extract_ahead_single_threaded)
         self.realtime_extract_single_threaded = bool(realtime_extract_single_threaded)
+        self.realtime_extract_ahead_init = bool(realtime_extract_ahead_init)
         self._ahead: ExtractedAhead | None = None
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
@@ -515,6 +520,7 @@ class ThreadedRunner:
                 single_threaded=(
                     self.realtime_extract_single_threaded if self.realtime else self.extract_ahead_single_threaded
                 ),
+                initialisation=self.realtime and self.realtime_extract_ahead_init,
             )
         self._source = FrameSource(
             frames,

@@ -501,3 +501,35 @@ def test_loop_detection_runs_without_parking_local_mapping(monkeypatch: pytest.M
     assert pauses.count("local-mapping") == runner.mapping_parks_for_loops == closed
     assert runner.loop_closer is not None
     assert runner.loop_closer.pins.total_pinned >= len(detections) and not runner.loop_closer.pins.snapshot()
+
+
+@pytest.mark.parametrize("ahead_init", [True, False])
+def test_realtime_extraction_ahead_of_a_monocular_initialisations_frames(ahead_init: bool) -> None:
+    """``runner.realtime_extract_ahead_init`` (default false): in real time the frame source extracts the frames of a
+    monocular initialisation ahead too, with the initialisation extractor (ORB-SLAM's 2x features), and tracking is
+    served those records; false: tracking extracts them itself, as before."""
+    runner, dataset = _runner(
+        "runner.realtime=true", "dataset.max_frames=40", f"runner.realtime_extract_ahead_init={str(ahead_init).lower()}"
+    )
+    assert runner.realtime_extract_ahead_init is ahead_init
+    served: list[int] = []
+    count = runner._count_extraction_ahead
+
+    def noted(out: Any, data: Any) -> None:
+        if runner._ahead is not None and data.index in runner._ahead._served_ms:
+            served.append(data.index)
+        count(out, data)
+
+    runner._count_extraction_ahead = noted  # type: ignore[method-assign]
+    log = runner.run(dataset, dataset.camera)
+    init_frames = [out for out in log.tracking if out.method == "initialize"]
+    assert init_frames and any(out.initialized_map for out in init_frames)
+    tracked = [out.n_features for out in log.tracking if out.method != "initialize"]
+    # the initialisation extractor's records (pipeline.tracking.init_feature_factor 2: twice the features)
+    assert tracked and min(out.n_features for out in init_frames) > max(tracked)
+    served_init = [out.frame_index for out in init_frames if out.frame_index in served]
+    if ahead_init:
+        assert len(served_init) >= len(init_frames) - 1  # the first frame may come before the source's first
+        assert all(out.timings_ms["extract_ms"] > 1.0 for out in init_frames if out.frame_index in served_init)
+    else:
+        assert served_init == []

@@ -171,3 +171,32 @@ def test_single_threaded_extractions_ahead_stay_in_the_frame_source_thread(
     assert threads[True] == {"frame-source"}
     assert "frame-source" in threads[False] and len(threads[False]) == 2  # the caller and one level thread
     _same_record(records[True], records[False])
+
+
+def test_initialisation_frames_are_extracted_ahead_with_the_initialisation_extractor(room: tuple[Any, Any]) -> None:
+    """``initialisation=True`` (real time): a frame the hint gives the initialisation extractor is extracted ahead with
+    it and served only to a request for that extractor; without the flag such a frame is left to tracking."""
+    frontend, dataset = room
+    hint = lambda d: d.index != 2  # noqa: E731 - frame 2 gets the initialisation extractor (a map being initialised)
+    ahead = ExtractedAhead(frontend, dataset.camera, wanted=hint, initialisation=True)
+    data = dataset[2]
+    ahead.prepare(data)
+    assert ahead.extracted == 1
+    served = ahead.observe(data, dataset.camera, initializing=True)
+    assert ahead.served == 1 and ahead.served_ms(2) is not None
+    direct = frontend.observe(data, dataset.camera, True)
+    _same_record(served, direct)
+    assert len(served) > len(frontend.observe(data, dataset.camera, False))  # the initialisation extractor's record
+    # a record made with one extractor is never served to a request for the other
+    ahead.prepare(data)
+    tracked = ahead.observe(data, dataset.camera, initializing=False)
+    assert ahead.served == 1
+    _same_record(tracked, frontend.observe(data, dataset.camera, False))
+    ahead.prepare(dataset[3])  # the tracking extractor's record (the hint), asked for with the other one
+    again = ahead.observe(dataset[3], dataset.camera, initializing=True)
+    assert ahead.served == 1
+    _same_record(again, frontend.observe(dataset[3], dataset.camera, True))
+    # without the flag a frame of an initialisation is not extracted ahead (as before)
+    plain = ExtractedAhead(frontend, dataset.camera, wanted=hint)
+    plain.prepare(data)
+    assert plain.extracted == 0
