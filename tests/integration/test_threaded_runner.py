@@ -34,6 +34,21 @@ def _runner(*overrides: str) -> tuple[ThreadedRunner, Any]:
     return runner, dataset
 
 
+def _served_frames(runner: ThreadedRunner) -> list[int]:
+    """The frames tracking will take from the frame source's extractions ahead, listed as the run goes (a spy on
+    ``_count_extraction_ahead``)."""
+    served: list[int] = []
+    count = runner._count_extraction_ahead
+
+    def noted(out: Any, data: Any) -> None:
+        if runner._ahead is not None and data.index in runner._ahead._served_ms:
+            served.append(data.index)
+        count(out, data)
+
+    runner._count_extraction_ahead = noted  # type: ignore[method-assign]
+    return served
+
+
 def _fail_on_call(n: int, message: str):  # type: ignore[no-untyped-def]
     """A replacement for a step function that works normally n-1 times and raises on the n-th call."""
     calls = {"n": 0}
@@ -236,15 +251,7 @@ def test_features_extracted_ahead_leave_the_sequential_runners_trajectory_bit_fo
     sequential.run(dataset, dataset.camera, run_dir=tmp_path / "sequential", config={"seed": 0})
     runner, dataset = _runner(frames)
     assert runner.extract_ahead == 8
-    served: list[int] = []
-    count = runner._count_extraction_ahead
-
-    def noted(out: Any, data: Any) -> None:
-        if runner._ahead is not None and data.index in runner._ahead._served_ms:
-            served.append(data.index)
-        count(out, data)
-
-    runner._count_extraction_ahead = noted  # type: ignore[method-assign]
+    served = _served_frames(runner)
     log = runner.run(dataset, dataset.camera, run_dir=tmp_path / "threaded", config={"seed": 0})
     first = next(out.frame_index for out in log.tracking if out.initialized_map)
     # every frame past the initialisation extractor's window (ORB-SLAM3: 30 frames after the map's first) is served
@@ -407,7 +414,8 @@ def test_realtime_extractions_ahead_stay_in_the_frame_source_thread_when_asked(
         "runner.realtime_extract_ahead=true",
         f"runner.realtime_extract_single_threaded={str(single).lower()}",
     )
-    extractor = runner.tracker.frontend.extractor
+    frontend: Any = runner.tracker.frontend  # the monocular front end (its ORB extractor)
+    extractor = frontend.extractor
     assert extractor.n_threads >= 2
     # the pyramid levels detected during the frame source's extractions ahead (ExtractedAhead.prepare holds the
     # front end's lock: no other extraction runs meanwhile), by thread
@@ -512,15 +520,7 @@ def test_realtime_extraction_ahead_of_a_monocular_initialisations_frames(ahead_i
         "runner.realtime=true", "dataset.max_frames=40", f"runner.realtime_extract_ahead_init={str(ahead_init).lower()}"
     )
     assert runner.realtime_extract_ahead_init is ahead_init
-    served: list[int] = []
-    count = runner._count_extraction_ahead
-
-    def noted(out: Any, data: Any) -> None:
-        if runner._ahead is not None and data.index in runner._ahead._served_ms:
-            served.append(data.index)
-        count(out, data)
-
-    runner._count_extraction_ahead = noted  # type: ignore[method-assign]
+    served = _served_frames(runner)
     log = runner.run(dataset, dataset.camera)
     init_frames = [out for out in log.tracking if out.method == "initialize"]
     assert init_frames and any(out.initialized_map for out in init_frames)
