@@ -3,7 +3,10 @@
 Two modes. As fast as possible: every frame is delivered, in order, through a short bounded queue (the next
 frames are read or rendered while tracking works on the current one). Real time: each frame is released at its
 own timestamp (scaled by ``speed``) into a one-slot mailbox; a frame still in the mailbox when the next one
-arrives is replaced and counted as dropped, as a live camera's frames are when tracking is busy. A live source
+arrives is replaced and counted as dropped, as a live camera's frames are when tracking is busy. The source itself
+keeps the camera's clock: a frame it reaches only after the next one is due (its own work, the features extracted
+ahead, ran late) is dropped unprepared, as a camera's one-slot buffer would have replaced it, so lateness is never
+carried on to later frames. A live source
 (``dataset=camera``: :func:`is_live`) is real time by nature: it is read continuously into the mailbox, paced by
 the device itself (or, for a file played as a stream, at its timestamps: the dataset's ``paced``), and has no
 length (:func:`frame_count` is None).
@@ -97,8 +100,8 @@ END = EndOfSequence()
 
 
 class FrameSource(threading.Thread):
-    """Delivers FrameData to ``get()``; ``frames_dropped`` counts frames replaced unseen (real time only) and
-    ``dropped`` lists them as (frame index, timestamp s).
+    """Delivers FrameData to ``get()``; ``frames_dropped`` counts frames replaced unseen or reached late (real time
+    only; ``frames_late`` of them late) and ``dropped`` lists them as (frame index, timestamp s).
 
     frames: the dataset (iterated once, in this thread; an iterator with ``close()``, a generator, is closed here
     when the source ends, so a capture device is released by the thread that reads it). realtime: one-slot
@@ -138,6 +141,7 @@ class FrameSource(threading.Thread):
         self.frames_read = 0
         self.frames_dropped = 0
         self.dropped: list[tuple[int, float]] = []
+        self.frames_late = 0  # of frames_dropped: reached by the source after the next frame was due (never queued)
         self.first_timestamp_s: float | None = None
         self.last_timestamp_s: float | None = None
         self.fault: ThreadFault | None = None
@@ -190,6 +194,13 @@ class FrameSource(threading.Thread):
             self._cond.notify_all()
             return True
 
+    def _drop_late(self, data: FrameData) -> None:
+        """Count ``data`` as dropped without preparing or queueing it (real time: the source reached it late)."""
+        with self._cond:
+            self.frames_dropped += 1
+            self.frames_late += 1
+            self.dropped.append((data.index, data.timestamp_s))
+
     def _wait_until(self, deadline: float) -> bool:
         """Sleep until the perf_counter time ``deadline`` (returns False when stopped meanwhile)."""
         with self._cond:
@@ -205,19 +216,35 @@ class FrameSource(threading.Thread):
         try:
             start = time.perf_counter()
             frames = iter(self._frames)
+            previous_due: float | None = None
+            # paced real time: when the source's own work on the frames it took (preparing, queueing) ended, on
+            # the camera's clock; reading a frame is the camera's part and not counted, so the time spent reading
+            # the frames dropped here never makes the source later
+            busy_until = start
             for data in frames:
                 if self.first_timestamp_s is None:
                     self.first_timestamp_s = data.timestamp_s
-                if self.realtime and self.paced:
-                    due = start + (data.timestamp_s - self.first_timestamp_s) / self.speed
-                    if not self._wait_until(due):
-                        return
                 self.last_timestamp_s = data.timestamp_s
                 self.frames_read += 1
+                if self.realtime and self.paced:
+                    due = start + (data.timestamp_s - self.first_timestamp_s) / self.speed
+                    # the next frame is due one frame interval after this one (the last interval: the next frame's
+                    # timestamp is not read yet); free only after that, the source took the newest frame then, and
+                    # this one the camera had already replaced
+                    late = previous_due is not None and busy_until >= due + max(due - previous_due, 0.0)
+                    previous_due = due
+                    if late:
+                        self._drop_late(data)
+                        continue
+                    if not self._wait_until(due):
+                        return
+                work_start = time.perf_counter()
                 if self._prepare is not None:
                     self._prepare(data)
                 if not self._put(data):
                     return
+                if self.realtime and self.paced:
+                    busy_until = max(due, busy_until) + (time.perf_counter() - work_start)
             self._put(END)
         except BaseException as exc:  # reported, never a silently dead thread
             self.fault = ThreadFault(self.name, exc, traceback.format_exc())

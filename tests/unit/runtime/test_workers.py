@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
 from concurrent.futures import Future
 
 import numpy as np
@@ -127,7 +128,8 @@ def test_the_source_prepares_each_frame_in_its_thread_before_delivering_it(realt
     def prepare(data: FrameData) -> None:
         prepared[data.index] = threading.current_thread().name
 
-    src = FrameSource(_frames(30, 300.0), realtime=realtime, on_fault=lambda f: None, prepare=prepare, ahead=6)
+    # 100 Hz: preparing a frame (here: nothing) never makes the real-time source miss the next frame's time
+    src = FrameSource(_frames(30, 100.0), realtime=realtime, on_fault=lambda f: None, prepare=prepare, ahead=6)
     src.start()
     while True:
         item = src.get(timeout_s=5)
@@ -140,6 +142,39 @@ def test_the_source_prepares_each_frame_in_its_thread_before_delivering_it(realt
     assert max(queued) <= (1 if realtime else 6)
     with pytest.raises(ValueError, match="ahead"):
         FrameSource(_frames(1, 30.0), realtime=False, on_fault=lambda f: None, ahead=0)
+
+
+def test_a_realtime_source_late_from_its_own_work_drops_the_frames_the_camera_replaced_meanwhile() -> None:
+    """Frames at 25 Hz (40 ms apart). Preparing frame 3 (due at 120 ms) takes 130 ms: by 250 ms the frames after 4
+    and 5 were due, so a camera would have replaced 4 and 5; the source drops them unprepared and takes 6 (its next
+    is due at 280 ms), so its lateness is not carried on. Frames 8 and 9 take 60 ms each to read: reading is the
+    camera's part, so no frame is dropped for it."""
+    prepared: list[int] = []
+
+    def prepare(data: FrameData) -> None:
+        prepared.append(data.index)
+        if data.index == 3:
+            time.sleep(0.13)
+
+    def slow_reads() -> Iterator[FrameData]:
+        for frame in _frames(12, 25.0):
+            if frame.index in (8, 9):
+                time.sleep(0.06)
+            yield frame
+
+    src = FrameSource(slow_reads(), realtime=True, on_fault=lambda f: None, prepare=prepare)
+    src.start()
+    got = []
+    while True:
+        item = src.get(timeout_s=5)
+        if item is END:
+            break
+        assert isinstance(item, FrameData)
+        got.append(item.index)
+    # every frame but 4 and 5 was prepared and queued (a queued frame the consumer is too slow to take before the
+    # next one is replaced in the mailbox, as before: counted in frames_dropped, not in frames_late)
+    assert prepared == [0, 1, 2, 3, 6, 7, 8, 9, 10, 11] and src.frames_late == 2
+    assert {4, 5} <= {index for index, _ in src.dropped} and len(got) + src.frames_dropped == 12
 
 
 def test_live_source_is_read_continuously_newest_frame_wins_and_is_closed_at_the_end() -> None:
