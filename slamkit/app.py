@@ -31,7 +31,7 @@ from slamkit.plugins import ComponentRegistry
 from slamkit.problems import PoseOnlyProblem, PoseOnlyResult
 from slamkit.runtime.events import EventDispatcher
 from slamkit.runtime.sequential import SequentialRunner
-from slamkit.runtime.source import frame_count
+from slamkit.runtime.source import CAMERA_BUFFER_FRAMES, frame_count
 from slamkit.runtime.threaded import ThreadedRunner
 
 log = logging.getLogger("slamkit")
@@ -248,6 +248,7 @@ def build_runner(cfg: DictConfig, registry: ComponentRegistry | None = None) -> 
             extract_ahead_single_threaded=bool(cfg.runner.get("extract_ahead_single_threaded", False)),
             realtime_extract_single_threaded=bool(cfg.runner.get("realtime_extract_single_threaded", True)),
             realtime_extract_ahead_init=bool(cfg.runner.get("realtime_extract_ahead_init", False)),
+            realtime_camera_buffer=_int_setting(cfg.runner, "realtime_camera_buffer", 1, 64, CAMERA_BUFFER_FRAMES),
         )
     else:
         runner = SequentialRunner(

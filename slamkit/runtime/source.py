@@ -4,9 +4,11 @@ Two modes. As fast as possible: every frame is delivered, in order, through a sh
 frames are read or rendered while tracking works on the current one). Real time: each frame is released at its
 own timestamp (scaled by ``speed``) into a one-slot mailbox; a frame still in the mailbox when the next one
 arrives is replaced and counted as dropped, as a live camera's frames are when tracking is busy. The source itself
-keeps the camera's clock: a frame it reaches only after the next one is due (its own work, the features extracted
-ahead, ran late) is dropped unprepared, as a camera's one-slot buffer would have replaced it, so lateness is never
-carried on to later frames. A live source
+keeps the camera's clock: its own work on a frame (the features extracted ahead) may run past the next frames'
+times, which then wait in the camera's buffer of ``camera_buffer`` frames (a V4L2 device opened by OpenCV queues 4);
+a frame the camera has replaced by the time the source is free again (``camera_buffer`` newer frames were due) is
+dropped unprepared, so the source's lateness stays bounded (reading a file is the camera's part, not counted). A live
+source
 (``dataset=camera``: :func:`is_live`) is real time by nature: it is read continuously into the mailbox, paced by
 the device itself (or, for a file played as a stream, at its timestamps: the dataset's ``paced``), and has no
 length (:func:`frame_count` is None).
@@ -91,6 +93,10 @@ def _skipping_unreadable(dataset: IndexedFrames, on_skip: Callable[[int, str], N
 #: Frames read ahead in as-fast-as-possible mode.
 PREFETCH_FRAMES = 4
 
+#: Paced real time: the frames a camera holds while the source is busy (OpenCV's V4L2 capture requests 4 buffers:
+#: DEFAULT_V4L_BUFFERS in modules/videoio/src/cap_v4l.cpp); runner.realtime_camera_buffer.
+CAMERA_BUFFER_FRAMES = 4
+
 
 class EndOfSequence:
     """Marker delivered after the last frame."""
@@ -110,6 +116,8 @@ class FrameSource(threading.Thread):
     (2.0 plays twice as fast). on_fault: called if reading raises. prepare: called in this thread on each frame read
     (in real time: released), before it is queued (the threaded runner's feature extraction ahead:
     slamkit/runtime/extract_ahead.py). ahead: as fast as possible, the frames queued ahead of tracking.
+    camera_buffer: paced real time, the frames the camera holds for the source while it is busy preparing one
+    (module docstring); an older one is replaced, dropped unprepared, and counted in ``frames_late``.
     """
 
     def __init__(
@@ -121,12 +129,16 @@ class FrameSource(threading.Thread):
         paced: bool = True,
         prepare: Callable[[FrameData], None] | None = None,
         ahead: int = PREFETCH_FRAMES,
+        camera_buffer: int = CAMERA_BUFFER_FRAMES,
     ) -> None:
         super().__init__(name="frame-source", daemon=True)
         if speed <= 0:
             raise ValueError(f"playback speed must be > 0, got {speed}")
         if ahead < 1:
             raise ValueError(f"frames read ahead must be >= 1, got {ahead}")
+        if camera_buffer < 1:
+            raise ConfigError(f"runner.realtime_camera_buffer = {camera_buffer}: expected a number of frames >= 1")
+        self.camera_buffer = int(camera_buffer)
         self._prepare = prepare
         self.ahead = ahead
         self._frames = frames
@@ -141,7 +153,7 @@ class FrameSource(threading.Thread):
         self.frames_read = 0
         self.frames_dropped = 0
         self.dropped: list[tuple[int, float]] = []
-        self.frames_late = 0  # of frames_dropped: reached by the source after the next frame was due (never queued)
+        self.frames_late = 0  # of frames_dropped: replaced in the camera's buffer while the source was busy
         self.first_timestamp_s: float | None = None
         self.last_timestamp_s: float | None = None
         self.fault: ThreadFault | None = None
@@ -195,7 +207,7 @@ class FrameSource(threading.Thread):
             return True
 
     def _drop_late(self, data: FrameData) -> None:
-        """Count ``data`` as dropped without preparing or queueing it (real time: the source reached it late)."""
+        """Count ``data`` as dropped without preparing or queueing it (real time: the camera replaced it)."""
         with self._cond:
             self.frames_dropped += 1
             self.frames_late += 1
@@ -228,10 +240,11 @@ class FrameSource(threading.Thread):
                 self.frames_read += 1
                 if self.realtime and self.paced:
                     due = start + (data.timestamp_s - self.first_timestamp_s) / self.speed
-                    # the next frame is due one frame interval after this one (the last interval: the next frame's
-                    # timestamp is not read yet); free only after that, the source took the newest frame then, and
-                    # this one the camera had already replaced
-                    late = previous_due is not None and busy_until >= due + max(due - previous_due, 0.0)
+                    # the camera_buffer-th frame after this one is due that many frame intervals after it (the last
+                    # interval: later timestamps are not read yet); free only after that, the source meets a frame
+                    # the camera has already replaced
+                    interval = max(due - previous_due, 0.0) if previous_due is not None else 0.0
+                    late = previous_due is not None and busy_until >= due + self.camera_buffer * interval
                     previous_due = due
                     if late:
                         self._drop_late(data)

@@ -61,6 +61,7 @@ from slamkit.runtime.log import RunLog, log_tracking_outcome, map_frames
 from slamkit.runtime.modelled_mapping import modelled_mapping
 from slamkit.runtime.priority import gil_switch_interval, lower_process_priority
 from slamkit.runtime.source import (
+    CAMERA_BUFFER_FRAMES,
     END,
     PREFETCH_FRAMES,
     FrameSource,
@@ -124,6 +125,7 @@ class ThreadedRunner:
         extract_ahead_single_threaded: bool = False,
         realtime_extract_single_threaded: bool = True,
         realtime_extract_ahead_init: bool = False,
+        realtime_camera_buffer: int = CAMERA_BUFFER_FRAMES,
     ) -> None:
         """mapper: local mapping (None: localization only, ``mode=localization``: no local mapping thread, no loop
         closing, tracking makes no keyframe). bad_frames: what to do with a frame the dataset cannot read, "skip"
@@ -151,7 +153,9 @@ class ThreadedRunner:
         (``background_niceness``), would otherwise take both cores from local mapping for every frame's extraction.
         realtime_extract_ahead_init: with ``realtime_extract_ahead``, the frames of a monocular initialisation are
         extracted ahead too, with the initialisation extractor (the same records; tracking then spends only the
-        initialisation attempt on each); False: tracking extracts them itself."""
+        initialisation attempt on each); False: tracking extracts them itself.
+        realtime_camera_buffer: in paced real time, the frames the camera holds while the frame source is busy with
+        one (its extraction ahead running late); older ones are dropped unprepared (slamkit/runtime/source.py)."""
         if extract_ahead < 0:
             raise ConfigError(f"runner.extract_ahead = {extract_ahead}: expected a number of frames >= 0 (0: off)")
         self.extract_ahead = int(extract_ahead)
@@ -159,6 +163,7 @@ class ThreadedRunner:
         self.extract_ahead_single_threaded = bool(extract_ahead_single_threaded)
         self.realtime_extract_single_threaded = bool(realtime_extract_single_threaded)
         self.realtime_extract_ahead_init = bool(realtime_extract_ahead_init)
+        self.realtime_camera_buffer = int(realtime_camera_buffer)
         self._ahead: ExtractedAhead | None = None
         if frame_waits_for not in FRAME_WAITS_FOR:
             raise ConfigError(
@@ -530,6 +535,7 @@ class ThreadedRunner:
             paced=paced,
             prepare=None if self._ahead is None else self._ahead.prepare,
             ahead=self.extract_ahead if self._ahead is not None and not self.realtime else PREFETCH_FRAMES,
+            camera_buffer=self.realtime_camera_buffer,
         )
         workers = self._make_workers()
         bar = tqdm(total=frame_count(dataset), unit="frame", disable=not self.progress, dynamic_ncols=True)

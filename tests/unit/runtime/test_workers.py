@@ -10,6 +10,7 @@ from concurrent.futures import Future
 import numpy as np
 import pytest
 
+from slamkit.errors import ConfigError
 from slamkit.runtime.source import END, FrameSource
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker, ThreadFault
 from slamkit.sensors import FrameData
@@ -144,11 +145,15 @@ def test_the_source_prepares_each_frame_in_its_thread_before_delivering_it(realt
         FrameSource(_frames(1, 30.0), realtime=False, on_fault=lambda f: None, ahead=0)
 
 
-def test_a_realtime_source_late_from_its_own_work_drops_the_frames_the_camera_replaced_meanwhile() -> None:
-    """Frames at 25 Hz (40 ms apart). Preparing frame 3 (due at 120 ms) takes 130 ms: by 250 ms the frames after 4
-    and 5 were due, so a camera would have replaced 4 and 5; the source drops them unprepared and takes 6 (its next
-    is due at 280 ms), so its lateness is not carried on. Frames 8 and 9 take 60 ms each to read: reading is the
-    camera's part, so no frame is dropped for it."""
+@pytest.mark.parametrize("camera_buffer", [1, 2, 4])
+def test_a_realtime_source_late_from_its_own_work_drops_the_frames_the_camera_replaced_meanwhile(
+    camera_buffer: int,
+) -> None:
+    """Frames at 25 Hz (40 ms apart). Preparing frame 3 (due at 120 ms) takes 130 ms, to 250 ms. A camera holding one
+    frame has replaced 4 and 5 by then (the frames after them were due at 200 and 240 ms): the source drops them
+    unprepared and takes 6, so its lateness is not carried on. Holding two, only 4 is replaced (6 was due at 240 ms);
+    holding four, none. Frames 8 and 9 take 60 ms each to read: reading is the camera's part, so no frame is dropped
+    for it."""
     prepared: list[int] = []
 
     def prepare(data: FrameData) -> None:
@@ -162,7 +167,9 @@ def test_a_realtime_source_late_from_its_own_work_drops_the_frames_the_camera_re
                 time.sleep(0.06)
             yield frame
 
-    src = FrameSource(slow_reads(), realtime=True, on_fault=lambda f: None, prepare=prepare)
+    src = FrameSource(
+        slow_reads(), realtime=True, on_fault=lambda f: None, prepare=prepare, camera_buffer=camera_buffer
+    )
     src.start()
     got = []
     while True:
@@ -173,8 +180,11 @@ def test_a_realtime_source_late_from_its_own_work_drops_the_frames_the_camera_re
         got.append(item.index)
     # every frame but 4 and 5 was prepared and queued (a queued frame the consumer is too slow to take before the
     # next one is replaced in the mailbox, as before: counted in frames_dropped, not in frames_late)
-    assert prepared == [0, 1, 2, 3, 6, 7, 8, 9, 10, 11] and src.frames_late == 2
-    assert {4, 5} <= {index for index, _ in src.dropped} and len(got) + src.frames_dropped == 12
+    replaced = {1: [4, 5], 2: [4], 4: []}[camera_buffer]
+    assert prepared == [i for i in range(12) if i not in replaced] and src.frames_late == len(replaced)
+    assert set(replaced) <= {index for index, _ in src.dropped} and len(got) + src.frames_dropped == 12
+    with pytest.raises(ConfigError, match=r"runner\.realtime_camera_buffer"):
+        FrameSource(_frames(1, 30.0), realtime=True, on_fault=lambda f: None, camera_buffer=0)
 
 
 def test_live_source_is_read_continuously_newest_frame_wins_and_is_closed_at_the_end() -> None:
