@@ -625,12 +625,16 @@ class ThreadedRunner:
         factor = self.log.realtime_factor
         track_ms = sorted((t1 - t0) * 1e3 for t0, t1 in self.log.tracking_wall_s)
         period_ms = 1e3 * self.log.sequence_s / (tracked + dropped - 1) if tracked + dropped > 1 else math.nan
+        late = self._source.frames_late if self._source is not None else 0
         log.info(
-            "real-time playback: %d frames tracked, %d dropped (%.0f%%: tracking was busy when they came); tracking "
-            "%.1f ms per frame (median) for a frame every %.1f ms; real-time factor %s (stream time over wall time)%s",
+            "real-time playback: %d frames tracked, %d dropped (%.0f%%: %d came while tracking was busy, %d were "
+            "replaced in the camera's buffer while the frame source extracted features ahead); tracking %.1f ms per "
+            "frame (median) for a frame every %.1f ms; real-time factor %s (stream time over wall time)%s",
             tracked,
             dropped,
             share,
+            dropped - late,
+            late,
             track_ms[len(track_ms) // 2] if track_ms else math.nan,
             period_ms,
             "n/a" if factor is None else f"{factor:.2f}",

@@ -368,8 +368,9 @@ def test_ctrl_c_stops_a_threaded_run_with_exit_code_130(tmp_path: Path) -> None:
 
 
 def test_realtime_playback_drops_the_frames_tracking_is_too_busy_for() -> None:
-    """At 8x the camera rate (240 Hz) tracking cannot keep up: it always takes the newest frame, the others are
-    dropped and counted, and every frame is either tracked or dropped."""
+    """At 8x the camera rate (240 Hz) the pipeline cannot keep up (the frame source's extraction ahead and tracking):
+    tracking always takes the newest frame, the others are dropped and counted, and every frame is either tracked or
+    dropped."""
     runner, dataset = _runner("runner.realtime=true", "runner.speed=8.0")
     log = runner.run(dataset, dataset.camera)
     assert log.frames_dropped > 0
