@@ -153,6 +153,7 @@ class FrameSource(threading.Thread):
         self.frames_read = 0
         self.frames_dropped = 0
         self.dropped: list[tuple[int, float]] = []
+        self._busy_until = 0.0  # paced real time: see run()
         self.frames_late = 0  # of frames_dropped: replaced in the camera's buffer while the source was busy
         self.first_timestamp_s: float | None = None
         self.last_timestamp_s: float | None = None
@@ -206,6 +207,18 @@ class FrameSource(threading.Thread):
             self._cond.notify_all()
             return True
 
+    def _deliver(self, data: FrameData, due: float | None) -> bool:
+        """Prepare ``data`` and queue it (False: stopped meanwhile). due: its release time (paced real time), from
+        which the source's work on it is counted on the camera's clock (``_busy_until``)."""
+        work_start = time.perf_counter()
+        if self._prepare is not None:
+            self._prepare(data)
+        if not self._put(data):
+            return False
+        if due is not None:
+            self._busy_until = max(due, self._busy_until) + (time.perf_counter() - work_start)
+        return True
+
     def _drop_late(self, data: FrameData) -> None:
         """Count ``data`` as dropped without preparing or queueing it (real time: the camera replaced it)."""
         with self._cond:
@@ -232,32 +245,36 @@ class FrameSource(threading.Thread):
             # paced real time: when the source's own work on the frames it took (preparing, queueing) ended, on
             # the camera's clock; reading a frame is the camera's part and not counted, so the time spent reading
             # the frames dropped here never makes the source later
-            busy_until = start
+            self._busy_until = start
+            # the newest frame the source met after the camera had replaced it: dropped once a newer frame is read;
+            # the stream's last frame is never replaced, so it is delivered
+            replaced: FrameData | None = None
             for data in frames:
                 if self.first_timestamp_s is None:
                     self.first_timestamp_s = data.timestamp_s
                 self.last_timestamp_s = data.timestamp_s
                 self.frames_read += 1
+                if replaced is not None:
+                    self._drop_late(replaced)
+                    replaced = None
+                due: float | None = None
                 if self.realtime and self.paced:
                     due = start + (data.timestamp_s - self.first_timestamp_s) / self.speed
                     # the camera_buffer-th frame after this one is due that many frame intervals after it (the last
                     # interval: later timestamps are not read yet); free only after that, the source meets a frame
                     # the camera has already replaced
                     interval = max(due - previous_due, 0.0) if previous_due is not None else 0.0
-                    late = previous_due is not None and busy_until >= due + self.camera_buffer * interval
+                    late = previous_due is not None and self._busy_until >= due + self.camera_buffer * interval
                     previous_due = due
                     if late:
-                        self._drop_late(data)
+                        replaced = data
                         continue
                     if not self._wait_until(due):
                         return
-                work_start = time.perf_counter()
-                if self._prepare is not None:
-                    self._prepare(data)
-                if not self._put(data):
+                if not self._deliver(data, due):
                     return
-                if self.realtime and self.paced:
-                    busy_until = max(due, busy_until) + (time.perf_counter() - work_start)
+            if replaced is not None and not self._deliver(replaced, None):
+                return
             self._put(END)
         except BaseException as exc:  # reported, never a silently dead thread
             self.fault = ThreadFault(self.name, exc, traceback.format_exc())

@@ -624,7 +624,11 @@ class ThreadedRunner:
         share = 100.0 * dropped / max(tracked + dropped, 1)
         factor = self.log.realtime_factor
         track_ms = sorted((t1 - t0) * 1e3 for t0, t1 in self.log.tracking_wall_s)
-        period_ms = 1e3 * self.log.sequence_s / (tracked + dropped - 1) if tracked + dropped > 1 else math.nan
+        # the wall time between two frames: the stream's frame period over the playback speed when paced by the
+        # runner (a live device paces itself: runner.speed does not apply)
+        speed = self.speed if self._source is not None and self._source.paced else 1.0
+        n_frames = tracked + dropped
+        period_ms = 1e3 * self.log.sequence_s / (n_frames - 1) / speed if n_frames > 1 else math.nan
         late = self._source.frames_late if self._source is not None else 0
         log.info(
             "real-time playback: %d frames tracked, %d dropped (%.0f%%: %d came while tracking was busy, %d were "

@@ -415,19 +415,23 @@ def test_realtime_extractions_ahead_stay_in_the_frame_source_thread_when_asked(
         "runner.realtime_extract_ahead=true",
         f"runner.realtime_extract_single_threaded={str(single).lower()}",
     )
-    frontend: Any = runner.tracker.frontend  # the monocular front end (its ORB extractor)
-    extractor = frontend.extractor
-    assert extractor.n_threads >= 2
+    frontend: Any = runner.tracker.frontend  # the monocular front end (its ORB extractors: tracking's, the map's
+    # initialisation's, both extracted ahead in real time)
+    extractors = [frontend.extractor, frontend.init_extractor]
+    assert all(extractor.n_threads >= 2 for extractor in extractors)
     # the pyramid levels detected during the frame source's extractions ahead (ExtractedAhead.prepare holds the
     # front end's lock: no other extraction runs meanwhile), by thread
     threads: set[str] = set()
     preparing = threading.Event()
-    level_group, prepare = extractor._level_group, ExtractedAhead.prepare
+    prepare = ExtractedAhead.prepare
 
-    def spy(levels: list[int], pyramid: list[Any]) -> Any:
-        if preparing.is_set():
-            threads.add(threading.current_thread().name)
-        return level_group(levels, pyramid)
+    def spying(level_group: Any) -> Any:
+        def spy(levels: list[int], pyramid: list[Any]) -> Any:
+            if preparing.is_set():
+                threads.add(threading.current_thread().name)
+            return level_group(levels, pyramid)
+
+        return spy
 
     def prepared(self: ExtractedAhead, data: Any) -> Any:
         preparing.set()
@@ -436,7 +440,8 @@ def test_realtime_extractions_ahead_stay_in_the_frame_source_thread_when_asked(
         finally:
             preparing.clear()
 
-    monkeypatch.setattr(extractor, "_level_group", spy)
+    for extractor in extractors:
+        monkeypatch.setattr(extractor, "_level_group", spying(extractor._level_group))
     monkeypatch.setattr(ExtractedAhead, "prepare", prepared)
     log = runner.run(dataset, dataset.camera)
     assert len(log.tracking) + log.frames_dropped == 30

@@ -153,12 +153,12 @@ def test_a_realtime_source_late_from_its_own_work_drops_the_frames_the_camera_re
     frame has replaced 4 and 5 by then (the frames after them were due at 200 and 240 ms): the source drops them
     unprepared and takes 6, so its lateness is not carried on. Holding two, only 4 is replaced (6 was due at 240 ms);
     holding four, none. Frames 8 and 9 take 60 ms each to read: reading is the camera's part, so no frame is dropped
-    for it."""
+    for it. Preparing frame 10 takes 130 ms too, but nothing replaces the stream's last frame, 11: it is delivered."""
     prepared: list[int] = []
 
     def prepare(data: FrameData) -> None:
         prepared.append(data.index)
-        if data.index == 3:
+        if data.index in (3, 10):
             time.sleep(0.13)
 
     def slow_reads() -> Iterator[FrameData]:
