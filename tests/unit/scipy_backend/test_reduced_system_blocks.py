@@ -138,4 +138,3 @@ def test_blocked_reduced_system_is_the_former_to_the_bit(
     for g, w in zip(got, want, strict=True):
         assert g.shape == w.shape
         assert np.array_equal(_bits(g), _bits(w))
-
