@@ -17,6 +17,7 @@ the gate at the end. The abort token is checked before every iteration.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -162,7 +163,8 @@ class _Stage:
             self.rig = None if rig is None else rig.subset(e)
             self.obs_pose = self.obs_pose[e]
             self.obs_point = self.obs_point[e]
-        self.cam = self.obs.cam()  # (E, 8) for the fisheye kernels
+        # (E, 8) for the fisheye kernels; a pinhole problem's kernels never read it (an empty array of the same type)
+        self.cam = self.obs.cam() if self.obs.kb is not None else np.zeros((0, 8))
         K = problem.T_c_w.shape[0]
         M = problem.xyz_w.shape[0]
         # Free poses / points that have at least one active observation get consecutive indices.
@@ -253,7 +255,9 @@ class BundleSolver:
             return float(rig_cost(*args, st.rig.cam, st.rig.fish, st.rig.Rx, st.rig.tx))
         return float(ba_cost(*args, st.cam, o.kb is not None))
 
-    def linearize(self, state: BAState) -> tuple[_System, F64, float, float]:
+    def linearize(self, state: BAState) -> tuple[_System, F64, float, Callable[[], float]]:
+        """The LM's linearization at ``state``: (system, g (6 nc + 3 np,), robust cost, max diag(H)); the last is a
+        callable, evaluated by the driver at its first linearization only (the initial damping)."""
         st = self.st
         o = st.obs
         shared = (  # the arguments both kernels take; each adds its camera models
@@ -279,10 +283,13 @@ class BundleSolver:
         else:
             U, V, W, gc, gp, f = ba_linearize(*shared, st.cam, o.kb is not None)
         g = np.concatenate([gc.ravel(), gp.ravel()])
-        hmax = max(
-            float(np.max(np.diagonal(U, axis1=1, axis2=2), initial=0.0)),
-            float(np.max(np.diagonal(V, axis1=1, axis2=2), initial=0.0)),
-        )
+
+        def hmax() -> float:
+            return max(
+                float(np.max(np.diagonal(U, axis1=1, axis2=2), initial=0.0)),
+                float(np.max(np.diagonal(V, axis1=1, axis2=2), initial=0.0)),
+            )
+
         return _System(U, V, W, gc, gp), g, float(f), hmax
 
     def solve(self, sys: _System, lam: float) -> F64:

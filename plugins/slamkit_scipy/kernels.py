@@ -385,6 +385,12 @@ _y_transposed: Any = intrinsic(_y_transposed_typer)
 _SCHUR_FASTMATH = {"reassoc", "contract", "nsz"}
 
 
+#: S's 6x6 blocks while ba_reduced_system accumulates them: rows of 8 float64 (64 bytes, lanes 6 and 7 unused), each
+#: block 6 rows, block (ca, cb) at (ca nc + cb) 48 doubles past a 64-byte boundary (_BLOCK_DOUBLES)
+_BLOCK_DOUBLES = np.uint64(48)
+_ROW_DOUBLES = np.uint64(8)
+
+
 @numba.njit(cache=True, nogil=True, fastmath=_SCHUR_FASTMATH)
 def ba_reduced_system(
     U: F64,
@@ -408,25 +414,32 @@ def ba_reduced_system(
     above): the block Y_a W_b^T goes to the upper triangle (its transpose W_b Y_a^T when ca > cb), a point's own
     diagonal block gets its upper triangle. Every entry of S receives the products over k = 0, 1, 2 of one pair,
     fused, one point after the other.
+
+    The blocks are accumulated in a scratch of 64-byte rows (block (ca, cb) = 6 rows of 8 lanes, aligned to 64
+    bytes: no row straddles two cache lines, a block is 6 consecutive lines) and copied into the dense S at the end:
+    the same operations on every entry in the same order as accumulating in the dense matrix (branch lmcost3:
+    0.87x the dense accumulation's CPU on captured fr1 local BAs, S, rhs and Vinv equal to the bit).
     """
     nc = U.shape[0]
     npt = V.shape[0]
     n6 = 6 * nc
-    S = np.zeros((n6, n6))
+    unc = np.uint64(nc)
+    Sb = np.zeros(nc * nc * 48 + 8)  # the blocks (+ 8: room to start at a 64-byte boundary)
+    base = np.uint64(((64 - Sb.ctypes.data % 64) % 64) // 8)
     rhs = np.zeros(n6)
     Vinv = np.zeros((npt, 3, 3))
     for q in range(nc):
+        o = base + (np.uint64(q) * unc + np.uint64(q)) * _BLOCK_DOUBLES
         for i in range(6):
             rhs[6 * q + i] = -gc[q, i]
             for jj in range(6):
-                S[6 * q + i, 6 * q + jj] = U[q, i, jj]
-            S[6 * q + i, 6 * q + i] += lam
+                Sb[o + np.uint64(8 * i + jj)] = U[q, i, jj]
+            Sb[o + np.uint64(9 * i)] += lam
     Vd = np.zeros((3, 3))
     YT = np.zeros((64, 3, 8))  # YT[a, k, i] = Y_a[i, k], Y_a = W_a (V + lam I)^-1 of the point's observations
     WT = np.zeros((64, 3, 8))  # WT[a, k, i] = W_a[i, k]
     cs = np.zeros(64, np.uint64)  # free pose index of each observation (unsigned: see _U6)
     es = np.zeros(64, np.int64)  # the observation (row of W)
-    un6 = np.uint64(n6)
     for q in range(npt):
         for i in range(3):
             for jj in range(3):
@@ -457,19 +470,27 @@ def ba_reduced_system(
             ca = cs[a]
             for b in range(a, n):
                 cb = cs[b]
-                if ca < cb:  # S[6 ca + i, 6 cb + jj] -= Y_a[i] . W_b[jj]
-                    _sub_block_yw(S, _U6 * ca * un6 + _U6 * cb, n6, YT, 24 * a, WT, 24 * b)
-                elif ca > cb:  # S[6 cb + jj, 6 ca + i] -= W_b[jj] . Y_a[i]
-                    _sub_block_wy(S, _U6 * cb * un6 + _U6 * ca, n6, W, 18 * es[b], YT, 24 * a)
+                if ca < cb:  # block (ca, cb)[i, jj] -= Y_a[i] . W_b[jj]
+                    _sub_block_yw(Sb, base + (ca * unc + cb) * _BLOCK_DOUBLES, _ROW_DOUBLES, YT, 24 * a, WT, 24 * b)
+                elif ca > cb:  # block (cb, ca)[jj, i] -= W_b[jj] . Y_a[i]
+                    _sub_block_wy(Sb, base + (cb * unc + ca) * _BLOCK_DOUBLES, _ROW_DOUBLES, W, 18 * es[b], YT, 24 * a)
                 elif a == b:  # the point's own diagonal block: its upper triangle (the Cholesky kernel reads no other)
-                    _sub_block_diag(S, _U6 * ca * un6 + _U6 * ca, n6, YT, 24 * a, WT, 24 * b)
+                    _sub_block_diag(Sb, base + (ca * unc + ca) * _BLOCK_DOUBLES, _ROW_DOUBLES, YT, 24 * a, WT, 24 * b)
                 else:  # one keyframe observes the point twice (a rig's second camera): both halves of the block
                     eb = es[b]
+                    o = base + (ca * unc + ca) * _BLOCK_DOUBLES
                     for i in range(6):
                         for jj in range(6):
                             v = YT[a, 0, i] * W[eb, jj, 0] + YT[a, 1, i] * W[eb, jj, 1] + YT[a, 2, i] * W[eb, jj, 2]
-                            S[_U6 * ca + np.uint64(i), _U6 * ca + np.uint64(jj)] -= v
-                            S[_U6 * ca + np.uint64(jj), _U6 * ca + np.uint64(i)] -= v
+                            Sb[o + np.uint64(8 * i + jj)] -= v
+                            Sb[o + np.uint64(8 * jj + i)] -= v
+    S = np.zeros((n6, n6))
+    for ca in range(nc):  # the blocks on and above the diagonal into the dense matrix (the others stay 0)
+        for cb in range(ca, nc):
+            o = base + (np.uint64(ca) * unc + np.uint64(cb)) * _BLOCK_DOUBLES
+            for i in range(6):
+                for jj in range(6):
+                    S[6 * ca + i, 6 * cb + jj] = Sb[o + np.uint64(8 * i + jj)]
     return S, rhs, Vinv
 
 

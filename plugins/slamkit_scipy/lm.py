@@ -1,8 +1,9 @@
 """A Levenberg-Marquardt driver shared by the solvers (Nielsen's damping update, as g2o's LM).
 
 Each problem supplies three callables over its own state type X:
-  linearize(x) -> (system, g, cost): the Gauss-Newton system at x (with IRLS weights), the gradient
-      g = J^T W r flattened, and the robust cost at x;
+  linearize(x) -> (system, g, cost, hmax): the Gauss-Newton system at x (with IRLS weights), the gradient
+      g = J^T W r flattened, the robust cost at x, and max diag(H) for the initial damping (a float, or a
+      zero-argument callable giving it: the driver reads it at its first linearization only);
   solve(system, lam) -> h: the step solving (H + lam I) h = -g;
   retract(x, h) -> x': the updated state; cost(x) -> float the robust cost (same kernel weights rule).
 One iteration is one linearization followed by up to ``max_trials`` damped solves until a step lowers
@@ -48,7 +49,7 @@ class LMOutcome(Generic[X]):
 
 def levenberg_marquardt(
     x: X,
-    linearize: Callable[[X], tuple[Any, np.ndarray, float, float]],
+    linearize: Callable[[X], tuple[Any, np.ndarray, float, float | Callable[[], float]]],
     solve: Callable[[Any, float], np.ndarray],
     retract: Callable[[X, np.ndarray], X],
     cost: Callable[[X], float],
@@ -56,7 +57,8 @@ def levenberg_marquardt(
     settings: LMSettings,
     abort: AbortToken | None = None,
 ) -> LMOutcome[X]:
-    """Run up to ``iterations`` LM iterations from x (linearize also returns max diag(H) for the damping)."""
+    """Run up to ``iterations`` LM iterations from x (linearize also returns max diag(H) for the damping, read once:
+    a callable is called only then)."""
     lam = -1.0
     nu = 2.0
     f0 = f = float("nan")
@@ -74,7 +76,10 @@ def levenberg_marquardt(
                 f0 = f
             stale = False
         if lam < 0.0:
-            lam = settings.lambda_init if settings.lambda_init is not None else settings.tau * max(hmax, 1e-12)
+            if settings.lambda_init is not None:
+                lam = settings.lambda_init
+            else:
+                lam = settings.tau * max(hmax() if callable(hmax) else hmax, 1e-12)
         accepted = False
         decrease = 0.0
         for _trial in range(settings.max_trials):
