@@ -85,7 +85,7 @@ from slamkit.pipeline.map_merging import (
     welding_window,
     window_points,
 )
-from slamkit.pipeline.map_points import refresh_points
+from slamkit.pipeline.map_points import refresh_points, unique_point_ids
 from slamkit.pipeline.outcomes import LoopOutcome
 from slamkit.problems import Sim3Problem
 
@@ -1225,14 +1225,10 @@ class LoopCloser:
                     replace_point(store, store.get_point(existing), store.get_point(pid))
             elif kf.id not in store.get_point(pid).observations:
                 store.add_observation(pid, kf.id, feat)
-        loop_points = sorted(
-            {
-                int(p)
-                for k in [loop_kf_id, *store.covisibility.neighbors(loop_kf_id)]
-                for p in store.get_keyframe(k).point_ids
-                if p >= 0
-            }
-        )
+        # the distinct points of the loop keyframe and its neighbours, sorted (one mark per id, no Python step per id)
+        loop_points = unique_point_ids(
+            [store.get_keyframe(k).point_ids for k in [loop_kf_id, *store.covisibility.neighbors(loop_kf_id)]]
+        ).tolist()
         for k in sorted(corr.corrected):
             if store.has_keyframe(k):
                 fuse_points(
