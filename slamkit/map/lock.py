@@ -32,6 +32,13 @@ class ReadWriteLock:
         # that writers wait out.
         self._read_turn = False
         self._held = threading.local()  # .depth: how many reads this thread holds (re-entrant reads)
+        self._writes = 0  # write locks released so far
+
+    @property
+    def writes(self) -> int:
+        """How many times the write lock was released so far: a reader comparing it before and after a gap sees
+        whether anyone wrote in between (see slamkit.pipeline.loop_correction.read_then_write)."""
+        return self._writes
 
     @contextmanager
     def read(self) -> Iterator[None]:
@@ -82,5 +89,6 @@ class ReadWriteLock:
         finally:
             with self._cond:
                 self._writer = False
+                self._writes += 1
                 self._read_turn = self._readers_waiting > 0
                 self._cond.notify_all()

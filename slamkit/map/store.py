@@ -86,6 +86,13 @@ class InMemoryMapStore:
         return self._lock.write()
 
     @property
+    def write_count(self) -> int:
+        """How many times the map's write lock was released so far (not in the MapStore protocol: loop correction
+        computes under the read lock and writes under the write lock, and checks with it that nobody wrote in
+        between; slamkit.pipeline.loop_correction.read_then_write)."""
+        return self._lock.writes
+
+    @property
     def ids(self) -> IdAllocator:
         return self._ids
 

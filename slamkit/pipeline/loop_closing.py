@@ -48,11 +48,16 @@ from slamkit.pipeline.fusion import fuse_points, replace_point
 from slamkit.pipeline.global_ba import GlobalBAOutcome, commit_global_ba, optimize_global_ba, snapshot_global_ba
 from slamkit.pipeline.keyframe_pins import KeyFramePins
 from slamkit.pipeline.loop_correction import (
+    LoopCorrection,
+    MapMove,
     apply_essential_graph,
-    apply_loop_correction,
+    essential_graph_move,
     essential_graph_problem,
+    loop_correction_move,
     propagate_loop_sim3,
+    read_then_write,
     sim3_of_pose,
+    write_map_move,
 )
 from slamkit.pipeline.loop_verification import (
     KeyframeCheck,
@@ -80,7 +85,7 @@ from slamkit.pipeline.map_merging import (
     welding_window,
     window_points,
 )
-from slamkit.pipeline.map_points import refresh_points
+from slamkit.pipeline.map_points import refresh_points, unique_point_ids
 from slamkit.pipeline.outcomes import LoopOutcome
 from slamkit.problems import Sim3Problem
 
@@ -1151,51 +1156,31 @@ class LoopCloser:
     def _correct(
         self, kf: KeyFrame, loop_kf_id: int, S_cw: Sim3, loop_matches: dict[int, int], out: LoopOutcome
     ) -> None:
+        """ORB-SLAM CorrectLoop, local mapping parked by the caller. The map's write lock is held only to write: what
+        only reads the map (the Sim3 propagation and the corrected points' positions and normals, the essential-graph
+        problem, the optimized map's poses, positions and normals) runs under the read lock, so tracking goes on
+        meanwhile (``read_then_write``); ORB-SLAM holds mMutexMapUpdate over all of it. Nothing but this step writes
+        the map in between (local mapping is parked, the global BA aborted, tracking only counts visible/found
+        points): the map each write finds is the one computed on, as if it all ran under one write lock."""
         store = self.store
         with store.write():
             store.update_connections(kf.id)
+
+        def propagate() -> tuple[LoopCorrection, dict[int, set[int]], MapMove]:
             corr = propagate_loop_sim3(store, kf.id, S_cw)
             before = {k: set(store.covisibility.neighbors(k)) for k in corr.corrected}
-            apply_loop_correction(store, corr)
-            # loop fusion: the loop's points replace the current keyframe's duplicates
-            for feat, pid in sorted(loop_matches.items()):
-                if not store.has_point(pid):
-                    continue
-                existing = int(kf.point_ids[feat])
-                if existing >= 0 and store.has_point(existing):
-                    if existing != pid:
-                        replace_point(store, store.get_point(existing), store.get_point(pid))
-                elif kf.id not in store.get_point(pid).observations:
-                    store.add_observation(pid, kf.id, feat)
-            loop_points = sorted(
-                {
-                    int(p)
-                    for k in [loop_kf_id, *store.covisibility.neighbors(loop_kf_id)]
-                    for p in store.get_keyframe(k).point_ids
-                    if p >= 0
-                }
-            )
-            for k in sorted(corr.corrected):
-                if store.has_keyframe(k):
-                    fuse_points(
-                        store,
-                        store.get_keyframe(k),
-                        loop_points,
-                        self.cfg.loop_fuse_radius_px,
-                        incoming_wins=True,
-                        max_distance=self.cfg.matcher.th_low,
-                        chi2_gate=self.cfg.chi2.fuse_mono,
-                    )
-            loop_connections: dict[int, set[int]] = {}
-            for k in sorted(corr.corrected):
-                if not store.has_keyframe(k):
-                    continue
-                store.update_connections(k)
-                linked = set(store.covisibility.neighbors(k)) - before.get(k, set()) - set(corr.corrected)
-                if linked:
-                    loop_connections[k] = linked
-            loop_connections.setdefault(kf.id, set()).add(loop_kf_id)
-            t_eg = time.perf_counter()
+            return corr, before, loop_correction_move(store, corr)[0]
+
+        def correct_and_fuse(
+            prepared: tuple[LoopCorrection, dict[int, set[int]], MapMove],
+        ) -> tuple[LoopCorrection, dict[int, set[int]]]:
+            corr, before, move = prepared
+            write_map_move(store, move)
+            return corr, self._fuse_loop(kf, loop_kf_id, loop_matches, corr, before)
+
+        corr, loop_connections = read_then_write(store, propagate, correct_and_fuse)
+        t_eg = time.perf_counter()
+        with store.read():
             problem, eg_kf_ids = essential_graph_problem(
                 store, loop_kf_id, kf.id, corr, loop_connections, self.cfg.theta_min
             )
@@ -1203,16 +1188,68 @@ class LoopCloser:
         # the map only to write its result): tracking goes on meanwhile on the half-corrected map. Nothing else
         # changes keyframe poses or points in between: local mapping is parked for the whole loop-closing step.
         result = self.optimizer.optimize_essential_graph(problem)
-        with store.write():
-            apply_essential_graph(store, problem, result, eg_kf_ids)
-            out.timings_ms["essential_graph_ms"] = (time.perf_counter() - t_eg) * 1e3
-            out.essential_graph_edges = int(problem.edge_i.shape[0])
+
+        def commit(move: MapMove) -> None:
+            write_map_move(store, move)
             store.add_loop_edge(kf.id, loop_kf_id)
             store.bump_epoch()
+
+        read_then_write(store, lambda: essential_graph_move(store, problem, result, eg_kf_ids), commit)
+        out.timings_ms["essential_graph_ms"] = (time.perf_counter() - t_eg) * 1e3
+        out.essential_graph_edges = int(problem.edge_i.shape[0])
         if self.cfg.global_ba:
             t_ba = time.perf_counter()
             self.start_global_ba(kf.id)
             out.timings_ms["global_ba_start_ms"] = (time.perf_counter() - t_ba) * 1e3
+
+    def _fuse_loop(
+        self,
+        kf: KeyFrame,
+        loop_kf_id: int,
+        loop_matches: dict[int, int],
+        corr: LoopCorrection,
+        before: dict[int, set[int]],
+    ) -> dict[int, set[int]]:
+        """Loop fusion after the neighbourhood's correction (ORB-SLAM CorrectLoop, the write lock held): the loop's
+        points replace the current keyframe's duplicates and are fused into the corrected keyframes, whose
+        connections are then updated. ``before``: each corrected keyframe's neighbours before. Returns the new loop
+        connections (keyframe id -> newly linked keyframes outside the corrected ones; the current keyframe is
+        linked to the loop keyframe)."""
+        store = self.store
+        for feat, pid in sorted(loop_matches.items()):
+            if not store.has_point(pid):
+                continue
+            existing = int(kf.point_ids[feat])
+            if existing >= 0 and store.has_point(existing):
+                if existing != pid:
+                    replace_point(store, store.get_point(existing), store.get_point(pid))
+            elif kf.id not in store.get_point(pid).observations:
+                store.add_observation(pid, kf.id, feat)
+        # the distinct points of the loop keyframe and its neighbours, sorted (one mark per id, no Python step per id)
+        loop_points = unique_point_ids(
+            [store.get_keyframe(k).point_ids for k in [loop_kf_id, *store.covisibility.neighbors(loop_kf_id)]]
+        ).tolist()
+        for k in sorted(corr.corrected):
+            if store.has_keyframe(k):
+                fuse_points(
+                    store,
+                    store.get_keyframe(k),
+                    loop_points,
+                    self.cfg.loop_fuse_radius_px,
+                    incoming_wins=True,
+                    max_distance=self.cfg.matcher.th_low,
+                    chi2_gate=self.cfg.chi2.fuse_mono,
+                )
+        loop_connections: dict[int, set[int]] = {}
+        for k in sorted(corr.corrected):
+            if not store.has_keyframe(k):
+                continue
+            store.update_connections(k)
+            linked = set(store.covisibility.neighbors(k)) - before.get(k, set()) - set(corr.corrected)
+            if linked:
+                loop_connections[k] = linked
+        loop_connections.setdefault(kf.id, set()).add(loop_kf_id)
+        return loop_connections
 
     # ---- global BA after a loop (ORB-SLAM2 RunGlobalBundleAdjustment) ----------------------------------------
 

@@ -234,11 +234,13 @@ class _Gathered:
         all_present: bool = False,
         normals: bool = True,
         descriptors: bool = True,
+        centers_w: Mapping[int, F64] | None = None,
     ) -> None:
         """flat: ``flat_observations(points)``; observers missing from ``keyframes`` are left out (all_present: the
         caller knows every observer is in ``keyframes``). normals=False skips what only the normals and depth ranges
         read (centres, reference rows, pyramids: left at their zero / -1 / one defaults), descriptors=False the
-        descriptors' gather (left zero)."""
+        descriptors' gather (left zero). centers_w: keyframe id -> (3,) m world camera centre to use instead of the
+        keyframe's ``center_w`` (a pose about to be written; keyframes not listed keep theirs)."""
         P = len(points)
         counts, kf_all, feat_all = flat
         present = None if all_present else np.isin(kf_all, np.fromiter(keyframes, np.int64, count=len(keyframes)))
@@ -280,7 +282,13 @@ class _Gathered:
             rank = np.empty(E, np.int64)
             rank[order] = np.arange(E)  # row r of the point-major order is row rank[r] of the keyframe order
             if normals:
-                centers = np.array([kf.center_w for kf in observers], np.float64).reshape(-1, 3)
+                centers = np.array(
+                    [
+                        kf.center_w if centers_w is None or kf.id not in centers_w else centers_w[kf.id]
+                        for kf in observers
+                    ],
+                    np.float64,
+                ).reshape(-1, 3)
                 self.center = centers[np.repeat(np.arange(ids.size), np.diff(bounds))[rank]]
                 self.level = level[rank]
             if descriptors:
@@ -372,6 +380,11 @@ def _refreshed(
     )
 
 
+def _ids_of(points: Sequence[MapPoint]) -> I64:
+    """(P,) the points' ids in order."""
+    return np.array([p.id for p in points], np.int64)
+
+
 def _apply(
     store: MapStore, points: list[MapPoint], g: _Gathered | _FewGathered, normals: bool, descriptors: bool
 ) -> None:
@@ -379,29 +392,48 @@ def _apply(
     (store.assign_points)."""
     if not points:
         return
-    _apply_ids(store, np.array([p.id for p in points], np.int64), g, normals, descriptors)
+    _apply_ids(store, _ids_of(points), g, normals, descriptors)
 
 
 def _apply_ids(
     store: MapStore, ids: I64, g: _Gathered | _PairGathered | _FewGathered, normals: bool, descriptors: bool
 ) -> None:
     """:func:`_apply` for the points ``ids`` (P,) in the order of g's rows."""
+    write_point_updates(store, _updates(store, ids, g, normals, descriptors))
+
+
+def _updates(
+    store: MapStore,
+    ids: I64,
+    g: _Gathered | _PairGathered | _FewGathered,
+    normals: bool,
+    descriptors: bool,
+    moved: tuple[I64, F64] | None = None,
+) -> PointUpdates:
+    """The points ``ids``' (P,, in the order of g's rows) new normals/depth ranges and descriptors, as updates for
+    store.assign_points; moved: (ids (M,), xyz_w (M, 3)) positions replacing the stored ones of those points (ids
+    among ``ids``, which must then be sorted)."""
     xyz = store.point_rows(ids, "xyz_w") if normals else np.zeros((ids.size, 3))  # read by the normals only
+    if normals and moved is not None and moved[0].size:
+        xyz = np.array(xyz, np.float64)  # a private copy (a store's point_rows need not copy)
+        at = np.searchsorted(ids, moved[0])
+        if not np.array_equal(ids[np.minimum(at, ids.size - 1)], moved[0]):
+            raise ValueError("refreshed_points: a moved point is not among the refreshed ones")
+        xyz[at] = moved[1]
     if g.desc.shape[1] % 8:
         raise ValueError(f"descriptors must have a multiple of 8 bytes, got {g.desc.shape[1]}")
     normal, has_normal, d_min, d_max, best = _refreshed(xyz, g, normals, descriptors)
     observed = g.n_observations > 0
-    updates: list[tuple[str, NDArray[np.int64], NDArray[Any]]] = []
+    updates: PointUpdates = []
     if normals:
         with_normal = np.flatnonzero(observed & has_normal)
         with_ref = np.flatnonzero(observed & (g.ref_row >= 0))
-        updates += [("normal_w", with_normal, normal[with_normal])]
-        updates += [("d_max_m", with_ref, d_max[with_ref]), ("d_min_m", with_ref, d_min[with_ref])]
+        updates += [("normal_w", ids[with_normal], normal[with_normal])]
+        updates += [("d_max_m", ids[with_ref], d_max[with_ref]), ("d_min_m", ids[with_ref], d_min[with_ref])]
     if descriptors:
         with_best = np.flatnonzero(best >= 0)
-        updates += [("descriptor", with_best, g.desc[best[with_best]])]
-    for name, rows, values in updates:
-        store.assign_points(ids[rows], name, values)
+        updates += [("descriptor", ids[with_best], g.desc[best[with_best]])]
+    return updates
 
 
 class _FewGathered:
@@ -448,17 +480,43 @@ def refresh_points(store: MapStore, point_ids: Iterable[int], normals: bool = Tr
     """``update_normal_and_depth`` (when ``normals``) and ``compute_distinctive_descriptor`` (when
     ``descriptors``) for every listed point still in the map (duplicates and erased ids ignored), in one
     gather and one compiled pass."""
+    write_point_updates(store, refreshed_points(store, point_ids, normals, descriptors))
+
+
+#: what a refresh writes: (attribute, point ids (K,), values (K, ...)) for ``MapStore.assign_points``, in order
+PointUpdates = list[tuple[str, I64, NDArray[Any]]]
+
+
+def refreshed_points(
+    store: MapStore,
+    point_ids: Iterable[int],
+    normals: bool = True,
+    descriptors: bool = True,
+    moved: tuple[I64, F64] | None = None,
+    centers_w: Mapping[int, F64] | None = None,
+) -> PointUpdates:
+    """What :func:`refresh_points` would write, computed without writing (only reads the map: the read lock does).
+
+    moved: (ids (M,), xyz_w (M, 3) m) positions to use instead of the stored ones for those points (listed points
+    only); centers_w: keyframe id -> (3,) m camera centres to use instead of the keyframes' (their poses about to
+    be written). With both, the updates are the ones ``refresh_points`` would write once those positions and poses
+    are in the map, bit for bit (the same kernel on the same numbers)."""
     points = store.get_points(sorted(set(point_ids)))
     if not points:
-        return
+        return []
     if descriptors and not normals and len(points) <= FEW_POINTS:
-        _apply(store, points, _FewGathered(store, points), False, True)
-        return
+        return _updates(store, _ids_of(points), _FewGathered(store, points), False, True)
     flat = flat_observations(points)
     observers = np.unique(flat[1]).tolist()
     keyframes = {k: store.get_keyframe(k) for k in observers if store.has_keyframe(k)}
-    g = _Gathered(points, keyframes, flat, len(keyframes) == len(observers), normals, descriptors)
-    _apply(store, points, g, normals, descriptors)
+    g = _Gathered(points, keyframes, flat, len(keyframes) == len(observers), normals, descriptors, centers_w)
+    return _updates(store, _ids_of(points), g, normals, descriptors, moved)
+
+
+def write_point_updates(store: MapStore, updates: PointUpdates) -> None:
+    """Write what :func:`refreshed_points` computed (store.assign_points of each update in order; the write lock)."""
+    for name, ids, values in updates:
+        store.assign_points(ids, name, values)
 
 
 def update_normal_and_depth(store: MapStore, point: MapPoint, keyframes: Mapping[int, KeyFrame]) -> None:
