@@ -19,7 +19,6 @@ from slamkit.app import build_runner
 from slamkit.config import compose_config
 from slamkit.eval.run_metrics import runner_metrics
 from slamkit.pipeline.local_mapping import LocalMapper
-from slamkit.runtime.extract_ahead import ExtractedAhead
 from slamkit.runtime.threaded import ThreadedRunner
 from slamkit.runtime.workers import PipelineThreadError, PipelineWorker
 
@@ -419,11 +418,12 @@ def test_realtime_extractions_ahead_stay_in_the_frame_source_thread_when_asked(
     # initialisation's, both extracted ahead in real time)
     extractors = [frontend.extractor, frontend.init_extractor]
     assert all(extractor.n_threads >= 2 for extractor in extractors)
-    # the pyramid levels detected during the frame source's extractions ahead (ExtractedAhead.prepare holds the
-    # front end's lock: no other extraction runs meanwhile), by thread
+    # the pyramid levels detected during the frame source's extractions ahead, by thread: the front end's observe
+    # called from the frame-source thread (ExtractedAhead.prepare calls it holding the front end's lock, which
+    # tracking's own extractions take too: no other extraction runs meanwhile)
     threads: set[str] = set()
     preparing = threading.Event()
-    prepare = ExtractedAhead.prepare
+    observe = frontend.observe
 
     def spying(level_group: Any) -> Any:
         def spy(levels: list[int], pyramid: list[Any]) -> Any:
@@ -433,16 +433,18 @@ def test_realtime_extractions_ahead_stay_in_the_frame_source_thread_when_asked(
 
         return spy
 
-    def prepared(self: ExtractedAhead, data: Any) -> Any:
+    def observed(*args: Any, **kwargs: Any) -> Any:
+        if threading.current_thread().name != "frame-source":
+            return observe(*args, **kwargs)
         preparing.set()
         try:
-            return prepare(self, data)
+            return observe(*args, **kwargs)
         finally:
             preparing.clear()
 
     for extractor in extractors:
         monkeypatch.setattr(extractor, "_level_group", spying(extractor._level_group))
-    monkeypatch.setattr(ExtractedAhead, "prepare", prepared)
+    monkeypatch.setattr(frontend, "observe", observed)
     log = runner.run(dataset, dataset.camera)
     assert len(log.tracking) + log.frames_dropped == 30
     assert "frame-source" in threads
