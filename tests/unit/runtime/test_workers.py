@@ -18,6 +18,18 @@ from slamkit.sensors import FrameData
 pytestmark = pytest.mark.timeout(60)
 
 
+def _delivered(src: FrameSource) -> list[int]:
+    """Start ``src`` and take every frame it delivers, at once, until the end; their indices in order."""
+    src.start()
+    got = []
+    while True:
+        item = src.get(timeout_s=5)
+        if item is END:
+            return got
+        assert isinstance(item, FrameData)
+        got.append(item.index)
+
+
 def _frames(n: int, fps: float) -> list[FrameData]:
     img = np.zeros((4, 4), np.uint8)
     return [FrameData(index=i, timestamp_s=i / fps, image=img) for i in range(n)]
@@ -91,14 +103,7 @@ def test_a_raising_item_reports_the_thread_name_and_traceback_and_fails_pausers(
 
 def test_fast_source_delivers_every_frame_in_order_then_end() -> None:
     src = FrameSource(_frames(20, 30.0), realtime=False, on_fault=lambda f: None)
-    src.start()
-    got = []
-    while True:
-        item = src.get(timeout_s=5)
-        if item is END:
-            break
-        assert isinstance(item, FrameData)
-        got.append(item.index)
+    got = _delivered(src)
     assert got == list(range(20)) and src.frames_dropped == 0
 
 
@@ -170,14 +175,7 @@ def test_a_realtime_source_late_from_its_own_work_drops_the_frames_the_camera_re
     src = FrameSource(
         slow_reads(), realtime=True, on_fault=lambda f: None, prepare=prepare, camera_buffer=camera_buffer
     )
-    src.start()
-    got = []
-    while True:
-        item = src.get(timeout_s=5)
-        if item is END:
-            break
-        assert isinstance(item, FrameData)
-        got.append(item.index)
+    got = _delivered(src)
     # every frame but 4 and 5 was prepared and queued (a queued frame the consumer is too slow to take before the
     # next one is replaced in the mailbox, as before: counted in frames_dropped, not in frames_late)
     replaced = {1: [4, 5], 2: [4], 4: []}[camera_buffer]
