@@ -21,7 +21,8 @@ class RunLog:
     frames_dropped: frames that real-time playback delivered while tracking was busy and that were replaced by a
     newer one before tracking took them, and frames the camera's buffer replaced while the frame source was busy
     extracting features ahead (``runner.realtime_camera_buffer``; 0 when playing as fast as possible);
-    dropped_frames: those frames, (frame index, timestamp s) each. source_end: how a live source's stream ended (None for a recorded sequence).
+    dropped_frames: those frames, (frame index, timestamp s) each. source_end: how a live source's stream ended
+    (None for a recorded sequence).
     sequence_s: time span of the frames played (last minus first timestamp, s). wall_s: wall time of the run, s. failed_thread: name of the pipeline thread whose exception stopped the run, if any.
     preloaded_mb: memory held by frames read into memory before playback (``runner.preload``), MiB.
     """

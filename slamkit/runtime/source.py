@@ -263,8 +263,9 @@ class FrameSource(threading.Thread):
                     # the camera_buffer-th frame after this one is due that many frame intervals after it (the last
                     # interval: later timestamps are not read yet); free only after that, the source meets a frame
                     # the camera has already replaced
-                    interval = max(due - previous_due, 0.0) if previous_due is not None else 0.0
-                    late = previous_due is not None and self._busy_until >= due + self.camera_buffer * interval
+                    late = previous_due is not None and self._busy_until >= due + self.camera_buffer * max(
+                        due - previous_due, 0.0
+                    )
                     previous_due = due
                     if late:
                         replaced = data
