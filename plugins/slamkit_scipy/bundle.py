@@ -28,13 +28,11 @@ from numpy.typing import NDArray
 from slamkit.interfaces import AbortToken
 from slamkit.problems import CAMERA_KANNALA_BRANDT, BundleProblem, BundleResult
 from slamkit_scipy.kernels import (
-    ba_back_substitute,
     ba_chi2_depth,
     ba_cost,
     ba_linearize,
-    ba_reduced_system,
     ba_retract,
-    cholesky_solve_upper,
+    ba_solve_dense,
 )
 from slamkit_scipy.lm import LMSettings, levenberg_marquardt
 from slamkit_scipy.reprojection import (
@@ -294,15 +292,9 @@ class BundleSolver:
 
     def solve(self, sys: _System, lam: float) -> F64:
         st = self.st
-        nc, npt = st.nc, st.np_
-        n = 6 * nc
+        n = 6 * st.nc
         if 0 < n <= self.dense_max:
-            S, rhs, Vinv = ba_reduced_system(sys.U, sys.V, sys.W, sys.gc, sys.gp, lam, st.c, st.point_ptr, st.point_obs)
-            dc = cholesky_solve_upper(S, rhs)
-            if not np.all(np.isfinite(dc)):
-                return np.full(n + 3 * npt, np.nan)
-            dp = ba_back_substitute(dc, Vinv, sys.W, sys.gp, st.c, st.point_ptr, st.point_obs)
-            return np.concatenate([dc, dp.ravel()])
+            return ba_solve_dense(sys.U, sys.V, sys.W, sys.gc, sys.gp, lam, st.c, st.point_ptr, st.point_obs)
         return self._solve_sparse(sys, lam)
 
     def _solve_sparse(self, sys: _System, lam: float) -> F64:

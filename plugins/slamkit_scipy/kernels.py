@@ -560,6 +560,33 @@ def ba_back_substitute(
 
 
 @numba.njit(cache=True, nogil=True)
+def ba_solve_dense(
+    U: F64, V: F64, W: F64, gc: F64, gp: F64, lam: float, c: I64, point_ptr: I64, point_obs: I64
+) -> F64:  # pragma: no cover - compiled
+    """The LM's damped step through the dense Schur complement in one compiled call (BundleSolver.solve):
+    :func:`ba_reduced_system`, :func:`cholesky_solve_upper`, :func:`ba_back_substitute`, -> h (6 nc + 3 npt,) =
+    [dc (6 nc,): the free poses' [omega (rad), v (m)], dp (3 npt,): the free points' m], or NaN everywhere when dc
+    is not finite (a pivot not positive, or a non-finite V^-1 / rhs: the LM then raises the damping).
+
+    The same three kernels on the same arrays as calling them one by one from Python and concatenating dc and dp,
+    so h is theirs bit for bit (each keeps its own compile flags: the reduced system's fast-math flags are on its
+    instructions); what goes is the Python between them (three dispatches of nine array arguments, the finiteness
+    test's numpy calls, the concatenation) once per LM trial."""
+    S, rhs, Vinv = ba_reduced_system(U, V, W, gc, gp, lam, c, point_ptr, point_obs)
+    dc = cholesky_solve_upper(S, rhs)
+    n = dc.shape[0]
+    npt = Vinv.shape[0]
+    for i in range(n):
+        if not np.isfinite(dc[i]):
+            return np.full(n + 3 * npt, np.nan)
+    dp = ba_back_substitute(dc, Vinv, W, gp, c, point_ptr, point_obs)
+    h = np.empty(n + 3 * npt)
+    h[:n] = dc
+    h[n:] = dp.ravel()
+    return h
+
+
+@numba.njit(cache=True, nogil=True)
 def ba_retract(T: F64, X: F64, free_poses: I64, free_points: I64, h: F64) -> tuple[F64, F64]:  # pragma: no cover
     """The LM's retraction in one compiled pass (slamkit_scipy.bundle's BundleSolver.retract):
     T (K, 4, 4) poses T_c_w, X (M, 3) points (m), h = [xi_0, .., xi_(nc-1), dp_0, .., dp_(np-1)] with xi = [omega

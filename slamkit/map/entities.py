@@ -63,9 +63,18 @@ class KeyFrame:
 
     @property
     def center_w(self) -> F64:
-        """(3,) m, the camera centre in the world frame."""
-        R, t = self.T_c_w[:3, :3], self.T_c_w[:3, 3]
-        return np.asarray(-R.T @ t)
+        """(3,) m, the camera centre in the world frame (a new array each call).
+
+        Computed once per pose: kept with the pose array it came from and recomputed when ``T_c_w`` is another array
+        (a pose is replaced, never written in place: it is read-only); local mapping reads each keyframe's centre
+        many times per step (triangulation's baselines, epipoles and parallax, the points' refreshes)."""
+        T = self.T_c_w
+        cached = self.__dict__.get("_center_w")
+        if cached is None or cached[0] is not T:
+            R, t = T[:3, :3], T[:3, 3]
+            cached = (T, np.asarray(-R.T @ t))
+            self.__dict__["_center_w"] = cached
+        return np.array(cached[1])
 
     def n_tracked_points(self) -> int:
         return int(np.count_nonzero(self.point_ids >= 0))
