@@ -219,7 +219,7 @@ class _Stage:
 class _System:
     U: F64  # (nc, 6, 6)
     V: F64  # (np, 3, 3)
-    W: F64  # (E, 6, 3) per observation (zero unless both ends are free)
+    WT: F64  # (E, 3, 8) per observation W (6 x 3) transposed, lanes 6 and 7 zero (zero unless both ends are free)
     gc: F64  # (nc, 6)
     gp: F64  # (np, 3)
 
@@ -278,8 +278,10 @@ class BundleSolver:
         )
         if st.rig is not None:
             U, V, W, gc, gp, f = rig_linearize(*shared, st.rig.cam, st.rig.fish, st.rig.Rx, st.rig.tx)
+            WT = np.zeros((W.shape[0], 3, 8))  # the rig kernel's (E, 6, 3) blocks in ba_linearize's layout
+            WT[:, :, :6] = W.transpose(0, 2, 1)
         else:
-            U, V, W, gc, gp, f = ba_linearize(*shared, st.cam, o.kb is not None)
+            U, V, WT, gc, gp, f = ba_linearize(*shared, st.cam, o.kb is not None)
         g = np.concatenate([gc.ravel(), gp.ravel()])
 
         def hmax() -> float:
@@ -288,13 +290,13 @@ class BundleSolver:
                 float(np.max(np.diagonal(V, axis1=1, axis2=2), initial=0.0)),
             )
 
-        return _System(U, V, W, gc, gp), g, float(f), hmax
+        return _System(U, V, WT, gc, gp), g, float(f), hmax
 
     def solve(self, sys: _System, lam: float) -> F64:
         st = self.st
         n = 6 * st.nc
         if 0 < n <= self.dense_max:
-            return ba_solve_dense(sys.U, sys.V, sys.W, sys.gc, sys.gp, lam, st.c, st.point_ptr, st.point_obs)
+            return ba_solve_dense(sys.U, sys.V, sys.WT, sys.gc, sys.gp, lam, st.c, st.point_ptr, st.point_obs)
         return self._solve_sparse(sys, lam)
 
     def _solve_sparse(self, sys: _System, lam: float) -> F64:
@@ -308,7 +310,7 @@ class BundleSolver:
         if nc == 0:
             dp = -np.einsum("pij,pj->pi", Vinv, sys.gp)
             return dp.ravel()
-        Wb = sys.W[st.both]
+        Wb = np.ascontiguousarray(sys.WT[st.both, :, :6].transpose(0, 2, 1))  # (B, 6, 3)
         Wm = st.w_matrix(Wb)
         # Y = W V^-1 per observation block (B, 6, 3), same sparsity as W.
         Ym = st.w_matrix(np.matmul(Wb, Vinv[st.p[st.both]]))

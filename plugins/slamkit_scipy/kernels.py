@@ -70,8 +70,10 @@ def ba_linearize(
     cam: F64,
     fisheye: bool,
 ) -> tuple[F64, F64, F64, F64, F64, float]:  # pragma: no cover - compiled
-    """-> U (nc, 6, 6), V (npt, 3, 3), W (E, 6, 3) (zero unless both ends free), gc (nc, 6), gp (npt, 3),
-    robust cost. Blocks are J^T w J and J^T w r with w = info * rho'(chi2) (IRLS Huber when ``robust``).
+    """-> U (nc, 6, 6), V (npt, 3, 3), WT (E, 3, 8), gc (nc, 6), gp (npt, 3), robust cost. WT holds each
+    observation's W = J_pose^T w J_point (6 x 3) transposed in rows of 8 lanes, WT[e, k, i] = W_e[i, k] for i < 6 and
+    0 in lanes 6 and 7 (all 0 unless both ends are free): the layout the reduced camera system's 8-lane updates read,
+    written here once per linearization instead of transposed there once per LM trial (branch lmcpu23). Blocks are J^T w J and J^T w r with w = info * rho'(chi2) (IRLS Huber when ``robust``).
     Compiled with contraction (fastmath "contract": a multiply and the add it feeds may become one fused multiply-add,
     one rounding instead of two; 0.93x the kernel's time on captured fr1 local BAs, U within ~5e-12 relative).
     The pose Jacobian of an observation by a fixed pose is not formed (nothing reads it), W is allocated empty and
@@ -83,7 +85,7 @@ def ba_linearize(
     E = obs_pose.shape[0]
     U = np.zeros((nc, 6, 6))
     V = np.zeros((npt, 3, 3))
-    W = np.empty((E, 6, 3))
+    WT = np.empty((E, 3, 8))
     gc = np.zeros((nc, 6))
     gp = np.zeros((npt, 3))
     cost = 0.0
@@ -189,11 +191,14 @@ def ba_linearize(
                     s += Jc[1, i] * Jp[1, jj]
                     if three:
                         s += Jc[2, i] * Jp[2, jj]
-                    W[e, i, jj] = w * s
+                    WT[e, jj, i] = w * s
+            for jj in range(3):
+                WT[e, jj, 6] = 0.0
+                WT[e, jj, 7] = 0.0
         else:
-            for i in range(6):
-                for jj in range(3):
-                    W[e, i, jj] = 0.0
+            for jj in range(3):
+                for i in range(8):
+                    WT[e, jj, i] = 0.0
     # Mirror the upper triangles.
     for q in range(nc):
         for i in range(6):
@@ -203,7 +208,7 @@ def ba_linearize(
         for i in range(3):
             for jj in range(i):
                 V[q, i, jj] = V[q, jj, i]
-    return U, V, W, gc, gp, cost
+    return U, V, WT, gc, gp, cost
 
 
 @numba.njit(cache=True, nogil=True)
@@ -338,10 +343,10 @@ def _make_block_update(k_first: int, a_row: int, a_col: int, upper: bool) -> Any
     return block_update
 
 
-#: Y_a W_b^T into the block (ca, cb), ca < cb: A = Y_a^T (scratch YT, a_row 1, a_col 8), B = W_b^T (scratch WT).
+#: Y_a W_b^T into the block (ca, cb), ca < cb: A = Y_a^T (scratch YT, a_row 1, a_col 8), B = W_b^T (WT's rows).
 _sub_block_yw = _make_block_update(2, 1, 8, upper=False)
-#: W_b Y_a^T into the block (cb, ca), cb < ca: A = W_b (the (E, 6, 3) array: a_row 3, a_col 1), B = Y_a^T (YT).
-_sub_block_wy = _make_block_update(2, 3, 1, upper=False)
+#: W_b Y_a^T into the block (cb, ca), cb < ca: A = W_b (read from WT (E, 3, 8): a_row 1, a_col 8), B = Y_a^T (YT).
+_sub_block_wy = _make_block_update(2, 1, 8, upper=False)
 #: A point's own diagonal block Y_a W_a^T, its upper triangle only (the Cholesky kernel reads no other entry).
 _sub_block_diag = _make_block_update(0, 1, 8, upper=True)
 
@@ -395,7 +400,7 @@ _ROW_DOUBLES = np.uint64(8)
 def ba_reduced_system(
     U: F64,
     V: F64,
-    W: F64,
+    WT: F64,
     gc: F64,
     gp: F64,
     lam: float,
@@ -406,11 +411,14 @@ def ba_reduced_system(
     """Schur complement with damping lam: -> S (6 nc, 6 nc) = U + lam I - W (V + lam I)^-1 W^T (dense, its upper
     triangle only, which is all :func:`cholesky_solve_upper` reads: the strictly-lower off-diagonal blocks are left 0
     and the lower triangle of a diagonal block holds U + lam I less a rig's second-camera pairs only),
-    rhs (6 nc,) = -gc + W (V + lam I)^-1 gp, and Vinv (npt, 3, 3). W must be C-contiguous (E, 6, 3).
+    rhs (6 nc,) = -gc + W (V + lam I)^-1 gp, and Vinv (npt, 3, 3). WT: each observation's W_e (6 x 3) transposed in
+    rows of 8 lanes, C-contiguous (E, 3, 8), WT[e, k, i] = W_e[i, k] (lanes 6 and 7 read, never used: ba_linearize
+    writes 0 there), as :func:`ba_linearize` returns it.
 
     point_obs[point_ptr[q]:point_ptr[q + 1]] lists the observations of free point q whose pose is free.
-    Per point, each observation's W_a^T and Y_a^T = (W_a (V + lam I)^-1)^T are kept in 8-lane rows (scratch WT, YT:
-    (n, 3, 8)), and each pair (a <= b) updates its 6x6 block of S one 8-lane row at a time (the SIMD intrinsics
+    Per point, each observation's Y_a^T = (W_a (V + lam I)^-1)^T is formed in 8-lane rows (scratch YT: (n, 3, 8)) from
+    WT's rows (read in place: until branch lmcpu23 each W_a was transposed into a scratch here, per LM trial), and each
+    pair (a <= b) updates its 6x6 block of S one 8-lane row at a time (the SIMD intrinsics
     above): the block Y_a W_b^T goes to the upper triangle (its transpose W_b Y_a^T when ca > cb), a point's own
     diagonal block gets its upper triangle. Every entry of S receives the products over k = 0, 1, 2 of one pair,
     fused, one point after the other.
@@ -437,7 +445,6 @@ def ba_reduced_system(
             Sb[o + np.uint64(9 * i)] += lam
     Vd = np.zeros((3, 3))
     YT = np.zeros((64, 3, 8))  # YT[a, k, i] = Y_a[i, k], Y_a = W_a (V + lam I)^-1 of the point's observations
-    WT = np.zeros((64, 3, 8))  # WT[a, k, i] = W_a[i, k]
     cs = np.zeros(64, np.uint64)  # free pose index of each observation (unsigned: see _U6)
     es = np.zeros(64, np.int64)  # the observation (row of W)
     for q in range(npt):
@@ -452,17 +459,13 @@ def ba_reduced_system(
             continue
         if YT.shape[0] < n:
             YT = np.zeros((n, 3, 8))
-            WT = np.zeros((n, 3, 8))
             cs = np.zeros(n, np.uint64)
             es = np.zeros(n, np.int64)
         for a in range(n):
             e = point_obs[start + a]
             es[a] = e
             cs[a] = np.uint64(c[e])
-            for i in range(6):
-                for k in range(3):
-                    WT[a, k, i] = W[e, i, k]
-            _y_transposed(YT, 24 * a, WT, 24 * a, Vinv, 9 * q)
+            _y_transposed(YT, 24 * a, WT, 24 * e, Vinv, 9 * q)
             ca = c[e]
             for i in range(6):
                 rhs[6 * ca + i] += YT[a, 0, i] * gp[q, 0] + YT[a, 1, i] * gp[q, 1] + YT[a, 2, i] * gp[q, 2]
@@ -471,17 +474,19 @@ def ba_reduced_system(
             for b in range(a, n):
                 cb = cs[b]
                 if ca < cb:  # block (ca, cb)[i, jj] -= Y_a[i] . W_b[jj]
-                    _sub_block_yw(Sb, base + (ca * unc + cb) * _BLOCK_DOUBLES, _ROW_DOUBLES, YT, 24 * a, WT, 24 * b)
+                    _sub_block_yw(Sb, base + (ca * unc + cb) * _BLOCK_DOUBLES, _ROW_DOUBLES, YT, 24 * a, WT, 24 * es[b])
                 elif ca > cb:  # block (cb, ca)[jj, i] -= W_b[jj] . Y_a[i]
-                    _sub_block_wy(Sb, base + (cb * unc + ca) * _BLOCK_DOUBLES, _ROW_DOUBLES, W, 18 * es[b], YT, 24 * a)
+                    _sub_block_wy(Sb, base + (cb * unc + ca) * _BLOCK_DOUBLES, _ROW_DOUBLES, WT, 24 * es[b], YT, 24 * a)
                 elif a == b:  # the point's own diagonal block: its upper triangle (the Cholesky kernel reads no other)
-                    _sub_block_diag(Sb, base + (ca * unc + ca) * _BLOCK_DOUBLES, _ROW_DOUBLES, YT, 24 * a, WT, 24 * b)
+                    _sub_block_diag(
+                        Sb, base + (ca * unc + ca) * _BLOCK_DOUBLES, _ROW_DOUBLES, YT, 24 * a, WT, 24 * es[b]
+                    )
                 else:  # one keyframe observes the point twice (a rig's second camera): both halves of the block
                     eb = es[b]
                     o = base + (ca * unc + ca) * _BLOCK_DOUBLES
                     for i in range(6):
                         for jj in range(6):
-                            v = YT[a, 0, i] * W[eb, jj, 0] + YT[a, 1, i] * W[eb, jj, 1] + YT[a, 2, i] * W[eb, jj, 2]
+                            v = YT[a, 0, i] * WT[eb, 0, jj] + YT[a, 1, i] * WT[eb, 1, jj] + YT[a, 2, i] * WT[eb, 2, jj]
                             Sb[o + np.uint64(8 * i + jj)] -= v
                             Sb[o + np.uint64(8 * jj + i)] -= v
     S = np.zeros((n6, n6))
@@ -537,9 +542,10 @@ def cholesky_solve_upper(S: F64, rhs: F64) -> F64:  # pragma: no cover - compile
 
 @numba.njit(cache=True, nogil=True)
 def ba_back_substitute(
-    dc: F64, Vinv: F64, W: F64, gp: F64, c: I64, point_ptr: I64, point_obs: I64
+    dc: F64, Vinv: F64, WT: F64, gp: F64, c: I64, point_ptr: I64, point_obs: I64
 ) -> F64:  # pragma: no cover - compiled
-    """dp (npt, 3) = Vinv_q (-gp_q - sum_e W_e^T dc_(c_e)) over the observations of each free point."""
+    """dp (npt, 3) = Vinv_q (-gp_q - sum_e W_e^T dc_(c_e)) over the observations of each free point (WT (E, 3, 8):
+    W_e transposed, :func:`ba_linearize`'s layout; row i of W_e^T is WT[e, i, :6])."""
     npt = Vinv.shape[0]
     dp = np.zeros((npt, 3))
     t = np.zeros(3)
@@ -552,7 +558,7 @@ def ba_back_substitute(
             for i in range(3):
                 s = 0.0
                 for k in range(6):
-                    s += W[e, k, i] * dc[base + k]
+                    s += WT[e, i, k] * dc[base + k]
                 t[i] -= s
         for i in range(3):
             dp[q, i] = Vinv[q, i, 0] * t[0] + Vinv[q, i, 1] * t[1] + Vinv[q, i, 2] * t[2]
@@ -561,7 +567,7 @@ def ba_back_substitute(
 
 @numba.njit(cache=True, nogil=True)
 def ba_solve_dense(
-    U: F64, V: F64, W: F64, gc: F64, gp: F64, lam: float, c: I64, point_ptr: I64, point_obs: I64
+    U: F64, V: F64, WT: F64, gc: F64, gp: F64, lam: float, c: I64, point_ptr: I64, point_obs: I64
 ) -> F64:  # pragma: no cover - compiled
     """The LM's damped step through the dense Schur complement in one compiled call (BundleSolver.solve):
     :func:`ba_reduced_system`, :func:`cholesky_solve_upper`, :func:`ba_back_substitute`, -> h (6 nc + 3 npt,) =
@@ -572,14 +578,14 @@ def ba_solve_dense(
     so h is theirs bit for bit (each keeps its own compile flags: the reduced system's fast-math flags are on its
     instructions); what goes is the Python between them (three dispatches of nine array arguments, the finiteness
     test's numpy calls, the concatenation) once per LM trial."""
-    S, rhs, Vinv = ba_reduced_system(U, V, W, gc, gp, lam, c, point_ptr, point_obs)
+    S, rhs, Vinv = ba_reduced_system(U, V, WT, gc, gp, lam, c, point_ptr, point_obs)
     dc = cholesky_solve_upper(S, rhs)
     n = dc.shape[0]
     npt = Vinv.shape[0]
     for i in range(n):
         if not np.isfinite(dc[i]):
             return np.full(n + 3 * npt, np.nan)
-    dp = ba_back_substitute(dc, Vinv, W, gp, c, point_ptr, point_obs)
+    dp = ba_back_substitute(dc, Vinv, WT, gp, c, point_ptr, point_obs)
     h = np.empty(n + 3 * npt)
     h[:n] = dc
     h[n:] = dp.ravel()

@@ -73,6 +73,13 @@ def reduced_system_reference(
     return S, rhs, Vinv
 
 
+def as_wt(W: F64) -> F64:
+    """(E, 6, 3) blocks -> the kernels' layout (ba_linearize's WT (E, 3, 8)): transposed, lanes 6 and 7 zero."""
+    WT = np.zeros((W.shape[0], 3, 8))
+    WT[:, :, :6] = W.transpose(0, 2, 1)
+    return WT
+
+
 def random_problem(seed: int, nc: int, npt: int, twice: bool) -> tuple:
     """A random reduced-system input: each point observed by 1..nc free poses in a random order (as a local BA's
     keyframe-id order against its free-pose order), ``twice``: some poses observe a point a second time (a rig)."""
@@ -114,7 +121,7 @@ def test_reduced_system_is_the_reference(seed: int, twice: bool) -> None:
     scale, where a wrong pair or a missed transposition would be off by O(1)), V^-1 likewise; the blocks strictly
     below the diagonal blocks are left 0."""
     args = random_problem(seed, nc=7, npt=60, twice=twice)
-    got, want = ba_reduced_system(*args), reduced_system_reference(*args)
+    got, want = ba_reduced_system(*args[:2], as_wt(args[2]), *args[3:]), reduced_system_reference(*args)
     upper = np.triu(np.ones(want[0].shape, bool))
     assert got[0].shape == want[0].shape
     scale = np.abs(want[0][upper]).max()
@@ -141,7 +148,7 @@ def test_reduced_system_pair_blocks_to_the_bit(seed: int) -> None:
     U + lam I, every block below the diagonal blocks 0. (One rounding more or less, or another order, would differ.)"""
     U, V, W, gc, gp, lam, c, ptr, obs = random_problem(seed, nc=5, npt=30, twice=False)
     nc, npt = U.shape[0], V.shape[0]
-    S, _, Vinv = ba_reduced_system(U, V, W, gc, gp, lam, c, ptr, obs)
+    S, _, Vinv = ba_reduced_system(U, V, as_wt(W), gc, gp, lam, c, ptr, obs)
     want = np.zeros((6 * nc, 6 * nc))
     for k in range(nc):
         want[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] = U[k]
@@ -184,7 +191,7 @@ def test_reduced_system_is_the_schur_complement() -> None:
     for k in range(nc):
         Ud[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] = U[k]
     S_want = Ud + lam * np.eye(6 * nc) - Wd @ Vi @ Wd.T
-    S, rhs, _ = ba_reduced_system(U, V, W, gc, gp, lam, c, ptr, obs)
+    S, rhs, _ = ba_reduced_system(U, V, as_wt(W), gc, gp, lam, c, ptr, obs)
     upper = np.triu(np.ones((6 * nc, 6 * nc), bool))
     np.testing.assert_allclose(S[upper], S_want[upper], rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(rhs, -gc.ravel() + Wd @ Vi @ gp.ravel(), rtol=1e-10, atol=1e-10)

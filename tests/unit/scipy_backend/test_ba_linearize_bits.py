@@ -155,16 +155,21 @@ def linearize_inputs(seed: int, fisheye: bool, robust: bool, K: int = 6, M: int 
 )
 def test_linearize_is_the_former_loops_to_the_bit(seed: int, fisheye: bool, robust: bool) -> None:
     """U, V, W, gc, gp and the cost equal the former loops' in every bit (a changed summation order or a skipped
-    product that was read would show in the last bits); W's rows of observations with a fixed end are zero."""
+    product that was read would show in the last bits); W comes transposed in rows of 8 lanes (WT (E, 3, 8), lanes 6
+    and 7 zero); W's rows of observations with a fixed end are zero."""
     args = linearize_inputs(seed, fisheye, robust)
-    got, want = ba_linearize(*args), _former_linearize(*args)
+    got, want = list(ba_linearize(*args)), _former_linearize(*args)
+    WT = got[2]
+    assert WT.shape == (want[2].shape[0], 3, 8) and WT.flags.c_contiguous
+    assert not WT[:, :, 6:].any()
+    got[2] = WT[:, :, :6].transpose(0, 2, 1)
     for g, w in zip(got[:5], want[:5], strict=True):
         assert g.shape == w.shape
         np.testing.assert_array_equal(g.view(np.int64), w.view(np.int64))
     assert got[5] == want[5]
     c, p = args[5], args[6]
-    assert (c < 0).any() and (p < 0).any() and (got[0] != 0.0).any()
-    assert not got[2][(c < 0) | (p < 0)].any()
+    assert (c < 0).any() and (p < 0).any() and (got[0] != 0.0).any() and got[2].any()
+    assert not WT[(c < 0) | (p < 0)].any()
     if robust:
         plain = list(args)
         plain[13] = False

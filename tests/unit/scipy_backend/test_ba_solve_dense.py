@@ -19,7 +19,7 @@ F64 = np.ndarray
 def _former_step(U: F64, V: F64, W: F64, gc: F64, gp: F64, lam: float, c: F64, ptr: F64, obs: F64) -> F64:
     """BundleSolver.solve's dense branch as it was (slamkit ed54e19)."""
     n, npt = 6 * U.shape[0], V.shape[0]
-    S, rhs, Vinv = ba_reduced_system(U, V, W, gc, gp, lam, c, ptr, obs)
+    S, rhs, Vinv = ba_reduced_system(U, V, W, gc, gp, lam, c, ptr, obs)  # W: ba_linearize's WT (E, 3, 8)
     dc = cholesky_solve_upper(S, rhs)
     if not np.all(np.isfinite(dc)):
         return np.full(n + 3 * npt, np.nan)
@@ -53,10 +53,12 @@ def _system(seed: int, nc: int, npt: int, indefinite: bool = False) -> tuple:
     W = np.einsum("eai,eaj->eij", Jc, Jp)
     if indefinite:
         U[nc // 2] = -U[nc // 2] - np.eye(6)
+    WT = np.zeros((E, 3, 8))  # ba_linearize's layout: W transposed, lanes 6 and 7 zero
+    WT[:, :, :6] = W[np.argsort(order)].transpose(0, 2, 1)
     return (
         U,
         V,
-        np.ascontiguousarray(W[np.argsort(order)]),
+        WT,
         rng.normal(size=(nc, 6)),
         rng.normal(size=(npt, 3)),
         float(rng.uniform(1e-3, 10.0)),
@@ -73,6 +75,35 @@ def test_dense_step_is_the_former_solve_to_the_bit(seed: int, nc: int, npt: int)
     want = _former_step(*args)
     assert got.shape == (6 * nc + 3 * npt,)
     assert np.all(np.isfinite(want))
+    assert np.array_equal(got.view(np.uint64), want.view(np.uint64))
+
+
+def _back_substitute_reference(dc: F64, Vinv: F64, W: F64, gp: F64, c: F64, ptr: F64, obs: F64) -> F64:
+    """dp_q = Vinv_q (-gp_q - sum_e W_e^T dc_(c_e)) in Python floats, from the (E, 6, 3) blocks W: each W_e^T dc term
+    summed over k = 0..5 from 0.0, then subtracted, observation by observation (the kernel's order, no fusion)."""
+    dp = np.zeros((Vinv.shape[0], 3))
+    for q in range(Vinv.shape[0]):
+        t = [-float(gp[q, i]) for i in range(3)]
+        for e in obs[ptr[q] : ptr[q + 1]]:
+            for i in range(3):
+                s = 0.0
+                for k in range(6):
+                    s += float(W[e, k, i]) * float(dc[6 * c[e] + k])
+                t[i] -= s
+        for i in range(3):
+            dp[q, i] = float(Vinv[q, i, 0]) * t[0] + float(Vinv[q, i, 1]) * t[1] + float(Vinv[q, i, 2]) * t[2]
+    return dp
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_back_substitution_reads_the_transposed_blocks_to_the_bit(seed: int) -> None:
+    """ba_back_substitute on ba_linearize's WT layout equals the reference on the (E, 6, 3) blocks, every bit."""
+    U, V, WT, _, gp, lam, c, ptr, obs = _system(seed, 8, 70)
+    rng = np.random.default_rng(seed)
+    dc = rng.normal(size=6 * U.shape[0])
+    Vinv = np.linalg.inv(V + lam * np.eye(3))
+    got = ba_back_substitute(dc, Vinv, WT, gp, c, ptr, obs)
+    want = _back_substitute_reference(dc, Vinv, WT[:, :, :6].transpose(0, 2, 1), gp, c, ptr, obs)
     assert np.array_equal(got.view(np.uint64), want.view(np.uint64))
 
 

@@ -2,7 +2,9 @@
 into the dense matrix, against its former form accumulating in the dense matrix directly (slamkit 6c129bc), compiled
 here with the same flags and the same SIMD intrinsics: S (every entry, the lower triangle included), rhs and V^-1 must
 be equal to the bit, with and without a keyframe observing a point twice (a rig's scalar path), for several sizes
-(one free pose; more than 64 observations of one point, which regrows the per-point scratch)."""
+(one free pose; more than 64 observations of one point, which regrows the per-point scratch). Since branch lmcpu23
+the kernel reads W as ba_linearize returns it, transposed in rows of 8 lanes (WT (E, 3, 8)); the former form here
+takes the (E, 6, 3) blocks and transposes them per point, with its own instance of the W-rows intrinsic."""
 
 from __future__ import annotations
 
@@ -13,12 +15,22 @@ from slamkit_scipy.kernels import (
     _SCHUR_FASTMATH,
     _U6,
     _inv3,
+    _make_block_update,
     _sub_block_diag,
-    _sub_block_wy,
     _sub_block_yw,
     _y_transposed,
     ba_reduced_system,
 )
+
+#: W_b Y_a^T into the block (cb, ca) with A = W_b read from the (E, 6, 3) blocks (a_row 3, a_col 1), as before lmcpu23
+_sub_block_wy = _make_block_update(2, 3, 1, upper=False)
+
+
+def as_wt(W: np.ndarray) -> np.ndarray:
+    """(E, 6, 3) blocks -> ba_linearize's layout (E, 3, 8): transposed, lanes 6 and 7 zero."""
+    WT = np.zeros((W.shape[0], 3, 8))
+    WT[:, :, :6] = W.transpose(0, 2, 1)
+    return WT
 
 
 @numba.njit(nogil=True, fastmath=_SCHUR_FASTMATH)
@@ -133,7 +145,7 @@ def test_blocked_reduced_system_is_the_former_to_the_bit(
     seed: int, nc: int, npt: int, twice: bool, max_obs: int
 ) -> None:
     args = _problem(seed, nc, npt, twice, max_obs)
-    got = ba_reduced_system(*args)
+    got = ba_reduced_system(*args[:2], as_wt(args[2]), *args[3:])
     want = _former_reduced_system(*args)
     for g, w in zip(got, want, strict=True):
         assert g.shape == w.shape
