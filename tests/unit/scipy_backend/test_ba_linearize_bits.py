@@ -5,6 +5,8 @@ robust and plain weights, and fixed poses and points."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 import pytest
@@ -158,8 +160,9 @@ def test_linearize_is_the_former_loops_to_the_bit(seed: int, fisheye: bool, robu
     product that was read would show in the last bits); W comes transposed in rows of 8 lanes (WT (E, 3, 8), lanes 6
     and 7 zero); W's rows of observations with a fixed end are zero."""
     args = linearize_inputs(seed, fisheye, robust)
-    got, want = list(ba_linearize(*args)), _former_linearize(*args)
-    WT = got[2]
+    U, V, WT, gc, gp, cost = ba_linearize(*args)
+    want = _former_linearize(*args)
+    got: list[Any] = [U, V, WT, gc, gp, cost]
     assert WT.shape == (want[2].shape[0], 3, 8) and WT.flags.c_contiguous
     assert not WT[:, :, 6:].any()
     got[2] = WT[:, :, :6].transpose(0, 2, 1)
