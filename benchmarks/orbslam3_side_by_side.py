@@ -7,6 +7,10 @@ Usage::
     python benchmarks/orbslam3_side_by_side.py kitti ../shared/datasets/kitti --sequence 07 \\
         --peers ../peers --runs 3 --out side_by_side/kitti07 -- +experiment=kitti07
 
+``--stride N`` (TUM) gives both systems every Nth frame of the sequence (a folder ``OUT/strideN/<name>`` whose
+rgb.txt lists lines 0, N, 2N, ... and links the rest): N times the motion between frames, for a robustness figure
+on the same footage.
+
 ORB-SLAM3 is the C++ inside the PyPI wheel ``pyorbslam3`` (GPL-3.0), run by the peers' runner
 ``run_pyorbslam3.py`` with the Python of a virtual environment that has the wheel (``--peers DIR`` holds the
 runner, ``configs/`` with ORB-SLAM3 settings files and ``vocab/ORBvoc_local.txt``; ``--venv`` defaults to
