@@ -7,6 +7,10 @@ Usage::
     python benchmarks/orbslam3_side_by_side.py kitti ../shared/datasets/kitti --sequence 07 \\
         --peers ../peers --runs 3 --out side_by_side/kitti07 -- +experiment=kitti07
 
+``--stride N`` (TUM) gives both systems every Nth frame of the sequence (a folder ``OUT/strideN/<name>`` whose
+rgb.txt lists lines 0, N, 2N, ... and links the rest): N times the motion between frames, for a robustness figure
+on the same footage.
+
 ORB-SLAM3 is the C++ inside the PyPI wheel ``pyorbslam3`` (GPL-3.0), run by the peers' runner
 ``run_pyorbslam3.py`` with the Python of a virtual environment that has the wheel (``--peers DIR`` holds the
 runner, ``configs/`` with ORB-SLAM3 settings files and ``vocab/ORBvoc_local.txt``; ``--venv`` defaults to
@@ -124,15 +128,35 @@ def tum_timestamps(seq: Path) -> list[float]:
     return out
 
 
+def strided_tum_sequence(seq: Path, stride: int, out: Path) -> Path:
+    """A TUM sequence folder under ``out`` holding every ``stride``-th colour frame of ``seq`` (its rgb.txt lines 0,
+    stride, 2 stride, ... in file order; the images, depth and ground truth linked, not copied): the same scene with
+    ``stride`` times the motion between frames, for both systems. Named as ``seq`` (the TUM reader takes the camera
+    from the folder name); returns its path."""
+    folder = out / f"stride{stride}" / seq.name
+    folder.mkdir(parents=True, exist_ok=True)
+    lines = (seq / "rgb.txt").read_text().splitlines()
+    comments = [line for line in lines if line.startswith("#")]
+    frames = [line for line in lines if line.strip() and not line.startswith("#")]
+    header = f"# every {stride}th frame of {seq / 'rgb.txt'} (orbslam3_side_by_side.py --stride {stride})"
+    (folder / "rgb.txt").write_text("\n".join([*comments, header, *frames[::stride]]) + "\n")
+    for entry in seq.iterdir():
+        link = folder / entry.name
+        if entry.name != "rgb.txt" and not link.exists():
+            link.symlink_to(entry.resolve())
+    return folder
+
+
 def make_sequence(args: argparse.Namespace) -> Sequence:
     """The sequence described by the command line (dataset kind, path, KITTI sequence, --gt)."""
     path: Path = args.path.resolve()
     if args.kind == "tum":
+        gt = (args.gt or path / "groundtruth.txt").resolve()
+        if args.stride > 1:
+            path = strided_tum_sequence(path, args.stride, args.out.resolve())
         ts = tum_timestamps(path)
-        gt = args.gt or path / "groundtruth.txt"
-        return Sequence(
-            path.name, path, "tum", ts, gt, None, ("dataset=tum_rgbd", f"dataset.root={path}"), SETTINGS["tum"]
-        )
+        name = path.name if args.stride == 1 else f"{path.name}, every {args.stride}th frame"
+        return Sequence(name, path, "tum", ts, gt, None, ("dataset=tum_rgbd", f"dataset.root={path}"), SETTINGS["tum"])
     if args.kind == "kitti":
         seq = path / "sequences" / args.sequence
         times = [float(x) for x in (seq / "times.txt").read_text().split()]
@@ -343,6 +367,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--resume", action="store_true", help="read the runs already complete in OUT instead of rerunning")
     p.add_argument("--runner", default="sequential", help="slamkit runner (default sequential: deterministic)")
     p.add_argument("--max-frames", type=int, default=0, help="stop both after this many frames (0: all)")
+    p.add_argument(
+        "--stride",
+        type=int,
+        default=1,
+        help="TUM only: both systems read every STRIDE-th frame (STRIDE times the motion between frames; default 1)",
+    )
     p.add_argument("--only", choices=("both", "orbslam3", "slamkit"), default="both")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     p.add_argument("--out", type=Path, required=True, help="output folder")
@@ -359,17 +389,21 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if len(seeds) > args.runs:
         p.error(f"--seeds gives {len(seeds)} seeds for --runs {args.runs}")
     args.seed_list = seeds
+    if args.stride < 1:
+        p.error(f"--stride {args.stride}: expected a whole number of frames >= 1")
+    if args.stride > 1 and args.kind != "tum":
+        p.error(f"--stride is for TUM sequences only (got {args.kind})")
     return args
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    seq = make_sequence(args)
     if args.only != "slamkit":
         why = skip_reason(args)
         if why:
             print(f"orbslam3_side_by_side: skipped, ORB-SLAM3 is not available: {why}")
             return 0
+    seq = make_sequence(args)
     out: Path = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     env = {"cpu": cpu_model(), "date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "argv": sys.argv}

@@ -127,3 +127,28 @@ def test_slamkit_overrides_after_a_double_dash(tmp_path: Path) -> None:
         ["kitti", str(tmp_path), "--runs", "2", "--out", str(tmp_path / "o"), "--", "+experiment=kitti07"]
     )
     assert args.overrides == ["+experiment=kitti07"] and args.seed_list == [0, 1] and args.sequence == "07"
+
+
+def test_a_stride_gives_both_systems_every_nth_frame_of_the_sequence(sequence: Path, tmp_path: Path) -> None:
+    """``--stride 3`` (TUM): a sequence folder whose rgb.txt lists frames 0, 3, 6, ... of the original, read alike by
+    slamkit's TUM reader, with the original's ground truth; a stride on KITTI or below 1 is refused."""
+    import cv2
+
+    from slamkit.io.tum_rgbd import TumRgbdDataset
+
+    sbs = load_script()
+    (sequence / "rgb").mkdir()
+    t, _, _ = ground_truth(N_FRAMES)
+    for ti in t:
+        cv2.imwrite(str(sequence / "rgb" / f"{ti:.6f}.png"), np.full((8, 8), 128, np.uint8))
+    seq = sbs.make_sequence(sbs.parse_args(["tum", str(sequence), "--stride", "3", "--out", str(tmp_path / "out")]))
+    assert seq.orb_seq != sequence and seq.orb_seq.name == sequence.name  # the camera comes from the folder name
+    assert seq.timestamps_s == pytest.approx(t[::3].tolist(), abs=1e-6)
+    assert seq.gt == (sequence / "groundtruth.txt").resolve() and "every 3th frame" in seq.name
+    assert f"dataset.root={seq.orb_seq}" in seq.slamkit_overrides
+    reader = TumRgbdDataset(root=str(seq.orb_seq), use_depth=False)
+    assert reader.timestamps() == pytest.approx(t[::3], abs=1e-6)
+    assert (seq.orb_seq / "rgb").resolve() == (sequence / "rgb").resolve()
+    for bad in (["tum", str(sequence), "--stride", "0"], ["kitti", str(tmp_path), "--stride", "2"]):
+        with pytest.raises(SystemExit):
+            sbs.parse_args([*bad, "--out", str(tmp_path / "o")])
