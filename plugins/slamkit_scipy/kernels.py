@@ -73,11 +73,12 @@ def ba_linearize(
     """-> U (nc, 6, 6), V (npt, 3, 3), WT (E, 3, 8), gc (nc, 6), gp (npt, 3), robust cost. WT holds each
     observation's W = J_pose^T w J_point (6 x 3) transposed in rows of 8 lanes, WT[e, k, i] = W_e[i, k] for i < 6 and
     0 in lanes 6 and 7 (all 0 unless both ends are free): the layout the reduced camera system's 8-lane updates read,
-    written here once per linearization instead of transposed there once per LM trial (branch lmcpu23). Blocks are J^T w J and J^T w r with w = info * rho'(chi2) (IRLS Huber when ``robust``).
+    written here once per linearization instead of transposed there once per LM trial (branch lmcpu23). Blocks are
+    J^T w J and J^T w r with w = info * rho'(chi2) (IRLS Huber when ``robust``).
     Compiled with contraction (fastmath "contract": a multiply and the add it feeds may become one fused multiply-add,
     one rounding instead of two; 0.93x the kernel's time on captured fr1 local BAs, U within ~5e-12 relative).
-    The pose Jacobian of an observation by a fixed pose is not formed (nothing reads it), W is allocated empty and
-    only the rows of observations with a fixed end are zeroed, and the blocks' sums over the residual rows are
+    The pose Jacobian of an observation by a fixed pose is not formed (nothing reads it), WT is allocated empty and
+    only its lanes 6 and 7, and the rows of observations with a fixed end, are zeroed, and the blocks' sums over the residual rows are
     written out (rows 0 and 1, row 2 when stereo; fixed block sizes, no loop over a run-time row count innermost):
     the same products summed in the same order from 0.0, so every value returned is unchanged to the bit
     (tests/unit/scipy_backend/test_ba_linearize_bits.py compares them with the former loops); 0.88x the kernel's
