@@ -277,9 +277,7 @@ class BundleSolver:
             st.np_,
         )
         if st.rig is not None:
-            U, V, W, gc, gp, f = rig_linearize(*shared, st.rig.cam, st.rig.fish, st.rig.Rx, st.rig.tx)
-            WT = np.zeros((W.shape[0], 3, 8))  # the rig kernel's (E, 6, 3) blocks in ba_linearize's layout
-            WT[:, :, :6] = W.transpose(0, 2, 1)
+            U, V, WT, gc, gp, f = rig_linearize(*shared, st.rig.cam, st.rig.fish, st.rig.Rx, st.rig.tx)
         else:
             U, V, WT, gc, gp, f = ba_linearize(*shared, st.cam, o.kb is not None)
         g = np.concatenate([gc.ravel(), gp.ravel()])

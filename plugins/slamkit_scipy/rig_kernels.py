@@ -6,9 +6,8 @@ camera that saw it (the identity for camera 1, T_c2_c1 for camera 2), its own mo
 of the observing camera; ``fish[e]``: Kannala-Brandt, else the pinhole; ``intr`` is not read) and, for camera-1 pinhole observations only, a right
 coordinate. With p1 = R_k X + t_k (body camera) and p = Rx p1 + tx (observing camera) the residual is the projection
 of p minus the observation; with A = d r / d p, A' = A Rx: d r / d xi = (cross(p1, A'_row), A'_row) for the body
-pose's left perturbation and d r / d X = A' R_k. The blocks are ``kernels.ba_linearize``'s, W as (E, 6, 3) blocks
-(ba_linearize writes them transposed in 8-lane rows; slamkit_scipy.bundle converts these once per linearization), so
-the Schur complement and back-substitution kernels are shared.
+pose's left perturbation and d r / d X = A' R_k. The blocks have the layout of ``kernels.ba_linearize`` (W transposed
+in 8-lane rows), so the Schur complement and back-substitution kernels are shared.
 """
 
 from __future__ import annotations
@@ -145,12 +144,13 @@ def rig_linearize(
     Rx: F64,
     tx: F64,
 ) -> tuple[F64, F64, F64, F64, F64, float]:  # pragma: no cover - compiled
-    """-> U (nc, 6, 6), V (npt, 3, 3), W (E, 6, 3), gc (nc, 6), gp (npt, 3), robust cost: kernels.ba_linearize's
-    blocks for observations of either camera of a rig, W not transposed (module docstring)."""
+    """-> U (nc, 6, 6), V (npt, 3, 3), WT (E, 3, 8), gc (nc, 6), gp (npt, 3), robust cost: kernels.ba_linearize's
+    blocks, in its layout (each W transposed in 8-lane rows, lanes 6 and 7 zero), for observations of either camera of
+    a rig (module docstring)."""
     E = obs_pose.shape[0]
     U = np.zeros((nc, 6, 6))
     V = np.zeros((npt, 3, 3))
-    W = np.zeros((E, 6, 3))
+    WT = np.zeros((E, 3, 8))
     gc = np.zeros((nc, 6))
     gp = np.zeros((npt, 3))
     cost = 0.0
@@ -220,7 +220,7 @@ def rig_linearize(
                     s = 0.0
                     for a in range(rows):
                         s += Jc[a, i] * Jp[a, jj]
-                    W[e, i, jj] = w * s
+                    WT[e, jj, i] = w * s
     for q in range(nc):
         for i in range(6):
             for jj in range(i):
@@ -229,4 +229,4 @@ def rig_linearize(
         for i in range(3):
             for jj in range(i):
                 V[q, i, jj] = V[q, jj, i]
-    return U, V, W, gc, gp, cost
+    return U, V, WT, gc, gp, cost
